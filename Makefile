@@ -1,0 +1,30 @@
+# The two commands a newcomer runs (see README): `make demo` and `make test`.
+# Both create ./.venv on first use and install the toolkit into it.
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+DEMO ?= demo
+
+.PHONY: demo test setup clean
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --upgrade pip
+
+$(VENV)/.installed: pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install -e '.[test]'
+	touch $@
+
+setup: $(VENV)/.installed
+
+test: setup
+	$(BIN)/python -m pytest -q
+
+demo: setup
+	$(BIN)/sarah-fixtures $(DEMO)/raw --sessions 5 --seconds 60 --seed 0
+	$(BIN)/sarah-prep $(DEMO)/raw $(DEMO)/shards
+	$(BIN)/sarah-train --stage all --config tiny --shards $(DEMO)/shards --out $(DEMO)/runs/tiny
+	$(BIN)/sarah-generate --run $(DEMO)/runs/tiny --shards $(DEMO)/shards --split test --gaze 0.8 --out $(DEMO)/generated
+
+clean:
+	rm -rf $(VENV) $(DEMO)

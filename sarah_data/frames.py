@@ -1,0 +1,85 @@
+"""The world frame and per-window normalization.
+
+World convention (SMPL-X's, and Embody 3D's): y up, metres, floor at y = 0; a body in the rest
+pose faces +z. Floor-plane quantities are (x, z) pairs.
+
+A window is normalized by a rotation about y and a translation in the floor plane that put the
+agent's root (pelvis), at the window's first frame, at the origin facing +z (paper 3.1). Height is
+left alone so the floor stays at y = 0. Shards keep world coordinates; this runs when data is read.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def yaw_of(rotation: np.ndarray) -> np.ndarray:
+    """Heading angle about +y of the rotation's +z axis (0 = facing +z, pi/2 = facing +x)."""
+    forward = np.asarray(rotation)[..., :, 2]
+    return np.arctan2(forward[..., 0], forward[..., 2])
+
+
+def rotation_about_y(angle) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    zero, one = np.zeros_like(c), np.ones_like(c)
+    return np.stack([np.stack([c, zero, s], -1), np.stack([zero, one, zero], -1),
+                     np.stack([-s, zero, c], -1)], -2)
+
+
+@dataclass(frozen=True)
+class WindowTransform:
+    """World -> window: p' = R_y(-yaw) (p - (x, 0, z))."""
+
+    yaw: float
+    x: float
+    z: float
+
+    @property
+    def _to_window(self) -> np.ndarray:
+        return rotation_about_y(-self.yaw)
+
+    def apply_points(self, points: np.ndarray) -> np.ndarray:
+        points = np.asarray(points)
+        offset = np.array([self.x, 0.0, self.z], dtype=points.dtype)
+        return ((points - offset) @ self._to_window.T.astype(points.dtype)).astype(points.dtype)
+
+    def invert_points(self, points: np.ndarray) -> np.ndarray:
+        points = np.asarray(points)
+        offset = np.array([self.x, 0.0, self.z], dtype=points.dtype)
+        return (points @ self._to_window.astype(points.dtype) + offset).astype(points.dtype)
+
+    def apply_floor(self, floor_xz: np.ndarray) -> np.ndarray:
+        floor_xz = np.asarray(floor_xz)
+        lifted = np.stack([floor_xz[..., 0], np.zeros_like(floor_xz[..., 0]), floor_xz[..., 1]], -1)
+        return self.apply_points(lifted)[..., [0, 2]]
+
+    def invert_floor(self, floor_xz: np.ndarray) -> np.ndarray:
+        floor_xz = np.asarray(floor_xz)
+        lifted = np.stack([floor_xz[..., 0], np.zeros_like(floor_xz[..., 0]), floor_xz[..., 1]], -1)
+        return self.invert_points(lifted)[..., [0, 2]]
+
+    def apply_rotations(self, rotations: np.ndarray) -> np.ndarray:
+        rotations = np.asarray(rotations)
+        return (self._to_window.astype(rotations.dtype) @ rotations).astype(rotations.dtype)
+
+    def invert_rotations(self, rotations: np.ndarray) -> np.ndarray:
+        rotations = np.asarray(rotations)
+        return (self._to_window.T.astype(rotations.dtype) @ rotations).astype(rotations.dtype)
+
+    def as_array(self) -> np.ndarray:
+        """(4,) float32 [yaw, x, z, 0], the form datasets and checkpoints carry."""
+        return np.array([self.yaw, self.x, self.z, 0.0], dtype=np.float32)
+
+    @classmethod
+    def from_array(cls, values) -> "WindowTransform":
+        values = np.asarray(values, dtype=np.float64)
+        return cls(float(values[0]), float(values[1]), float(values[2]))
+
+
+def window_transform(root_position: np.ndarray, root_rotation: np.ndarray) -> WindowTransform:
+    """The transform that puts a root at (root_position, root_rotation) at the origin facing +z."""
+    root_position = np.asarray(root_position, dtype=np.float64)
+    return WindowTransform(float(yaw_of(np.asarray(root_rotation, dtype=np.float64))),
+                           float(root_position[0]), float(root_position[2]))
