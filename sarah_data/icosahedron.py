@@ -29,8 +29,10 @@ def encode(positions, rotations, radius: float = DEFAULT_RADIUS):
     if isinstance(positions, torch.Tensor):
         template = torch.as_tensor(TEMPLATE * radius, dtype=positions.dtype, device=positions.device)
         return torch.einsum("...ij,vj->...vi", rotations, template) + positions[..., None, :]
-    template = (TEMPLATE * radius).astype(np.result_type(positions, np.float32))
-    return np.einsum("...ij,vj->...vi", rotations, template) + positions[..., None, :]
+    dtype = np.result_type(positions, rotations, np.float32)
+    template = (TEMPLATE * radius).astype(dtype)
+    # (R t_v)^T = t_v^T R^T as one batched matmul: much faster than the equivalent einsum
+    return template @ np.swapaxes(np.asarray(rotations, dtype), -1, -2) + np.asarray(positions, dtype)[..., None, :]
 
 
 def decode(icosahedra):

@@ -1,0 +1,102 @@
+"""sarah-prep: Embody 3D sections (or fixtures) to HDF5 shards; --verify and --info on shards."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from sarah_data.config import PrepConfig
+
+EXIT_NOTHING_WRITTEN = 1
+EXIT_USAGE = 2
+EXIT_STRICT_SKIPS = 3
+
+
+def build_parser() -> argparse.ArgumentParser:
+    defaults = PrepConfig()
+    parser = argparse.ArgumentParser(
+        prog="sarah-prep", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        description="Turn Embody 3D dyadic captures into HDF5 shards: `sarah-prep raw/ shards/`. "
+                    "Bad sequences are reported (terminal and shards/report.json) and skipped.")
+    parser.add_argument("paths", nargs="+", type=Path,
+                        help="input folders (a section with dataset.json, or its parent) then the output folder; "
+                             "with --verify/--info, the shards folder")
+    parser.add_argument("--verify", action="store_true", help="check a shards folder (checksums, schema, manifest)")
+    parser.add_argument("--info", action="store_true", help="print a summary table of a shards folder")
+    parser.add_argument("--body-model", default=None,
+                        help="SMPL-X .npz (or the procedural one); default: the one file under "
+                             "<input>/body_models/, else $SARAH_BODY_MODEL")
+    parser.add_argument("-j", "--jobs", type=int, default=os.cpu_count() or 1, help="parallel worker processes")
+    parser.add_argument("--executor", choices=("process", "ray"), default="process",
+                        help="where per-sequence work runs: local processes, or Ray")
+    parser.add_argument("--ray-address", default=None, help="Ray cluster address (default: start a local instance)")
+    parser.add_argument("--extractors", default=",".join(defaults.extractors),
+                        help="comma-separated audio feature extractors (logmel, hubert-large)")
+    parser.add_argument("--hubert-weights", default=defaults.hubert_weights,
+                        help="local HuBERT-Large weight file (for the hubert-large extractor)")
+    parser.add_argument("--shell-points", type=int, default=defaults.shell_points, help="mesh-shell points per frame")
+    parser.add_argument("--split-seed", type=int, default=defaults.split_seed, help="seed of the session split")
+    parser.add_argument("--max-shard-mb", type=float, default=defaults.max_shard_bytes / 2**20,
+                        help="a shard file closes once it holds about this many MiB")
+    parser.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
+    parser.add_argument("--strict", action="store_true", help="exit non-zero when any input was skipped")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.verify or args.info:
+        return _inspect(args)
+    if len(args.paths) < 2:
+        print("sarah-prep: error: give the input folder(s) and then the output folder", file=sys.stderr)
+        return EXIT_USAGE
+    from sarah_data.prep import PrepError, prepare
+
+    device = args.device
+    if device is None:
+        import torch
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    config = PrepConfig(extractors=tuple(e.strip() for e in args.extractors.split(",") if e.strip()),
+                        hubert_weights=args.hubert_weights, shell_points=args.shell_points,
+                        split_seed=args.split_seed, max_shard_bytes=int(args.max_shard_mb * 2**20),
+                        device=device)
+    try:
+        result = prepare(args.paths[:-1], args.paths[-1], config, body_model=args.body_model,
+                         jobs=args.jobs, executor=args.executor, ray_address=args.ray_address,
+                         progress=not args.no_progress)
+    except PrepError as error:
+        print(f"sarah-prep: error: {error}", file=sys.stderr)
+        return EXIT_USAGE
+    hours = ", ".join(f"{name} {h:.2f} h" for name, h in result.hours.items())
+    rate = result.dyad_seconds / max(result.wall_seconds, 1e-9)
+    print(f"sarah-prep: wrote {len(result.written)} sequences ({hours}) in {len(result.shards)} shard files "
+          f"to {args.paths[-1]}; skipped {len(result.skipped)} (see report.json); "
+          f"{result.wall_seconds:.1f} s, {rate:.0f}x real time")
+    if not result.written:
+        return EXIT_NOTHING_WRITTEN
+    if args.strict and result.skipped:
+        return EXIT_STRICT_SKIPS
+    return 0
+
+
+def _inspect(args) -> int:
+    from sarah_data.shards import format_summary, summarize, verify_shards
+
+    status = 0
+    for folder in args.paths:
+        if args.verify:
+            problems = verify_shards(folder)
+            for problem in problems:
+                print(f"{folder}: {problem}")
+            print(f"{folder}: {'OK' if not problems else f'{len(problems)} problem(s)'}")
+            status = status or (1 if problems else 0)
+        if args.info:
+            print(format_summary(summarize(folder)))
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,259 @@
+"""`sarah-prep raw/ shards/`: raw Embody 3D sections in, HDF5 shards out.
+
+    read the corpus -> split sessions -> process each dyad (any executor) into a work file
+    -> assemble shards per split in sorted order -> train statistics -> manifest, report
+
+Work files (`shards/.work/<sequence>.npz` and a `.json` marker written after it) make a killed
+run resumable: a rerun keeps every sequence whose marker matches its inputs and redoes the rest.
+Shards are assembled from work files in sorted order, so `-j 1`, `-j 8` and a resumed run write
+identical bytes. The work folder is removed once the manifest is written.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import sys
+import time
+from concurrent.futures import Executor, as_completed
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from . import __version__
+from .config import PrepConfig
+from .constants import FPS, JOINT_NAMES
+from .embody3d import Corpus, PairRecord, read_corpus
+from .executors import make_executor
+from .process import TaskResult, fingerprint, run_task
+from .shards import atomic_write_bytes, file_sha256
+from .splits import SPLITS, session_frames_of, split_sessions
+
+BODY_MODEL_ENV = "SARAH_BODY_MODEL"
+BODY_MODEL_FOLDER = "body_models"
+
+
+class PrepError(Exception):
+    """A problem that stops the whole run (as opposed to one bad sequence): one clear line."""
+
+
+@dataclass
+class PrepResult:
+    written: list[str] = field(default_factory=list)
+    skipped: list[dict] = field(default_factory=list)  # {"path"/"sequence", "reason", "kind"}
+    shards: list[dict] = field(default_factory=list)
+    hours: dict[str, float] = field(default_factory=dict)
+    wall_seconds: float = 0.0
+
+    @property
+    def dyad_seconds(self) -> float:
+        return sum(self.hours.values()) * 3600.0
+
+
+def find_sections(inputs: list[Path]) -> list[Path]:
+    """Section folders (holding a dataset.json) among the inputs and their direct subfolders."""
+    sections = []
+    for folder in inputs:
+        folder = Path(folder)
+        if not folder.is_dir():
+            raise PrepError(f"{folder}: not a folder")
+        if (folder / "dataset.json").exists():
+            sections.append(folder)
+        sections += sorted(p.parent for p in folder.glob("*/dataset.json"))
+    if not sections:
+        raise PrepError(f"{', '.join(map(str, inputs))}: no dataset.json found (expected an Embody 3D "
+                        "section folder such as raw/aiagent/ with its dataset.json, or its parent)")
+    return sections
+
+
+def resolve_body_model(inputs: list[Path], explicit: str | None) -> Path:
+    """--body-model, else the one model file under <input>/body_models/, else $SARAH_BODY_MODEL."""
+    if explicit:
+        path = Path(explicit)
+        if not path.is_file():
+            raise PrepError(f"{path}: body model file not found")
+        return path
+    found = sorted({p for folder in inputs for p in Path(folder).glob(f"{BODY_MODEL_FOLDER}/*.npz")})
+    if len(found) == 1:
+        return found[0]
+    if len(found) > 1:
+        raise PrepError(f"several body model files ({', '.join(map(str, found))}): choose one with --body-model")
+    if os.environ.get(BODY_MODEL_ENV):
+        return resolve_body_model(inputs, os.environ[BODY_MODEL_ENV])
+    raise PrepError(
+        "no body model: pass --body-model PATH (your licensed SMPL-X file, e.g. SMPLX_NEUTRAL.npz), "
+        f"put one .npz under {inputs[0]}/{BODY_MODEL_FOLDER}/, or set ${BODY_MODEL_ENV} "
+        "(sarah-fixtures writes a procedural body model there)")
+
+
+def prepare(inputs: list[Path] | Path, out_dir: Path, config: PrepConfig = PrepConfig(), *,
+            body_model: str | None = None, jobs: int = 1, executor: str | Executor = "process",
+            ray_address: str | None = None, progress: bool = True, log=print) -> PrepResult:
+    """Run the whole pipeline; bad sequences are reported and skipped, never fatal."""
+    from .shards import Manifest, ShardWriter, SourceFile, write_manifest
+    from .stats import compute_stats
+
+    started = time.perf_counter()
+    inputs = [Path(p) for p in ([inputs] if isinstance(inputs, (str, Path)) else inputs)]
+    out_dir = Path(out_dir)
+    sections = find_sections(inputs)
+    model_path = resolve_body_model(inputs, body_model)
+    model_sha = file_sha256(model_path)
+    corpus = read_corpus(sections)
+    result = PrepResult()
+    for problem in corpus.problems:
+        _skip(result, log, {"path": str(problem.path), "reason": problem.reason, "kind": "unreadable"})
+    for skip in corpus.skipped:
+        _skip(result, log, {"sequence": skip.sequence, "path": str(skip.path), "reason": skip.reason,
+                            "kind": skip.kind})
+
+    splits = split_sessions(session_frames_of(corpus.pairs), config.split_fractions, config.split_seed)
+    split_of = {session: name for name, sessions in splits.items() for session in sessions}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    work_dir = out_dir / ".work"
+    work_dir.mkdir(exist_ok=True)
+    _remove_temporaries(out_dir)
+
+    results = _run_tasks(corpus.pairs, model_path, model_sha, config, work_dir, jobs, executor,
+                         ray_address, progress)
+    done: dict[str, list[PairRecord]] = {name: [] for name in SPLITS}
+    sources: dict[str, list[dict]] = {}
+    for pair in corpus.pairs:
+        task = results[pair.sequence]
+        for warning in task.warnings:
+            log(f"warning: {warning}")
+        if task.status == "ok":
+            done[split_of[pair.session]].append(pair)
+            sources[pair.sequence] = task.sources
+        else:
+            _skip(result, log, {"sequence": pair.sequence, "reason": task.reason, "kind": task.status,
+                                **({"traceback": task.detail} if task.detail else {})})
+
+    attrs = _shard_attrs(model_path, model_sha, config)
+    shards, entries = [], {}
+    _remove_old_shards(out_dir)
+    for name in SPLITS:
+        with ShardWriter(out_dir, name, attrs, max_bytes=config.max_shard_bytes) as writer:
+            for pair in done[name]:
+                writer.add(_load_work(work_dir, pair, name))
+            shards += writer.close()
+            entries.update(writer.entries)
+    result.shards = [asdict(info) for info in shards]
+    result.written = [p.sequence for name in SPLITS for p in done[name]]
+    result.hours = {name: sum(p.length for p in done[name]) / FPS / 3600 for name in SPLITS}
+    sequences = {seq: replace(entry, sources=tuple(SourceFile(**d) for d in sources[seq]))
+                 for seq, entry in sorted(entries.items())}
+    run_config = {**_jsonable(asdict(config)), "body_model": {"name": model_path.stem, "sha256": model_sha}}
+    write_manifest(out_dir / "manifest.json", Manifest(__version__, run_config, splits, shards, sequences))
+    if result.written:
+        compute_stats(out_dir)  # reads through the manifest, so it comes after it
+    report = {"written": len(result.written), "skipped": result.skipped}
+    atomic_write_bytes(out_dir / "report.json", (json.dumps(report, indent=2, sort_keys=True) + "\n").encode())
+    shutil.rmtree(work_dir, ignore_errors=True)
+    result.wall_seconds = time.perf_counter() - started
+    return result
+
+
+def _run_tasks(pairs, model_path, model_sha, config, work_dir, jobs, executor, ray_address, progress
+               ) -> dict[str, TaskResult]:
+    results: dict[str, TaskResult] = {}
+    todo = []
+    for pair in pairs:
+        reused = _reusable(work_dir, pair, model_sha, config)
+        if reused is not None:
+            results[pair.sequence] = reused
+        else:
+            todo.append(pair)
+    own_executor = not isinstance(executor, Executor)
+    pool = make_executor(executor, jobs, ray_address) if own_executor else executor
+    total = sum(p.length for p in pairs) / FPS
+    bar = tqdm(total=round(total), unit="dyad-s", desc="sarah-prep", disable=not progress,
+               initial=round(sum(p.length for p in pairs if p.sequence in results) / FPS), file=sys.stderr)
+    try:
+        futures = {pool.submit(run_task, pair, str(model_path), model_sha, config, str(work_dir)): pair
+                   for pair in todo}
+        for future in as_completed(futures):
+            pair = futures[future]
+            results[pair.sequence] = future.result()
+            bar.update(round(pair.length / FPS))
+    finally:
+        bar.close()
+        if own_executor:
+            pool.shutdown()
+    return results
+
+
+def _reusable(work_dir: Path, pair: PairRecord, model_sha: str, config: PrepConfig) -> TaskResult | None:
+    marker = work_dir / f"{pair.sequence}.json"
+    if not marker.exists():
+        return None
+    try:
+        saved = json.loads(marker.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    if saved.get("fingerprint") != fingerprint(pair, model_sha, config):
+        return None
+    if saved["status"] == "ok" and not (work_dir / f"{pair.sequence}.npz").exists():
+        return None
+    fields = TaskResult.__dataclass_fields__
+    return TaskResult(**{k: v for k, v in saved.items() if k in fields})
+
+
+def _load_work(work_dir: Path, pair: PairRecord, split: str):
+    from .shards import ProcessedSequence
+
+    with np.load(work_dir / f"{pair.sequence}.npz", allow_pickle=False) as data:
+        arrays = {key: data[key] for key in data.files}
+    return ProcessedSequence.from_arrays(pair.sequence, session=pair.session, split=split,
+                                         persons=list(pair.persons), arrays=arrays)
+
+
+def _shard_attrs(model_path: Path, model_sha: str, config: PrepConfig):
+    from .body import BodyModel
+    from .features import get_extractor
+    from .icosahedron import TEMPLATE
+    from .shards import ShardAttrs
+
+    body = BodyModel.from_file(model_path, device="cpu", shell_points=config.shell_points)
+    extractors = {name: get_extractor(name, **config.extractor_options(name)) for name in config.extractors}
+    return ShardAttrs(
+        toolkit_version=__version__,
+        joint_names=tuple(JOINT_NAMES),
+        icosahedron_template=TEMPLATE,
+        icosahedron_radius=config.icosahedron_radius,
+        shell_vertex_ids=np.asarray(body.shell_ids, dtype=np.int64),
+        body_model_name=model_path.stem,
+        body_model_sha256=model_sha,
+        extractors={name: {"dim": e.dim, **_jsonable(asdict(e.config))} for name, e in extractors.items()},
+    )
+
+
+def _skip(result: PrepResult, log, entry: dict) -> None:
+    result.skipped.append(entry)
+    where = entry.get("sequence") or entry.get("path")
+    reason = entry["reason"]
+    log(f"skipped: {reason}" if where and str(where) in reason else f"skipped: {where}: {reason}")
+
+
+def _remove_temporaries(out_dir: Path) -> None:
+    for path in list(out_dir.glob(".*.tmp-*")) + list((out_dir / ".work").glob(".*.tmp-*")):
+        path.unlink(missing_ok=True)
+
+
+def _remove_old_shards(out_dir: Path) -> None:
+    for name in SPLITS:
+        for path in out_dir.glob(f"{name}-*.h5"):
+            path.unlink()
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    return value

@@ -1,0 +1,136 @@
+"""One dyad, raw files in, model-ready arrays out: the per-sequence task of `sarah-prep`.
+
+The task runs wherever the executor puts it (this process, a spawned worker, a Ray worker), so
+it takes only picklable arguments, loads the body model and feature extractors once per process,
+and writes its result to a work file named after the sequence instead of sending arrays back.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import time
+import traceback
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import gaze, icosahedron
+from .config import PrepConfig
+from .constants import FPS, JOINT
+from .embody3d import PairRecord, load_person
+from .loading import DataProblem
+from .shards import atomic_write_bytes, file_sha256
+
+_MODELS: dict[tuple, object] = {}  # per process: loading a body model or HuBERT once is enough
+
+
+@dataclass
+class TaskResult:
+    """What the parent learns about one sequence; the arrays stay in the work file."""
+
+    sequence: str
+    status: str  # "ok", "skipped" (bad input) or "failed" (a bug: the traceback is kept)
+    reason: str = ""
+    frames: int = 0
+    warnings: list[str] = field(default_factory=list)
+    sources: list[dict] = field(default_factory=list)  # path, bytes, sha256 of every input file
+    detail: str = ""
+
+
+def _body_model(path: str, config: PrepConfig):
+    from .body import BodyModel
+
+    key = ("body", path, config.device, config.shell_points)
+    if key not in _MODELS:
+        _MODELS[key] = BodyModel.from_file(path, device=config.device, shell_points=config.shell_points)
+    return _MODELS[key]
+
+
+def _extractor(name: str, config: PrepConfig):
+    from .features import get_extractor
+
+    options = config.extractor_options(name)
+    key = ("features", name, json.dumps(options, sort_keys=True), config.device)
+    if key not in _MODELS:
+        _MODELS[key] = get_extractor(name, **options).to(config.device)
+    return _MODELS[key]
+
+
+def process_pair(pair: PairRecord, body_model_path: str, config: PrepConfig
+                 ) -> tuple[dict[str, np.ndarray], list[str]]:
+    """Both persons' arrays for one dyad, keyed "<person>/<name>", and the loader's warnings.
+
+    Raises DataProblem for bad input.
+    """
+    from .speaking import speaking_labels
+
+    people = [load_person(pair, person) for person in pair.persons]
+    if any(p.audio is None for p in people):
+        raise DataProblem(pair.folder / pair.sequence, "no audio")
+    body = _body_model(body_model_path, config)
+    posed = [body.forward(p.params, batch_frames=config.body_batch_frames) for p in people]
+    heads = [gaze.head_trajectory(b.eye_mid) for b in posed]
+    arrays: dict[str, np.ndarray] = {}
+    for i, (person, arrays_in, frames_out) in enumerate(zip(pair.persons, people, posed)):
+        partner = 1 - i
+        prefix = f"{person}/"
+        arrays[prefix + "icosahedra"] = icosahedron.encode(
+            frames_out.joints, frames_out.rotations, config.icosahedron_radius).astype(np.float32)
+        arrays[prefix + "shell"] = frames_out.shell.astype(np.float32)
+        arrays[prefix + "head"] = heads[i].astype(np.float32)
+        arrays[prefix + "gaze"] = gaze.gaze_score(frames_out.head_front, frames_out.head_back,
+                                                  heads[partner]).astype(np.float32)
+        arrays[prefix + "speaking"] = speaking_labels(
+            arrays_in.audio, people[partner].audio, config.speaking)[: pair.length].astype(np.uint8)
+        arrays[prefix + "valid"] = arrays_in.valid.astype(np.uint8)
+        arrays[prefix + "root_position"] = frames_out.joints[:, JOINT["pelvis"]].astype(np.float32)
+        arrays[prefix + "root_rotation"] = frames_out.rotations[:, JOINT["pelvis"]].astype(np.float32)
+        for name in config.extractors:
+            arrays[prefix + f"audio/{name}"] = _extractor(name, config).extract(
+                arrays_in.audio, pair.length).astype(np.float32)
+    return arrays, [w for p in people for w in p.warnings]
+
+
+def fingerprint(pair: PairRecord, body_model_sha: str, config: PrepConfig) -> str:
+    """Identifies a work file's inputs: a resumed run reuses a work file only on a match."""
+    stats = [(str(p), os.stat(p).st_size, os.stat(p).st_mtime_ns) for person in pair.persons
+             for p in pair.files[person].paths() if p.exists()]
+    payload = json.dumps([pair.sequence, body_model_sha, asdict(config), stats], sort_keys=True, default=str)
+    return hashlib.sha256(payload.encode()).hexdigest()
+
+
+def run_task(pair: PairRecord, body_model_path: str, body_model_sha: str, config: PrepConfig,
+             work_dir: str) -> TaskResult:
+    """Process one dyad into `<work_dir>/<sequence>.npz` (+ `.json`, written last as the marker)."""
+    torch.set_num_threads(1)  # one thread per task: results do not depend on -j (byte-identical shards)
+    start = time.perf_counter()
+    result = TaskResult(pair.sequence, "ok", frames=pair.length)
+    try:
+        result.sources = [{"path": str(p), "bytes": p.stat().st_size, "sha256": file_sha256(p)}
+                          for person in pair.persons for p in pair.files[person].paths()
+                          if p.exists()]
+        arrays, result.warnings = process_pair(pair, body_model_path, config)
+        npz_path = Path(work_dir) / f"{pair.sequence}.npz"
+        write_npz_atomic(npz_path, arrays)
+    except DataProblem as problem:
+        result.status, result.reason = "skipped", str(problem)
+    except Exception as error:  # noqa: BLE001 - a bug must not stop a long run; it is reported
+        result.status = "failed"
+        result.reason = f"{pair.sequence}: unexpected {type(error).__name__}: {error}"
+        result.detail = traceback.format_exc()
+    result_seconds = time.perf_counter() - start
+    marker = {**asdict(result), "fingerprint": fingerprint(pair, body_model_sha, config),
+              "wall_seconds": result_seconds}
+    atomic_write_bytes(Path(work_dir) / f"{pair.sequence}.json", json.dumps(marker, sort_keys=True).encode())
+    return result
+
+
+def write_npz_atomic(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    atomic_write_bytes(path, buffer.getvalue())

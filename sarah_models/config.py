@@ -1,0 +1,187 @@
+"""Model and training configuration: dataclasses whose defaults are the paper's values.
+
+Feature widths (motion Dx, audio Da) are not configuration: they come from the data and are
+stored next to the configs in every checkpoint. Every dataclass round-trips through
+``asdict``/``from_dict`` as plain JSON-able values, so checkpoints stay loadable with
+``torch.load(weights_only=True)``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, Mapping, Sequence, TypeVar
+
+T = TypeVar("T")
+
+
+def from_dict(cls: type[T], data: Mapping[str, Any]) -> T:
+    """Build dataclass ``cls`` from a plain dict, rejecting unknown keys by name."""
+    known = {f.name: f for f in fields(cls)}  # type: ignore[arg-type]
+    unknown = sorted(set(data) - set(known))
+    if unknown:
+        raise ValueError(f"{cls.__name__}: unknown field(s) {unknown}; known: {sorted(known)}")
+    hints = typing.get_type_hints(cls)
+    values = {}
+    for name, value in data.items():
+        if isinstance(value, list) and typing.get_origin(hints[name]) is tuple:
+            value = tuple(value)
+        values[name] = value
+    return cls(**values)  # type: ignore[call-arg]
+
+
+@dataclass(frozen=True)
+class VAEConfig:
+    """Causal transformer VAE with interleaved latent tokens (paper 3.2 and 4)."""
+
+    stride: int = 4  # s: frames per latent token
+    latent_dim: int = 256  # Dz
+    hidden: int = 256
+    heads: int = 4
+    encoder_layers: int = 9
+    decoder_layers: int = 9
+    mlp_ratio: float = 4.0
+    beta: float = 1e-4  # KL weight (KL averaged per latent element, like the MSE per motion element)
+    rope_base: float = 10_000.0
+
+    @classmethod
+    def paper(cls) -> "VAEConfig":
+        return cls()
+
+    @classmethod
+    def tiny(cls) -> "VAEConfig":
+        return cls(latent_dim=64, hidden=128, heads=4, encoder_layers=2, decoder_layers=2)
+
+
+@dataclass(frozen=True)
+class FlowConfig:
+    """Causal flow matcher over latent blocks (paper 3.3, 3.4 and 4)."""
+
+    hidden: int = 1024
+    heads: int = 4
+    layers: int = 4
+    mlp_ratio: float = 4.0
+    cond_dim: int = 256  # width of each modality's encoding before the input projection
+    time_dim: int = 256  # sinusoidal embedding width of the flow time tau
+    drop_prob: float = 0.05  # CFG: each modality dropped independently per sample
+    min_denominator: float = 0.05  # velocity = (z1 - z_tau) / max(1 - tau, this)
+    rope_base: float = 10_000.0
+
+    @classmethod
+    def paper(cls) -> "FlowConfig":
+        return cls()
+
+    @classmethod
+    def tiny(cls) -> "FlowConfig":
+        return cls(hidden=128, heads=4, layers=2, cond_dim=64, time_dim=64)
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation and data settings (paper A.2: AdamW, 1k warmup to 1e-4, 200k + 300k steps)."""
+
+    window: int = 400  # T frames per training window (K = window / stride tokens)
+    batch_size: int = 16  # per process; the paper uses 16 on each of 8 GPUs
+    lr: float = 1e-4
+    warmup_steps: int = 1_000
+    adam_betas: tuple[float, float] = (0.9, 0.999)
+    weight_decay: float = 1e-4
+    grad_clip: float = 0.0  # 0 disables (the paper states none)
+    vae_steps: int = 200_000
+    flow_steps: int = 300_000
+    latent: str = "mean"  # flow target from the frozen encoder: "mean" (mu) or "sample"
+    latent_stats_batches: int = 64  # batches used to standardize latents before the flow stage
+    log_every: int = 50
+    checkpoint_every: int = 5_000
+    num_workers: int = 2
+    seed: int = 0
+    split: str = "train"
+    audio_features: str = "hubert-large"  # extractor name in the shards (paper: HuBERT-Large)
+
+    def __post_init__(self) -> None:
+        if self.latent not in ("mean", "sample"):
+            raise ValueError(f"TrainConfig.latent must be 'mean' or 'sample', got {self.latent!r}")
+
+    @classmethod
+    def paper(cls) -> "TrainConfig":
+        return cls()
+
+    @classmethod
+    def tiny(cls) -> "TrainConfig":
+        return cls(window=64, batch_size=8, lr=3e-4, warmup_steps=50, vae_steps=400,
+                   flow_steps=400, latent_stats_batches=8, log_every=10, checkpoint_every=100,
+                   num_workers=0, audio_features="logmel")
+
+
+PRESETS = ("paper", "tiny")
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """The three configs of one training run, saved together in every checkpoint."""
+
+    vae: VAEConfig = field(default_factory=VAEConfig)
+    flow: FlowConfig = field(default_factory=FlowConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    @classmethod
+    def preset(cls, name: str) -> "RunConfig":
+        if name not in PRESETS:
+            raise ValueError(f"unknown config preset {name!r}; choose from {PRESETS}")
+        return cls(getattr(VAEConfig, name)(), getattr(FlowConfig, name)(),
+                   getattr(TrainConfig, name)())
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        return {"vae": asdict(self.vae), "flow": asdict(self.flow), "train": asdict(self.train)}
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Mapping[str, Any]]) -> "RunConfig":
+        return cls(from_dict(VAEConfig, data["vae"]), from_dict(FlowConfig, data["flow"]),
+                   from_dict(TrainConfig, data["train"]))
+
+    def with_overrides(self, assignments: Sequence[str]) -> "RunConfig":
+        """Apply ``section.field=value`` (or ``field=value`` when the name is unique) strings."""
+        sections = {"vae": self.vae, "flow": self.flow, "train": self.train}
+        for text in assignments:
+            key, sep, raw = text.partition("=")
+            if not sep:
+                raise ValueError(f"--set expects field=value, got {text!r}")
+            key = key.strip()
+            if "." in key:
+                section, name = key.split(".", 1)
+                if section not in sections:
+                    raise ValueError(f"--set {text!r}: unknown section {section!r}; use vae/flow/train")
+            else:
+                owners = [s for s, c in sections.items() if name_in(c, key)]
+                if len(owners) != 1:
+                    raise ValueError(f"--set {text!r}: field {key!r} is "
+                                     f"{'ambiguous' if owners else 'unknown'}; write section.field")
+                section, name = owners[0], key
+            current = sections[section]
+            if not name_in(current, name):
+                raise ValueError(f"--set {text!r}: {section} has no field {name!r}")
+            value = _parse_value(getattr(current, name), raw.strip(), text)
+            sections[section] = dataclasses.replace(current, **{name: value})
+        return RunConfig(**sections)  # type: ignore[arg-type]
+
+
+def name_in(config: Any, name: str) -> bool:
+    return any(f.name == name for f in fields(config))
+
+
+def _parse_value(current: Any, raw: str, text: str) -> Any:
+    try:
+        if isinstance(current, bool):
+            if raw.lower() not in ("true", "false", "1", "0"):
+                raise ValueError(raw)
+            return raw.lower() in ("true", "1")
+        if isinstance(current, int):
+            return int(raw)
+        if isinstance(current, float):
+            return float(raw)
+        if isinstance(current, tuple):
+            return tuple(type(current[0])(p) for p in raw.strip("()").split(","))
+        return raw
+    except ValueError as exc:
+        raise ValueError(f"--set {text!r}: cannot parse {raw!r} as {type(current).__name__}") from exc

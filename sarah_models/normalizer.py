@@ -1,0 +1,98 @@
+"""Per-channel standardization held as module buffers, so it travels inside checkpoints.
+
+Keys used by the models: ``motion`` (Dx), ``user_head`` (2), ``audio`` (Da, shared by agent and
+user audio unless ``agent_audio``/``user_audio`` have their own) and, after the VAE stage,
+``latent`` (Dz: the frozen encoder's latents, standardized so the flow starts from N(0, I)).
+The gaze score is in [-1, 1] already and is not standardized.
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+# Batch key -> candidate statistics keys, first present wins.
+BATCH_STATS = {
+    "motion": ("motion",),
+    "user_head": ("user_head",),
+    "agent_audio": ("agent_audio", "audio"),
+    "user_audio": ("user_audio", "audio"),
+}
+
+
+class Normalizer(nn.Module):
+    def __init__(self, stats: Mapping[str, tuple[np.ndarray | Tensor, np.ndarray | Tensor]] = (),
+                 min_std: float = 1e-6) -> None:
+        super().__init__()
+        self.min_std = min_std
+        for key, (mean, std) in dict(stats).items():
+            self.set(key, mean, std)
+
+    @property
+    def keys(self) -> list[str]:
+        return sorted(name[: -len("_mean")] for name, _ in self.named_buffers()
+                      if name.endswith("_mean"))
+
+    def set(self, key: str, mean: np.ndarray | Tensor, std: np.ndarray | Tensor) -> None:
+        """Register (or replace) the statistics of ``key``; a std below min_std becomes 1 so
+        constant channels pass through centred instead of exploding."""
+        mean_t = torch.as_tensor(np.asarray(mean, dtype=np.float32)).reshape(-1)
+        std_t = torch.as_tensor(np.asarray(std, dtype=np.float32)).reshape(-1)
+        if mean_t.shape != std_t.shape:
+            raise ValueError(f"stats {key!r}: mean {tuple(mean_t.shape)} and std "
+                             f"{tuple(std_t.shape)} differ")
+        if not (torch.isfinite(mean_t).all() and torch.isfinite(std_t).all()):
+            raise ValueError(f"stats {key!r} contain non-finite values")
+        std_t = torch.where(std_t < self.min_std, torch.ones_like(std_t), std_t)
+        device = next(self.buffers(), mean_t).device
+        self.register_buffer(f"{key}_mean", mean_t.to(device))
+        self.register_buffer(f"{key}_std", std_t.to(device))
+
+    def _stats(self, key: str, x: Tensor) -> tuple[Tensor, Tensor]:
+        if not hasattr(self, f"{key}_mean"):
+            raise KeyError(f"no normalization statistics for {key!r}; have {self.keys}")
+        mean, std = getattr(self, f"{key}_mean"), getattr(self, f"{key}_std")
+        if x.shape[-1] != mean.shape[0]:
+            raise ValueError(f"{key!r} has {x.shape[-1]} channels, statistics have {mean.shape[0]}")
+        return mean.to(x.dtype), std.to(x.dtype)
+
+    def normalize(self, key: str, x: Tensor) -> Tensor:
+        mean, std = self._stats(key, x)
+        return (x - mean) / std
+
+    def denormalize(self, key: str, x: Tensor) -> Tensor:
+        mean, std = self._stats(key, x)
+        return x * std + mean
+
+    def stats_key(self, batch_key: str) -> str:
+        for key in BATCH_STATS[batch_key]:
+            if hasattr(self, f"{key}_mean"):
+                return key
+        raise KeyError(f"no normalization statistics for {batch_key!r} (looked for "
+                       f"{BATCH_STATS[batch_key]}); have {self.keys}")
+
+    def normalize_batch(self, batch: Mapping[str, Tensor], device: torch.device | str) -> dict[str, Tensor]:
+        """Model inputs from a dataset batch: standardized motion, user_head, agent/user audio,
+        and gaze as (B, T, 1), all float32 on ``device``."""
+        out = {}
+        for key in BATCH_STATS:
+            if key in batch:
+                x = batch[key].to(device=device, dtype=torch.float32, non_blocking=True)
+                out[key] = self.normalize(self.stats_key(key), x)
+        if "gaze" in batch:
+            gaze = batch["gaze"].to(device=device, dtype=torch.float32, non_blocking=True)
+            out["gaze"] = gaze[..., None] if gaze.dim() == 2 else gaze
+        return out
+
+    @classmethod
+    def from_state_dict(cls, state: Mapping[str, Tensor]) -> "Normalizer":
+        """Rebuild from ``state_dict()`` (the buffer names carry the keys)."""
+        keys = [name[: -len("_mean")] for name in state if name.endswith("_mean")]
+        norm = cls()
+        for key in keys:
+            norm.register_buffer(f"{key}_mean", state[f"{key}_mean"].clone())
+            norm.register_buffer(f"{key}_std", state[f"{key}_std"].clone())
+        return norm

@@ -1,0 +1,161 @@
+"""The causal flow matcher: inputs, CFG dropout, velocity, caching, and that it learns."""
+
+import pytest
+import torch
+
+from sarah_models.config import FlowConfig
+from sarah_models.flow import MODALITIES, FlowModel, build_block_mask
+from sarah_models.layers import KVCache
+
+S, K, DZ, DA = 4, 6, 16, 5
+T = S * K
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """Tiny models run fastest single-threaded (no OpenMP spinning on a shared 2-core box)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def make_cond(b: int, g: torch.Generator, frames: int = T) -> dict:
+    return {"user_head": torch.randn(b, frames, 2, generator=g),
+            "agent_audio": torch.randn(b, frames, DA, generator=g),
+            "user_audio": torch.randn(b, frames, DA, generator=g),
+            "gaze": torch.rand(b, frames, generator=g) * 2 - 1}
+
+
+def trained_weights(model: FlowModel, seed: int = 0) -> FlowModel:
+    """Perturb the zero-initialised layers so outputs depend on every input."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(torch.randn(p.shape, generator=g) * 0.1)
+    return model.eval()
+
+
+@pytest.fixture(scope="module")
+def flow():
+    torch.manual_seed(0)
+    return trained_weights(FlowModel(FlowConfig.tiny(), DZ, S, DA))
+
+
+def test_output_is_zero_at_init_and_shapes():
+    torch.manual_seed(0)
+    model = FlowModel(FlowConfig.tiny(), DZ, S, DA)
+    g = torch.Generator().manual_seed(0)
+    z = torch.randn(3, K, DZ, generator=g)
+    out = model(z, torch.rand(3, generator=g), make_cond(3, g))
+    assert out.shape == z.shape and torch.equal(out, torch.zeros_like(z))  # AdaLN-Zero output
+
+
+def test_tau_forms_agree(flow):
+    g = torch.Generator().manual_seed(1)
+    z, cond = torch.randn(2, K, DZ, generator=g), make_cond(2, g)
+    a = flow(z, 0.3, cond)
+    b = flow(z, torch.full((2,), 0.3), cond)
+    c = flow(z, torch.full((2, K), 0.3), cond)
+    torch.testing.assert_close(a, b)
+    torch.testing.assert_close(a, c)
+    assert not torch.allclose(a, flow(z, 0.7, cond))
+
+
+def test_cached_condition_tokens_equal_direct_call(flow):
+    g = torch.Generator().manual_seed(2)
+    z, cond = torch.randn(2, K, DZ, generator=g), make_cond(2, g)
+    drop = torch.tensor([[True, False, False, True], [False, True, False, False]])
+    tokens = flow.encode_condition(cond, drop)
+    assert tokens.shape == (2, K, FlowConfig.tiny().hidden)
+    torch.testing.assert_close(flow(z, 0.5, cond_tokens=tokens), flow(z, 0.5, cond, drop))
+
+
+def test_gaze_accepts_both_shapes_and_bad_widths_fail(flow):
+    g = torch.Generator().manual_seed(3)
+    z, cond = torch.randn(1, K, DZ, generator=g), make_cond(1, g)
+    flat = flow(z, 0.5, cond)
+    cond3 = dict(cond, gaze=cond["gaze"][..., None])
+    torch.testing.assert_close(flat, flow(z, 0.5, cond3))
+    with pytest.raises(ValueError, match="agent_audio"):
+        flow(z, 0.5, dict(cond, agent_audio=torch.randn(1, T, DA + 1)))
+    with pytest.raises(ValueError, match="frames"):
+        flow(z, 0.5, dict(cond, user_head=torch.randn(1, T - S, 2)))
+    with pytest.raises(KeyError):
+        flow(z, 0.5, {k: v for k, v in cond.items() if k != "gaze"})
+
+
+@pytest.mark.parametrize("index", range(len(MODALITIES)))
+def test_dropped_modality_is_ignored(flow, index):
+    g = torch.Generator().manual_seed(4 + index)
+    z, cond = torch.randn(2, K, DZ, generator=g), make_cond(2, g)
+    other = make_cond(2, g)
+    name = MODALITIES[index]
+    changed = dict(cond, **{name: other[name]})
+    drop = torch.zeros(2, len(MODALITIES), dtype=torch.bool)
+    drop[:, index] = True
+    torch.testing.assert_close(flow(z, 0.4, cond, drop), flow(z, 0.4, changed, drop))
+    assert not torch.allclose(flow(z, 0.4, cond), flow(z, 0.4, changed))
+
+
+def test_cfg_drop_rates_are_five_percent_and_independent(flow):
+    drop = flow.sample_drop_mask(40_000, torch.Generator().manual_seed(0))
+    rates = drop.float().mean(0)
+    assert drop.shape == (40_000, 4) and drop.dtype == torch.bool
+    assert torch.all((rates - 0.05).abs() < 0.005), rates
+    both = (drop[:, 0] & drop[:, 3]).float().mean().item()
+    assert abs(both - 0.05 * 0.05) < 0.0015
+
+
+def test_velocity_matches_linear_path_and_is_clamped(flow):
+    g = torch.Generator().manual_seed(5)
+    z1, eps = torch.randn(2, K, DZ, generator=g), torch.randn(2, K, DZ, generator=g)
+    tau = torch.tensor([0.25, 0.6])
+    z_tau = tau[:, None, None] * z1 + (1 - tau[:, None, None]) * eps
+    torch.testing.assert_close(flow.velocity(z1, z_tau, tau), z1 - eps)  # exact x1 -> dz/dtau
+    v = flow.velocity(z1, z1 * 0.999, 1.0)
+    torch.testing.assert_close(v, (z1 - z1 * 0.999) / FlowConfig.tiny().min_denominator)
+    assert torch.isfinite(v).all()
+
+
+def test_incremental_forward_with_caches_equals_full(flow):
+    g = torch.Generator().manual_seed(6)
+    z, cond = torch.randn(1, K, DZ, generator=g), make_cond(1, g)
+    full = flow(z, 0.35, cond)
+    caches = [KVCache() for _ in flow.blocks]
+    parts = []
+    for lo, hi in ((0, 2), (2, 3), (3, K)):
+        piece = {k: v[:, lo * S:hi * S] for k, v in cond.items()}
+        parts.append(flow(z[:, lo:hi], 0.35, piece, caches=caches))
+    torch.testing.assert_close(torch.cat(parts, 1), full, atol=1e-5, rtol=1e-5)
+    # An explicit windowed mask is honoured: with window 1 each block sees only itself.
+    alone = flow(z, 0.35, cond, attn_mask=build_block_mask(K, window=1))
+    for k in range(K):
+        single = {n: v[:, k * S:(k + 1) * S] for n, v in cond.items()}
+        torch.testing.assert_close(alone[:, k:k + 1],
+                                   flow(z[:, k:k + 1], 0.35, single,
+                                        positions=torch.tensor([k])), atol=1e-5, rtol=1e-5)
+
+
+def test_flow_loss_falls():
+    torch.manual_seed(0)
+    model = FlowModel(FlowConfig.tiny(), DZ, S, DA)
+    g = torch.Generator().manual_seed(0)
+    cond = make_cond(8, g)
+    # Latents that are a fixed function of the conditioning, so there is something to learn.
+    proj = torch.randn(S * DA, DZ, generator=g) / (S * DA) ** 0.5
+    z = (cond["agent_audio"].reshape(8, K, S * DA) @ proj).tanh() * 2
+
+    def eval_loss() -> float:
+        with torch.no_grad():
+            return model.loss(z, cond, torch.Generator().manual_seed(123))["loss"].item()
+
+    before = eval_loss()
+    opt = torch.optim.AdamW(model.parameters(), lr=2e-3)
+    for step in range(120):
+        out = model.loss(z, cond, torch.Generator().manual_seed(step))
+        opt.zero_grad()
+        out["loss"].backward()
+        opt.step()
+    after = eval_loss()
+    assert after < before / 3, (before, after)

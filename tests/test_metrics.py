@@ -1,0 +1,311 @@
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings, strategies as st
+from scipy.spatial.transform import Rotation
+
+from sarah_data import icosahedron
+from sarah_data.gaze import HEAD_HALF_DEPTH
+from sarah_data.constants import FPS, JOINT, NUM_JOINTS
+from sarah_models import metrics
+from sarah_models.metrics import (Clip, FrechetRidgeWarning, MetricsConfig, Moments, evaluate,
+                                  foot_slide, frechet_distance, frechet_distance_from_moments,
+                                  head_angle, wrist_speed)
+
+
+# ---------------------------------------------------------------- Fréchet distance
+
+
+def test_frechet_distance_of_a_set_with_itself_is_zero():
+    x = np.random.default_rng(0).normal(size=(500, 6)) @ np.random.default_rng(1).normal(size=(6, 6))
+    assert frechet_distance(x, x) == pytest.approx(0.0, abs=1e-8)
+
+
+def test_frechet_distance_exact_moments_match_closed_form_for_diagonal_covariances():
+    mu1, mu2 = np.array([0.0, 1.0, -2.0]), np.array([0.5, -1.0, 0.0])
+    s1, s2 = np.array([1.0, 4.0, 0.25]), np.array([9.0, 1.0, 0.25])
+    expected = np.sum((mu1 - mu2) ** 2) + np.sum(s1 + s2 - 2 * np.sqrt(s1 * s2))
+    got = frechet_distance_from_moments(mu1, np.diag(s1), mu2, np.diag(s2))
+    assert got == pytest.approx(expected, rel=1e-12)
+
+
+def test_frechet_distance_exact_moments_full_covariance_scaled():
+    # N(0, A) vs N(m, c^2 A): ||m||^2 + tr(A) (1 - c)^2 for any SPD A.
+    rng = np.random.default_rng(3)
+    half = rng.normal(size=(5, 5))
+    a = half @ half.T + 0.1 * np.eye(5)
+    m = rng.normal(size=5)
+    got = frechet_distance_from_moments(np.zeros(5), a, m, 9.0 * a)
+    assert got == pytest.approx(m @ m + np.trace(a) * 4.0, rel=1e-9)
+
+
+def test_frechet_distance_of_large_gaussian_samples_matches_closed_form():
+    rng = np.random.default_rng(7)
+    mu1, mu2 = np.array([0.0, 1.0, -2.0, 0.3]), np.array([0.5, -1.0, 0.0, 0.3])
+    s1, s2 = np.array([1.0, 4.0, 0.25, 2.0]), np.array([9.0, 1.0, 0.25, 0.5])
+    a = mu1 + rng.normal(size=(200_000, 4)) * np.sqrt(s1)
+    b = mu2 + rng.normal(size=(200_000, 4)) * np.sqrt(s2)
+    expected = np.sum((mu1 - mu2) ** 2) + np.sum(s1 + s2 - 2 * np.sqrt(s1 * s2))
+    assert frechet_distance(a, b) == pytest.approx(expected, rel=0.01)
+    assert frechet_distance(torch.from_numpy(a), torch.from_numpy(b)) == pytest.approx(frechet_distance(a, b))
+
+
+def test_frechet_distance_adds_a_ridge_for_singular_covariances():
+    # Two of three dimensions are constant: the covariance product is singular.
+    with pytest.warns(FrechetRidgeWarning):
+        got = frechet_distance_from_moments(np.zeros(3), np.diag([1.0, 0.0, 0.0]),
+                                            np.array([1.0, 2.0, 2.0]), np.diag([4.0, 0.0, 0.0]))
+    assert got == pytest.approx(1 + 4 + 4 + (1 + 4 - 2 * 2), rel=1e-5)
+
+    rng = np.random.default_rng(0)
+    a = np.column_stack([rng.normal(size=1000), np.zeros(1000), np.ones(1000)])
+    b = np.column_stack([rng.normal(size=1000), np.zeros(1000), np.ones(1000)])
+    with pytest.warns(FrechetRidgeWarning):
+        assert frechet_distance(a, a) == pytest.approx(0.0, abs=1e-9)
+        assert math.isfinite(frechet_distance(a, b))
+
+
+def test_frechet_distance_rejects_bad_shapes():
+    with pytest.raises(ValueError):
+        frechet_distance(np.zeros((10, 3)), np.zeros((10, 4)))
+    with pytest.raises(ValueError):
+        frechet_distance(np.zeros((1, 3)), np.zeros((10, 3)))
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), dim=st.integers(1, 6), shift=st.floats(-100, 100))
+def test_frechet_distance_is_symmetric_nonnegative_and_shift_invariant(seed, dim, shift):
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(60, dim)) @ rng.normal(size=(dim, dim))
+    b = rng.normal(size=(80, dim)) * rng.uniform(0.5, 2, size=dim) + rng.normal(size=dim)
+    ab, ba = frechet_distance(a, b), frechet_distance(b, a)
+    assert ab >= 0
+    assert ab == pytest.approx(ba, rel=1e-6, abs=1e-8)
+    assert frechet_distance(a + shift, b + shift) == pytest.approx(ab, rel=1e-5, abs=1e-6)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), sizes=st.lists(st.integers(1, 20), min_size=1, max_size=5))
+def test_merged_moments_equal_moments_of_the_concatenation(seed, sizes):
+    rng = np.random.default_rng(seed)
+    parts = [rng.normal(size=(n, 3)) * 5 + 1000 for n in sizes]
+    moments = Moments()
+    for part in parts:
+        moments.add(part)
+    whole = np.concatenate(parts)
+    assert moments.count == len(whole)
+    np.testing.assert_allclose(moments.mean, whole.mean(0), rtol=1e-12)
+    if len(whole) > 1:
+        np.testing.assert_allclose(moments.covariance, np.cov(whole, rowvar=False), rtol=1e-8, atol=1e-9)
+
+
+# ---------------------------------------------------------------- per-clip metrics
+
+
+def _still_pose(frames_: int) -> tuple[np.ndarray, np.ndarray]:
+    """A standing skeleton, pelvis at (0, 0.9, 0) facing +z, feet planted at 2 cm."""
+    positions = np.zeros((frames_, NUM_JOINTS, 3))
+    positions[:, :, 1] = 1.0
+    positions[:, JOINT["pelvis"]] = [0.0, 0.9, 0.0]
+    positions[:, JOINT["left_foot"]] = [0.1, 0.02, 0.05]
+    positions[:, JOINT["right_foot"]] = [-0.1, 0.02, 0.05]
+    positions[:, JOINT["left_wrist"]] = [0.25, 0.85, 0.0]
+    positions[:, JOINT["right_wrist"]] = [-0.25, 0.85, 0.0]
+    positions[:, JOINT["head"]] = [0.0, 1.6, 0.0]
+    rotations = np.broadcast_to(np.eye(3), (frames_, NUM_JOINTS, 3, 3)).copy()
+    return positions, rotations
+
+
+def test_foot_slide_on_constructed_skating():
+    t = np.arange(31) / FPS
+    skate, _ = _still_pose(31)
+    skate[:, JOINT["left_foot"], 0] += 0.10 * t  # 10 cm/s at 2 cm height
+    assert foot_slide(skate) == 1.0
+
+    planted, _ = _still_pose(31)
+    assert foot_slide(planted) == 0.0
+
+    lifted = skate.copy()
+    lifted[:, JOINT["left_foot"], 1] = 0.20
+    assert foot_slide(lifted) == 0.0
+
+    slow = planted.copy()
+    slow[:, JOINT["right_foot"], 2] += 0.02 * t  # 2 cm/s: below the 3 cm/s threshold
+    assert foot_slide(slow) == 0.0
+
+    half = planted.copy()
+    half[15:, JOINT["left_foot"], 0] += 0.10 * t[:16]  # slides during the last 15 of 30 steps
+    assert foot_slide(half) == pytest.approx(15 / 30)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_foot_slide_is_a_fraction_invariant_to_floor_rigid_motion(seed):
+    rng = np.random.default_rng(seed)
+    positions, _ = _still_pose(20)
+    positions[:, [JOINT["left_foot"], JOINT["right_foot"]]] += rng.normal(scale=[0.01, 0.02, 0.01], size=(20, 2, 3))
+    value = foot_slide(positions)
+    assert 0.0 <= value <= 1.0
+    turn = Rotation.from_rotvec([0, rng.uniform(-np.pi, np.pi), 0]).as_matrix()
+    moved = positions @ turn.T + np.array([rng.normal(), 0.0, rng.normal()])
+    assert foot_slide(moved) == pytest.approx(value)
+
+
+def test_wrist_speed_of_constant_velocity_wrists():
+    positions, _ = _still_pose(31)
+    t = np.arange(31) / FPS
+    positions[:, JOINT["left_wrist"]] += np.outer(t, [0.3, 0.4, 0.0])  # 0.5 m/s
+    positions[:, JOINT["right_wrist"]] += np.outer(t, [0.0, 0.0, -1.5])  # 1.5 m/s
+    assert wrist_speed(positions) == pytest.approx(1.0)
+    assert wrist_speed(_still_pose(31)[0]) == 0.0
+
+
+def _user_ahead_of_back(head_xz, facing, bearing, distance=2.0):
+    """A user `distance` from the back of the head, `bearing` radians off the facing direction."""
+    back = head_xz - HEAD_HALF_DEPTH * np.array([np.sin(facing), np.cos(facing)])
+    return back + distance * np.array([np.sin(facing + bearing), np.cos(facing + bearing)])
+
+
+@pytest.mark.parametrize("bearing, expected", [(0.0, 1.0), (np.pi, -1.0), (np.pi / 2, 0.0), (-np.pi / 2, 0.0),
+                                               (np.pi / 3, 0.5)])
+@pytest.mark.parametrize("facing", [0.0, 2.0])
+def test_head_angle_on_constructed_facing(facing, bearing, expected):
+    frames_ = 10
+    head = np.tile([0.3, 1.6, -0.2], (frames_, 1))
+    rotation = np.broadcast_to(Rotation.from_rotvec([0, facing, 0]).as_matrix(), (frames_, 3, 3))
+    user = np.tile(_user_ahead_of_back(head[0, [0, 2]], facing, bearing), (frames_, 1))
+    assert head_angle(head, rotation, user) == pytest.approx(expected, abs=1e-9)
+
+
+# ---------------------------------------------------------------- clips and evaluate
+
+
+def _clip(positions, rotations, shell, user_head) -> Clip:
+    return Clip(icosahedron.encode(positions, rotations), shell, user_head, FPS)
+
+
+def _random_clip(rng, frames_=12, shell_points=2, offset=0.0, scale=0.05, facing=0.0) -> Clip:
+    """A still skeleton whose head turns `facing` from +z, the user straight ahead along +z of the
+    back of the head (head angle cos(facing)), and a noisy shell."""
+    positions, rotations = _still_pose(frames_)
+    rotations[:, JOINT["head"]] = Rotation.from_rotvec([0, facing, 0]).as_matrix()
+    shell = rng.normal(scale=scale, size=(frames_, shell_points, 3)) + offset + np.array([0.0, 1.0, 0.0])
+    user = np.tile(_user_ahead_of_back(positions[0, JOINT["head"], [0, 2]], facing, -facing), (frames_, 1))
+    return _clip(positions, rotations, shell, user)
+
+
+def test_clip_validates_and_converts():
+    clip = _random_clip(np.random.default_rng(0))
+    tensor_clip = Clip(torch.from_numpy(clip.icosahedra).float(), torch.from_numpy(clip.shell),
+                       torch.from_numpy(clip.user_head))
+    assert isinstance(tensor_clip.icosahedra, np.ndarray) and tensor_clip.icosahedra.dtype == np.float32
+    with pytest.raises(ValueError, match="user_head"):
+        Clip(clip.icosahedra, clip.shell, clip.user_head[:-1])
+    with pytest.raises(ValueError, match="non-finite"):
+        Clip(clip.icosahedra, clip.shell * np.nan, clip.user_head)
+
+
+def test_evaluate_pools_speaking_categories_and_averages_batches():
+    rng = np.random.default_rng(0)
+    # Speaking clips move around a different shell position from non-speaking ones, and the
+    # generator is offset from the ground truth differently in each category.
+    speaking = np.array([True, False, True, False, False, False])
+    ground_truth = [_random_clip(rng, offset=0.3 if s else 0.0) for s in speaking]
+    generated = [_random_clip(rng, offset=(0.3 if s else 0.0) + (0.02 if s else 0.05), scale=0.08)
+                 for s in speaking]
+    table = evaluate(generated, ground_truth, speaking, batch_clips=4)
+
+    def flat(clips, idx):
+        return np.concatenate([clips[i].shell.reshape(len(clips[i].shell), -1) for i in idx])
+
+    def acc(clips, idx):
+        return np.concatenate([metrics.accelerations(clips[i].shell.reshape(len(clips[i].shell), -1), FPS)
+                               for i in idx])
+
+    cm2 = 1e4  # m^2 -> cm^2
+    for kind, samples in (("fgd", flat), ("fgd_acc", acc)):
+        s = frechet_distance(samples(generated, [0, 2]), samples(ground_truth, [0, 2])) * cm2
+        ns = frechet_distance(samples(generated, [1, 3, 4, 5]), samples(ground_truth, [1, 3, 4, 5])) * cm2
+        batches = [frechet_distance(samples(generated, idx), samples(ground_truth, idx)) * cm2
+                   for idx in ([0, 1, 2, 3], [4, 5])]
+        values = table.values[kind]
+        assert values.s == pytest.approx(s, rel=1e-8)
+        assert values.ns == pytest.approx(ns, rel=1e-8)
+        assert values.avg == pytest.approx(np.mean(batches), rel=1e-8)
+        assert values.avg != pytest.approx((2 * s + 4 * ns) / 6, rel=1e-3)  # not a weighted mean
+
+    assert (table.num_clips, table.num_speaking, table.num_non_speaking) == (6, 2, 4)
+    assert (table.window_frames, table.batch_clips, table.num_batches) == (12, 4, 2)
+
+
+def test_evaluate_per_clip_metrics_are_category_means_and_weighted_average():
+    rng = np.random.default_rng(1)
+    facings = [0.0, np.pi, np.pi / 2, 0.0, 0.0]
+    speaking = np.array([True, True, False, False, False])
+    generated = [_random_clip(rng, facing=f) for f in facings]
+    table = evaluate(generated, generated, speaking, batch_clips=2)
+    head = table.values["head_angle"]
+    assert (head.s, head.ns) == (pytest.approx(0.0, abs=1e-9), pytest.approx(2 / 3))
+    assert head.avg == pytest.approx((2 * head.s + 3 * head.ns) / 5)
+    assert table.values["foot_slide"].avg == 0.0
+    assert table.values["fgd"].avg == pytest.approx(0.0, abs=1e-6)
+    assert table.values["fgd"].s == pytest.approx(0.0, abs=1e-6)
+
+
+def test_evaluate_reports_centimetres_and_scales_rows():
+    rng = np.random.default_rng(2)
+    t = np.arange(12) / FPS
+    clips = []
+    for _ in range(3):
+        positions, rotations = _still_pose(12)
+        positions[:, JOINT["left_wrist"]] += np.outer(t, [0.3, 0.4, 0.0])
+        positions[:, JOINT["right_wrist"]] += np.outer(t, [0.3, 0.4, 0.0])
+        clips.append(_clip(positions, rotations, rng.normal(scale=0.05, size=(12, 2, 3)), np.ones((12, 2))))
+    ground_truth = [_random_clip(rng) for _ in range(3)]
+    table = evaluate(clips, ground_truth, [False, False, False])
+    assert table.values["wrist_speed"].avg == pytest.approx(50.0)  # 0.5 m/s in cm/s
+    assert math.isnan(table.values["wrist_speed"].s) and math.isnan(table.values["fgd"].s)
+    raw, shown = table.to_row(scale=False), table.to_row(scale=True)
+    assert shown["fgd/avg"] == pytest.approx(raw["fgd/avg"] / 10)
+    assert shown["fgd_acc/ns"] == pytest.approx(raw["fgd_acc/ns"] / 1e5)
+    assert shown["wrist_speed/avg"] == raw["wrist_speed/avg"]
+    encoded = json.loads(json.dumps(table.to_dict()))
+    assert encoded["values"]["fgd"]["s"] is None
+    assert encoded["units"]["fgd_acc"] == "(cm/s^2)^2"
+
+
+def test_evaluate_is_invariant_to_world_placement_of_clips():
+    rng = np.random.default_rng(4)
+    speaking = [True, False, True, False]
+    generated = [_random_clip(rng, facing=f, scale=0.1) for f in (0.1, 0.5, -0.3, 1.0)]
+    ground_truth = [_random_clip(rng, scale=0.1) for _ in range(4)]
+
+    def to_world(clip, seed):
+        r = np.random.default_rng(seed)
+        turn = Rotation.from_rotvec([0, r.uniform(-np.pi, np.pi), 0]).as_matrix()
+        shift = np.array([r.normal() * 3, 0.0, r.normal() * 3])
+        user = np.column_stack([clip.user_head[:, 0], np.zeros(len(clip.user_head)), clip.user_head[:, 1]])
+        return Clip(clip.icosahedra @ turn.T + shift, clip.shell @ turn.T + shift,
+                    (user @ turn.T + shift)[:, [0, 2]], clip.fps)
+
+    window = evaluate(generated, ground_truth, speaking, batch_clips=2)
+    world = evaluate([to_world(c, i) for i, c in enumerate(generated)],
+                     [to_world(c, 10 + i) for i, c in enumerate(ground_truth)], speaking, batch_clips=2)
+    for name in metrics.METRICS:
+        for column in ("avg", "ns", "s"):
+            assert getattr(world.values[name], column) == pytest.approx(
+                getattr(window.values[name], column), rel=1e-6, abs=1e-6), (name, column)
+
+
+def test_evaluate_rejects_mismatched_inputs():
+    rng = np.random.default_rng(5)
+    clips = [_random_clip(rng) for _ in range(2)]
+    with pytest.raises(ValueError, match="speaking"):
+        evaluate(clips, clips, [True])
+    with pytest.raises(ValueError, match="frames"):
+        evaluate(clips, [clips[0], _random_clip(rng, frames_=13)], [True, False])
+    with pytest.raises(ValueError, match="batch_clips"):
+        evaluate(clips, clips, [True, False], config=MetricsConfig(batch_clips=0))

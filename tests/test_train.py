@@ -1,0 +1,312 @@
+"""Staged training: schedule, data order, checkpoints, exact resume, DDP, and the CLI."""
+
+import json
+import os
+import socket
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.multiprocessing as mp
+
+from cli.train import build_parser, main
+from sarah_models.checkpoint import capture_rng_state, load_checkpoint, load_models, restore_rng_state
+from sarah_models.config import FlowConfig, RunConfig, TrainConfig, VAEConfig
+from sarah_models.train import DistInfo, EpochBatches, lr_at, model_stats, train
+
+WINDOW, DX, DA = 16, 21, 6
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """Tiny models run fastest single-threaded (no OpenMP spinning on a shared 2-core box)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+class SyntheticWindows(torch.utils.data.Dataset):
+    """Test input following the WindowDataset item contract; item i is a function of (i, epoch)."""
+
+    def __init__(self, length: int = 24) -> None:
+        self.length, self.epoch = length, 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return self.length
+
+    def __getitem__(self, i: int) -> dict:
+        rng = np.random.default_rng((i, self.epoch))
+        t = np.arange(WINDOW)[:, None] / 30.0
+        motion = np.sin(t * rng.uniform(1, 4, DX) + rng.uniform(0, 6, DX)) + 1.0
+        f32 = lambda a: torch.from_numpy(np.asarray(a, dtype=np.float32))  # noqa: E731
+        return {"motion": f32(motion), "user_head": f32(rng.normal(0, 1.5, (WINDOW, 2))),
+                "agent_audio": f32(rng.normal(0, 2, (WINDOW, DA))),
+                "user_audio": f32(rng.normal(0, 2, (WINDOW, DA))),
+                "gaze": f32(rng.uniform(-1, 1, WINDOW)),
+                "agent_speaking": f32(rng.integers(0, 2, WINDOW)),
+                "user_speaking": f32(rng.integers(0, 2, WINDOW)),
+                "transform": f32([0.1 * i, 0.0, 0.0, 0.0]), "sequence": f"seq{i}",
+                "agent": "A", "start": 0}
+
+
+STATS = {"motion": (np.ones(DX), np.full(DX, 0.7)), "user_head": (np.zeros(2), np.full(2, 1.5)),
+         "audio": (np.zeros(DA), np.full(DA, 2.0))}
+
+
+def tiny_config(steps: int, **train) -> RunConfig:
+    base = RunConfig.preset("tiny")
+    vae = replace(base.vae, hidden=32, latent_dim=8, encoder_layers=1, decoder_layers=1)
+    flow = replace(base.flow, hidden=32, cond_dim=16, time_dim=16, layers=1)
+    tcfg = replace(base.train, window=WINDOW, batch_size=4, vae_steps=steps, flow_steps=steps,
+                   warmup_steps=3, log_every=1, checkpoint_every=3, latent_stats_batches=2,
+                   **train)
+    return RunConfig(vae, flow, tcfg)
+
+
+def run(stage: str, out: Path, steps: int, resume: bool = False) -> Path:
+    return train(stage, tiny_config(steps), None, out, resume=resume, device="cpu",
+                 dataset=SyntheticWindows(), stats=STATS, progress=False, echo=lambda _: None)
+
+
+def losses(out: Path, stage: str) -> list[tuple[int, float]]:
+    rows = [json.loads(line) for line in (out / f"{stage}_log.jsonl").read_text().splitlines()]
+    return [(r["step"], r["loss"]) for r in rows]
+
+
+def test_warmup_schedule():
+    cfg = TrainConfig()
+    assert lr_at(0, cfg) == pytest.approx(1e-7)
+    assert lr_at(499, cfg) == pytest.approx(5e-5)
+    assert lr_at(999, cfg) == lr_at(50_000, cfg) == 1e-4
+
+
+def test_config_round_trip_and_overrides():
+    cfg = RunConfig.preset("paper")
+    assert cfg.vae == VAEConfig() and cfg.flow == FlowConfig() and cfg.train == TrainConfig()
+    assert RunConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    new = cfg.with_overrides(["train.lr=3e-4", "flow.layers=2", "beta=0.01",
+                              "train.adam_betas=0.8,0.99"])
+    assert (new.train.lr, new.flow.layers, new.vae.beta) == (3e-4, 2, 0.01)
+    assert new.train.adam_betas == (0.8, 0.99)
+    for bad in (["hidden=3"], ["nope=1"], ["vae.nope=1"], ["train.lr=fast"], ["lr"]):
+        with pytest.raises(ValueError):
+            cfg.with_overrides(bad)
+    with pytest.raises(ValueError, match="unknown field"):
+        RunConfig.from_dict({**cfg.to_dict(), "vae": {"stride": 4, "bogus": 1}})
+
+
+def test_epoch_batches_resume_and_split_across_ranks():
+    data = SyntheticWindows(length=10)
+    cfg = replace(TrainConfig.tiny(), batch_size=3)
+    whole = EpochBatches(data, cfg, DistInfo(0, 1, 0, torch.device("cpu")))
+    batches = [b["sequence"] for _, b in zip(range(7), whole)]
+    assert whole.per_epoch == 3  # 10 windows -> 3 full batches, the rest dropped
+    resumed = EpochBatches(data, cfg, DistInfo(0, 1, 0, torch.device("cpu")), start_batch=4)
+    assert [b["sequence"] for _, b in zip(range(3), resumed)] == batches[4:]
+    ranks = [EpochBatches(data, replace(cfg, batch_size=2), DistInfo(r, 2, r, torch.device("cpu")))
+             for r in (0, 1)]
+    seen = [set(sum((b for b in r.epoch_batches(0)), [])) for r in ranks]
+    assert not seen[0] & seen[1] and len(seen[0]) == len(seen[1]) == 4
+
+
+def test_model_stats_from_stats_h5_keys():
+    raw = {"motion/mean": np.zeros(3), "motion/std": np.ones(3), "user_head/mean": np.zeros(2),
+           "user_head/std": np.ones(2), "audio/logmel/mean": np.zeros(4),
+           "audio/logmel/std": np.ones(4)}
+    assert set(model_stats(raw, "logmel")) == {"motion", "user_head", "audio"}
+    with pytest.raises(ValueError, match="hubert-large"):
+        model_stats(raw, "hubert-large")
+
+
+def test_rng_state_round_trip():
+    state = capture_rng_state()
+    a = (np.random.rand(), torch.rand(1).item(), __import__("random").random())
+    restore_rng_state(state)
+    assert (np.random.rand(), torch.rand(1).item(), __import__("random").random()) == a
+
+
+def test_training_writes_run_folder_and_checkpoints_load_weights_only(tmp_path):
+    path = run("vae", tmp_path, 4)
+    assert path == tmp_path / "vae.pt"
+    assert {p.name for p in tmp_path.iterdir()} == {"vae.pt", "vae_log.jsonl", "vae_loss.png",
+                                                    "config.json"}
+    raw = torch.load(path, weights_only=True)
+    assert raw["step"] == 4 and raw["stage"] == "vae" and raw["features"] == "logmel"
+    assert raw["dims"] == {"motion": DX, "audio": DA}
+    assert {"python", "numpy", "torch", "cuda"} <= set(raw["rng"])
+    assert [s for s, _ in losses(tmp_path, "vae")] == [1, 2, 3, 4]
+    with pytest.raises(FileExistsError, match="resume"):
+        run("vae", tmp_path, 4)
+    with pytest.raises(FileNotFoundError, match="vae stage"):
+        run("flow", tmp_path / "elsewhere", 2)
+    run("flow", tmp_path, 3)
+    models = load_models(tmp_path / "flow.pt", device="cpu")
+    assert models.flow is not None and models.stage == "flow" and models.step == 3
+    assert set(models.normalizer.keys) == {"motion", "user_head", "audio", "latent"}
+    latent_std = models.normalizer.latent_std
+    assert latent_std.shape == (8,) and torch.all(latent_std > 0)
+    torch.testing.assert_close(models.vae.state_dict()["frame_in.weight"],
+                               load_models(path).vae.state_dict()["frame_in.weight"])
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="bad.pt"):
+        load_checkpoint(tmp_path / "bad.pt")
+
+
+def test_resume_repeats_the_uninterrupted_run_exactly(tmp_path):
+    straight, broken = tmp_path / "straight", tmp_path / "broken"
+    run("vae", straight, 6)
+    run("flow", straight, 6)
+    run("vae", broken, 3)
+    run("vae", broken, 6, resume=True)
+    run("flow", broken, 3)
+    run("flow", broken, 6, resume=True)
+    for stage in ("vae", "flow"):
+        assert losses(straight, stage) == losses(broken, stage)
+        a, b = load_checkpoint(straight / f"{stage}.pt"), load_checkpoint(broken / f"{stage}.pt")
+        for key, value in a[stage].items():
+            assert torch.equal(value, b[stage][key]), key
+    # The flow really trained: its zero-initialised output layer moved.
+    assert load_checkpoint(straight / "flow.pt")["flow"]["out.proj.weight"].abs().sum() > 0
+
+
+def _ddp_replica_worker(rank: int, world: int, port: int, out: str) -> None:
+    """Two DDP steps on gloo via train_loop (saving each replica's own weights), then a
+    DDP run of train() itself (rank 0 alone writes the run folder)."""
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), WORLD_SIZE=str(world),
+                      RANK=str(rank), LOCAL_RANK=str(rank))
+    torch.set_num_threads(1)
+    from torch.nn.parallel import DistributedDataParallel
+
+    from sarah_models.checkpoint import build_models
+    from sarah_models.normalizer import Normalizer
+    from sarah_models.train import (VAEObjective, cleanup_distributed, make_optimizer,
+                                    setup_distributed, train_loop)
+
+    try:
+        info = setup_distributed("cpu")
+        assert (info.rank, info.world_size) == (rank, world)
+        config = tiny_config(2)
+        torch.manual_seed(rank)  # different initial weights: DDP must broadcast rank 0's
+        vae, _ = build_models(config, {"motion": DX, "audio": DA})
+        objective = VAEObjective(vae, Normalizer(STATS))
+        model = DistributedDataParallel(objective)
+        optimizer = make_optimizer(vae, config.train)
+        batches = EpochBatches(SyntheticWindows(), config.train, info)
+        first = next(iter(batches))["sequence"]
+        train_loop(model, batches, optimizer, config.train, total_steps=2, rank=rank)
+        torch.save({"weights": vae.state_dict(), "first": first}, Path(out) / f"replica{rank}.pt")
+        train("vae", tiny_config(3), None, Path(out) / "run", device="cpu",
+              dataset=SyntheticWindows(), stats=STATS, progress=False, echo=lambda _: None)
+    finally:
+        cleanup_distributed()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_ddp_two_processes_keep_identical_replicas_and_write_once(tmp_path):
+    mp.spawn(_ddp_replica_worker, args=(2, _free_port(), str(tmp_path)), nprocs=2, join=True)
+    a, b = (torch.load(tmp_path / f"replica{r}.pt", weights_only=True) for r in (0, 1))
+    assert a["first"] != b["first"]  # the ranks read different windows
+    for key, value in a["weights"].items():
+        assert torch.equal(value, b["weights"][key]), key
+    torch.manual_seed(0)
+    from sarah_models.checkpoint import build_models
+
+    init, _ = build_models(tiny_config(2), {"motion": DX, "audio": DA})
+    assert not torch.equal(init.state_dict()["frame_in.weight"], a["weights"]["frame_in.weight"])
+    assert torch.load(tmp_path / "run" / "vae.pt", weights_only=True)["step"] == 3
+    assert [s for s, _ in losses(tmp_path / "run", "vae")] == [1, 2, 3]  # rank 0 alone logged
+
+
+def test_cli_help_lists_every_option(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--help"])
+    assert exit_info.value.code == 0
+    text = capsys.readouterr().out
+    options = [o for action in build_parser()._actions for o in action.option_strings]
+    assert len(options) >= 12
+    for option in options:
+        assert option in text, option
+    assert "(default: paper)" in text and "(default: all)" in text
+
+
+def test_cli_reports_bad_input_clearly(tmp_path, capsys):
+    assert main(["--shards", str(tmp_path / "missing"), "--out", str(tmp_path / "run"),
+                 "--config", "tiny", "--device", "cpu", "--no-progress"]) == 2
+    assert "missing" in capsys.readouterr().err
+    assert main(["--shards", str(tmp_path), "--out", str(tmp_path / "run"),
+                 "--set", "train.nope=1"]) == 2
+    assert "nope" in capsys.readouterr().err
+
+
+def _write_shards(root: Path) -> None:
+    """A small real shards folder (sarah_data.shards writer + stats) with two train sequences."""
+    from scipy.spatial.transform import Rotation
+
+    from sarah_data import icosahedron
+    from sarah_data.constants import JOINT_NAMES
+    from sarah_data.shards import (MANIFEST_NAME, Manifest, ProcessedPerson, ProcessedSequence,
+                                   ShardAttrs, ShardWriter, write_manifest)
+    from sarah_data.stats import compute_stats
+
+    joints, shell, frames = 2, 3, 120
+    rng = np.random.default_rng(0)
+
+    def person(name: str) -> ProcessedPerson:
+        root = np.stack([np.cumsum(rng.normal(0, 0.01, frames)), np.full(frames, 0.9),
+                         np.cumsum(rng.normal(0, 0.01, frames))], 1)
+        yaw = Rotation.from_euler("Y", np.cumsum(rng.normal(0, 0.05, frames))[:, None]).as_matrix()
+        rot = np.broadcast_to(yaw[:, None], (frames, joints, 3, 3))
+        pos = root[:, None] + rng.normal(0, 0.2, (frames, joints, 3))
+        return ProcessedPerson(
+            name=name, icosahedra=icosahedron.encode(pos, rot).astype(np.float32),
+            shell=(root[:, None] + rng.normal(0, 0.2, (frames, shell, 3))).astype(np.float32),
+            head=root[:, [0, 2]].astype(np.float32), gaze=rng.uniform(-1, 1, frames).astype(np.float32),
+            speaking=rng.random(frames) < 0.5, valid=np.ones(frames, bool),
+            root_position=root.astype(np.float32), root_rotation=yaw.astype(np.float32),
+            audio={"logmel": rng.normal(size=(frames, DA)).astype(np.float32)})
+
+    attrs = ShardAttrs(toolkit_version="0.1.0", joint_names=JOINT_NAMES[:joints],
+                       icosahedron_template=icosahedron.TEMPLATE,
+                       icosahedron_radius=icosahedron.DEFAULT_RADIUS,
+                       shell_vertex_ids=np.arange(shell), body_model_name="procedural",
+                       body_model_sha256="0" * 64, extractors={"logmel": {"n_mels": DA}})
+    infos, entries = [], {}
+    for split in ("train", "val", "test"):
+        with ShardWriter(root, split, attrs) as writer:
+            if split == "train":
+                for name in ("seq-a", "seq-b"):
+                    writer.add(ProcessedSequence(name=name, session=f"s-{name}", split=split,
+                                                 persons=(person("AAA"), person("BBB"))))
+        infos += writer.close()
+        entries.update(writer.entries)
+    write_manifest(root / MANIFEST_NAME, Manifest(toolkit_version="0.1.0", config={}, splits={},
+                                                  shards=infos, sequences=entries))
+    compute_stats(root, window=WINDOW)
+
+
+def test_cli_trains_both_stages_on_real_shards(tmp_path, capsys):
+    shards, out = tmp_path / "shards", tmp_path / "run"
+    shards.mkdir()
+    _write_shards(shards)
+    small = ["vae.hidden=32", "vae.latent_dim=8", "vae.encoder_layers=1", "vae.decoder_layers=1",
+             "flow.hidden=32", "flow.cond_dim=16", "flow.time_dim=16", "flow.layers=1",
+             f"train.window={WINDOW}", "train.latent_stats_batches=1", "train.log_every=1"]
+    args = ["--stage", "all", "--config", "tiny", "--shards", str(shards), "--out", str(out),
+            "--steps", "2", "--batch-size", "2", "--device", "cpu", "--no-progress"]
+    assert main(args + sum((["--set", s] for s in small), [])) == 0, capsys.readouterr().err
+    models = load_models(out / "flow.pt", device="cpu")
+    assert models.dims == {"motion": 2 * 36 + 3 * 3, "audio": DA}
+    assert models.features == "logmel" and models.step == 2
+    assert json.loads((out / "config.json").read_text())["train"]["window"] == WINDOW
+    assert len(losses(out, "flow")) == 2

@@ -1,0 +1,100 @@
+"""The causal VAE: shapes, KL, streaming decode, and that it learns."""
+
+import pytest
+import torch
+from torch.distributions import Normal, kl_divergence
+
+from sarah_models.config import VAEConfig
+from sarah_models.vae import CausalVAE
+
+CFG = VAEConfig.tiny()
+DX = 30
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """Tiny models run fastest single-threaded (no OpenMP spinning on a shared 2-core box)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def vae():
+    torch.manual_seed(0)
+    return CausalVAE(CFG, DX).eval()
+
+
+def test_shapes(vae):
+    x = torch.randn(3, 8 * CFG.stride, DX)
+    mu, logvar = vae.encode(x)
+    assert mu.shape == logvar.shape == (3, 8, CFG.latent_dim)
+    assert vae.decode(mu).shape == x.shape
+    out = vae(x, torch.Generator().manual_seed(0))
+    assert set(out) >= {"loss", "recon", "kl", "x_hat"}
+    assert out["x_hat"].shape == x.shape and out["loss"].dim() == 0
+    torch.testing.assert_close(out["loss"], out["recon"] + CFG.beta * out["kl"])
+
+
+def test_rejects_length_not_multiple_of_stride(vae):
+    with pytest.raises(ValueError, match="stride"):
+        vae.encode(torch.randn(1, CFG.stride * 3 + 1, DX))
+
+
+def test_kl_matches_torch_distributions():
+    g = torch.Generator().manual_seed(0)
+    mu, logvar = torch.randn(2, 5, 7, generator=g), torch.randn(2, 5, 7, generator=g)
+    ref = kl_divergence(Normal(mu, (0.5 * logvar).exp()), Normal(0.0, 1.0)).mean()
+    torch.testing.assert_close(CausalVAE.kl(mu, logvar), ref)
+    assert CausalVAE.kl(torch.zeros(3), torch.zeros(3)).item() == 0.0
+
+
+def test_forward_is_reproducible_with_a_generator(vae):
+    x = torch.randn(2, 4 * CFG.stride, DX)
+    a = vae(x, torch.Generator().manual_seed(5))["loss"]
+    b = vae(x, torch.Generator().manual_seed(5))["loss"]
+    c = vae(x, torch.Generator().manual_seed(6))["loss"]
+    assert torch.equal(a, b) and not torch.equal(a, c)
+
+
+def test_incremental_decode_equals_full_decode(vae):
+    z = torch.randn(2, 9, CFG.latent_dim, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        full = vae.decode(z)
+        cache = vae.new_decoder_cache()
+        steps = [vae.decoder_step(z[:, k], cache) for k in range(z.shape[1])]
+    assert all(s.shape == (2, CFG.stride, DX) for s in steps)
+    torch.testing.assert_close(torch.cat(steps, 1), full, atol=1e-5, rtol=1e-5)
+    assert cache.blocks == 9 and cache.position == 9 * (CFG.stride + 1)
+
+
+def test_windowed_decoder_cache_stays_bounded(vae):
+    z = torch.randn(1, 12, CFG.latent_dim)
+    cache = vae.new_decoder_cache(max_blocks=3)
+    with torch.no_grad():
+        first = [vae.decoder_step(z[:, k], cache) for k in range(12)]
+    assert all(len(c) == 3 * (CFG.stride + 1) for c in cache.layers)
+    # Until the window is full the windowed decoder still equals the full decode.
+    with torch.no_grad():
+        full = vae.decode(z[:, :3])
+    torch.testing.assert_close(torch.cat(first[:3], 1), full, atol=1e-5, rtol=1e-5)
+
+
+def test_tiny_vae_overfits_a_small_batch():
+    torch.manual_seed(0)
+    model = CausalVAE(CFG, DX)
+    g = torch.Generator().manual_seed(0)
+    t = torch.linspace(0, 6.28, 16)
+    # Smooth, structured synthetic motion: sinusoids with random phases and frequencies.
+    freq, phase = torch.rand(2, 1, DX, generator=g) * 3, torch.rand(2, 1, DX, generator=g) * 6
+    x = torch.sin(t[None, :, None] * freq + phase)
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    losses = []
+    for step in range(120):
+        out = model(x, torch.Generator().manual_seed(step))
+        opt.zero_grad()
+        out["loss"].backward()
+        opt.step()
+        losses.append(out["recon"].item())
+    assert losses[-1] < losses[0] / 20, (losses[0], losses[-1])
