@@ -24,10 +24,11 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from sarah_data.constants import AUDIO_SAMPLE_RATE, FPS, JOINT, JOINT_PARENTS, NUM_JOINTS, SAMPLES_PER_FRAME
+from sarah_data import icosahedron
+from sarah_data.constants import (AUDIO_SAMPLE_RATE, FPS, JOINT, JOINT_PARENTS, NUM_JOINTS,
+                                  SAMPLES_PER_FRAME)
 from sarah_data.frames import WindowTransform, rotation_about_y, window_transform
 from sarah_data.gaze import gaze_score, head_points
-from sarah_data import icosahedron
 
 from .checkpoint import LoadedModels, load_models
 from .stream import StreamConfig, StreamingGenerator, StreamingSession, check_gaze, generate_offline

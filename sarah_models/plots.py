@@ -30,7 +30,7 @@ def _temporary(path: Path) -> Path:
 
 def _time_line(ax, xz: np.ndarray, cmap: str) -> None:
     segments = np.stack([xz[:-1], xz[1:]], axis=1)
-    lines = LineCollection(segments, cmap=cmap, linewidths=2.5)
+    lines = LineCollection(segments, cmap=cmap, linewidths=2.5, zorder=2)
     lines.set_array(np.linspace(0.0, 1.0, len(segments)))
     ax.add_collection(lines)
     colours = plt.get_cmap(cmap)([0.0, 1.0])
@@ -57,7 +57,7 @@ def plot_topview(path: str | Path, agent_xz: np.ndarray, agent_facing_xz: np.nda
     starts, ends = agent_xz[ticks], agent_xz[ticks] + FACING_LENGTH * facing[ticks]
     tick_colours = plt.get_cmap("autumn_r")(ticks / max(1, len(agent_xz) - 1))
     ax.add_collection(LineCollection(np.stack([starts, ends], 1), colors=tick_colours,
-                                     linewidths=1.2))
+                                     linewidths=1.2, zorder=1))
     everything = np.concatenate([agent_xz, user_xz, ends])
     low, high = everything.min(0), everything.max(0)
     centre, half = (low + high) / 2, max(float((high - low).max()) / 2 + 0.3, 0.5)

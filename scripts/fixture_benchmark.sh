@@ -1,0 +1,65 @@
+#!/usr/bin/env bash
+# The fixture benchmark of docs/results.md: fixture dyads -> shards -> a tiny CPU model ->
+# sarah-eval (Table 1 and the gaze sweep of Table 2). Not run in CI.
+#
+#   scripts/fixture_benchmark.sh [BENCH_DIR]          (default: bench/)
+#
+# Every stage is skipped when its output already exists, so an interrupted run resumes where it
+# stopped (training resumes exactly from its last checkpoint with --resume). Settings can be
+# overridden through the environment, e.g. VAE_STEPS=3000 FLOW_STEPS=3000 scripts/... .
+# Wall-clock times of each stage are appended to BENCH_DIR/timings.txt.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+BENCH=${1:-bench}
+PYTHON=${PYTHON:-python}
+SESSIONS=${SESSIONS:-20}         # 20 sessions x 2 sequences x 40 s = 26.7 dyad-minutes
+SEQUENCES=${SEQUENCES:-2}
+SECONDS_PER_SEQUENCE=${SECONDS_PER_SEQUENCE:-40}
+JOBS=${JOBS:-2}
+VAE_STEPS=${VAE_STEPS:-1500}
+FLOW_STEPS=${FLOW_STEPS:-1500}
+WINDOW=${WINDOW:-64}             # training window of the tiny preset (evaluation always uses 400)
+RUN=${RUN:-$BENCH/runs/tiny}
+EVAL_OUT=${EVAL_OUT:-$BENCH/eval}
+UNTIL=${UNTIL:-eval}             # stop after this stage: prep, train or eval
+read -r -a TRAIN_SET <<< "${TRAIN_SET:-}"  # extra --set FIELD=VALUE overrides, space-separated
+
+mkdir -p "$BENCH"
+stamp() { echo "$(date -u +%FT%TZ) $*" | tee -a "$BENCH/timings.txt"; }
+stamp "start: $(uname -srm), $(nproc) cores, $($PYTHON -c 'import torch; print("torch", torch.__version__)')"
+
+if [ ! -f "$BENCH/raw/fixture_truth.json" ]; then
+  stamp "fixtures: begin"
+  $PYTHON -m cli.fixtures "$BENCH/raw" --sessions "$SESSIONS" --sequences-per-session "$SEQUENCES" \
+    --seconds "$SECONDS_PER_SEQUENCE" --seed 0 --quiet
+  stamp "fixtures: end"
+fi
+
+if [ ! -f "$BENCH/shards/manifest.json" ]; then
+  stamp "prep: begin"
+  $PYTHON -m cli.prep "$BENCH/raw" "$BENCH/shards" -j "$JOBS" --no-progress
+  stamp "prep: end"
+fi
+[ "$UNTIL" = prep ] && exit 0
+
+set_args=(--set "train.window=$WINDOW" --set "train.vae_steps=$VAE_STEPS" --set "train.flow_steps=$FLOW_STEPS")
+for item in "${TRAIN_SET[@]}"; do set_args+=(--set "$item"); done
+for stage in vae flow; do
+  if [ ! -f "$RUN/$stage.done" ]; then
+    stamp "train $stage: begin (${set_args[*]})"
+    resume=()
+    [ -f "$RUN/$stage.pt" ] && resume=(--resume)
+    $PYTHON -m cli.train --stage "$stage" --config tiny --shards "$BENCH/shards" --out "$RUN" \
+      --device cpu --no-progress "${set_args[@]}" "${resume[@]}"
+    touch "$RUN/$stage.done"
+    stamp "train $stage: end"
+  fi
+done
+[ "$UNTIL" = train ] && exit 0
+
+stamp "eval: begin"
+$PYTHON -m cli.eval --run "$RUN" --shards "$BENCH/shards" --split test --windows 2048 \
+  --gaze none,0.0,0.8,1.0 --methods gt,random,nn,model --batch-clips 16 --seed 0 --device cpu \
+  --steps 4 --cfg 1.3 --protocol offline --out "$EVAL_OUT"
+stamp "eval: end"
