@@ -29,6 +29,8 @@ from sarah_data.shards import ShardSet
 log = logging.getLogger(__name__)
 
 DEFAULT_WINDOW = 400  # frames (paper: T = 400 at 30 fps)
+DEFAULT_CACHE_BYTES = 2 << 30  # per process; a split that fits is read once, then sliced
+_PER_PERSON = ("icosahedra", "shell", "head", "gaze", "speaking", "root_position", "root_rotation")
 
 
 def motion_vector(icosahedra: np.ndarray, shell: np.ndarray) -> np.ndarray:
@@ -83,11 +85,15 @@ class WindowDataset(torch.utils.data.Dataset):
     `length` sets the number of items per epoch in random mode (default: one per pair).
     Sequences without a single all-tracked window are skipped; `skipped` lists (sequence, reason).
     `motion_dim` (J*12*3 + V*3) and `audio_dim` (D, None without audio) size the models.
+
+    When the split's arrays fit in `cache_bytes` (decompressed), each process reads every
+    sequence once and serves windows as slices of memory; a larger split is read window by window
+    from the compressed chunks (a cache smaller than the data would thrash on random windows).
     """
 
     def __init__(self, shards_dir: Path | str, split: str, extractor: str | None = "logmel",
                  window: int = DEFAULT_WINDOW, seed: int = 0, length: int | None = None,
-                 deterministic: bool = False):
+                 deterministic: bool = False, cache_bytes: int = DEFAULT_CACHE_BYTES):
         if window < 1:
             raise ValueError(f"window must be positive, got {window}")
         self.shards = ShardSet(shards_dir)
@@ -101,6 +107,8 @@ class WindowDataset(torch.utils.data.Dataset):
         self.audio_dim: int | None = None
         # (sequence, agent person index, valid window starts) per usable pair
         self.pairs: list[tuple[str, int, np.ndarray]] = []
+        self._split_bytes = 0
+        self._cache: dict[str, dict[str, dict[str, np.ndarray]]] = {}
         try:
             self._index_sequences()
             attrs = self.shards.attrs if self.shards.manifest.shards else None
@@ -123,6 +131,7 @@ class WindowDataset(torch.utils.data.Dataset):
                                  f"{window} frames: {self.skipped}")
         if not self.pairs:
             log.warning("split %r of %s has no usable window of %d frames", split, shards_dir, window)
+        self.in_memory = self._split_bytes <= cache_bytes
 
     @classmethod
     def sliding(cls, shards_dir: Path | str, split: str, extractor: str | None = "logmel",
@@ -151,6 +160,8 @@ class WindowDataset(torch.utils.data.Dataset):
                 continue
             if self.extractor is not None:
                 self.audio_dim = int(group[persons[0]]["audio"][self.extractor].shape[1])
+            self._split_bytes += sum(group[p][key].size * group[p][key].dtype.itemsize
+                                     for p in persons for key in self._keys())
             for agent in range(len(persons)):
                 self.pairs.append((name, agent, starts))
 
@@ -172,11 +183,29 @@ class WindowDataset(torch.utils.data.Dataset):
         rng = np.random.default_rng((self.seed, self.epoch, index))
         return name, agent, int(starts[rng.integers(starts.size)])
 
+    def _keys(self) -> tuple[str, ...]:
+        return _PER_PERSON + ((f"audio/{self.extractor}",) if self.extractor is not None else ())
+
+    def _arrays(self, name: str) -> dict[str, dict]:
+        """The sequence's per-person datasets: h5py datasets, or arrays read once into memory."""
+        group = self.shards.group(name)
+        if not self.in_memory:
+            return {p: {key: group[p][key] for key in self._keys()} for p in group.attrs["persons"]}
+        if name not in self._cache:
+            self._cache[name] = {p: {key: group[p][key][()] for key in self._keys()}
+                                 for p in group.attrs["persons"]}
+        return self._cache[name]
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_cache"] = {}  # each worker fills its own
+        return state
+
     def __getitem__(self, index: int) -> dict:
         name, agent, start = self.locate(int(index))
-        group = self.shards.group(name)
         persons = self.shards.entry(name).persons  # verify checks they match the file's
-        a, u = group[persons[agent]], group[persons[1 - agent]]
+        arrays = self._arrays(name)
+        a, u = arrays[persons[agent]], arrays[persons[1 - agent]]
         frames = slice(start, start + self.window)
         motion, user_head, transform = normalize_window(
             a["icosahedra"][frames], a["shell"][frames], u["head"][frames],
@@ -193,6 +222,7 @@ class WindowDataset(torch.utils.data.Dataset):
             "start": start,
         }
         if self.extractor is not None:
-            item["agent_audio"] = torch.from_numpy(a["audio"][self.extractor][frames].astype(np.float32))
-            item["user_audio"] = torch.from_numpy(u["audio"][self.extractor][frames].astype(np.float32))
+            key = f"audio/{self.extractor}"
+            item["agent_audio"] = torch.from_numpy(a[key][frames].astype(np.float32))
+            item["user_audio"] = torch.from_numpy(u[key][frames].astype(np.float32))
         return item

@@ -41,14 +41,23 @@ class WindowTransform:
         return rotation_about_y(-self.yaw)
 
     def apply_points(self, points: np.ndarray) -> np.ndarray:
-        points = np.asarray(points)
-        offset = np.array([self.x, 0.0, self.z], dtype=points.dtype)
-        return ((points - offset) @ self._to_window.T.astype(points.dtype)).astype(points.dtype)
+        return self._rotate(np.asarray(points), -self.yaw, before=(self.x, self.z))
 
     def invert_points(self, points: np.ndarray) -> np.ndarray:
-        points = np.asarray(points)
-        offset = np.array([self.x, 0.0, self.z], dtype=points.dtype)
-        return (points @ self._to_window.astype(points.dtype) + offset).astype(points.dtype)
+        return self._rotate(np.asarray(points), self.yaw, after=(self.x, self.z))
+
+    @staticmethod
+    def _rotate(points: np.ndarray, angle: float, before=(0.0, 0.0), after=(0.0, 0.0)) -> np.ndarray:
+        # Rotation about y touches only x and z: two fused element-wise lines instead of a
+        # (N,3)x(3,3) matmul, which numpy runs several times slower for 3-wide rows.
+        c, s = float(np.cos(angle)), float(np.sin(angle))  # Python floats keep float32 float32
+        x = points[..., 0] - before[0]
+        z = points[..., 2] - before[1]
+        out = np.empty_like(points)
+        out[..., 0] = c * x + s * z + after[0]
+        out[..., 1] = points[..., 1]
+        out[..., 2] = c * z - s * x + after[1]
+        return out
 
     def apply_floor(self, floor_xz: np.ndarray) -> np.ndarray:
         floor_xz = np.asarray(floor_xz)

@@ -1,6 +1,17 @@
 """Shared pytest fixtures. Each block names its owner; expensive artefacts are session-scoped."""
 
 import pytest
+import torch
+
+
+@pytest.fixture(autouse=True, scope="session")
+def one_torch_thread():
+    """Tests run tiny models of many small ops: one intra-op thread avoids the thread hand-offs
+    that dominate them (10x or more on a busy 2-core machine). Subprocesses are unaffected."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 # --- procedural body model (owner: sarah_data/body) ------------------------------------------

@@ -11,15 +11,6 @@ S, K, DZ, DA = 4, 6, 16, 5
 T = S * K
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny models run fastest single-threaded (no OpenMP spinning on a shared 2-core box)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def make_cond(b: int, g: torch.Generator, frames: int = T) -> dict:
     return {"user_head": torch.randn(b, frames, 2, generator=g),
             "agent_audio": torch.randn(b, frames, DA, generator=g),

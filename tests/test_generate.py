@@ -25,16 +25,6 @@ LOGMEL_DIM = 80
 FRAMES = 16
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny models run many small ops: one intra-op thread avoids the thread hand-offs that
-    dominate (by 10x or more on a busy 2-core machine). Restored afterwards."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def save_run(folder, audio_dim=LOGMEL_DIM, stage="flow", features="logmel", shell_points=SHELL):
     config, dims, vae, flow, normalizer = tiny_models(audio_dim=audio_dim, audio_mean=-8.0,
                                                       audio_std=4.0, shell_points=shell_points)

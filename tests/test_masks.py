@@ -14,15 +14,6 @@ S, K, DX, DA = 4, 5, 18, 6
 T = S * K
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny models run fastest single-threaded (no OpenMP spinning on a shared 2-core box)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def _randomize(model: torch.nn.Module, seed: int) -> torch.nn.Module:
     """Non-zero weights everywhere: zero-initialised gates would hide any dependence."""
     g = torch.Generator().manual_seed(seed)

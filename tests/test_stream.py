@@ -53,16 +53,6 @@ def tiny_models(audio_dim: int = 8, seed: int = 0, audio_mean: float = 0.0,
     return config, dims, vae.eval(), flow.eval(), normalizer
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny models run many small ops: one intra-op thread avoids the thread hand-offs that
-    dominate (by 10x or more on a busy 2-core machine). Restored afterwards."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture(scope="module")
 def models():
     _, _, vae, flow, normalizer = tiny_models()

@@ -19,15 +19,6 @@ from sarah_models.train import DistInfo, EpochBatches, lr_at, model_stats, train
 WINDOW, DX, DA = 16, 21, 6
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny models run fastest single-threaded (no OpenMP spinning on a shared 2-core box)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 class SyntheticWindows(torch.utils.data.Dataset):
     """Test input following the WindowDataset item contract; item i is a function of (i, epoch)."""
 
