@@ -85,8 +85,8 @@ def process_pair(pair: PairRecord, body_model_path: str, config: PrepConfig
         arrays[prefix + "head"] = heads[i].astype(np.float32)
         arrays[prefix + "gaze"] = gaze.gaze_score(frames_out.head_front, frames_out.head_back,
                                                   heads[partner]).astype(np.float32)
-        arrays[prefix + "speaking"] = speaking_labels(
-            arrays_in.audio, people[partner].audio, config.speaking)[: pair.length].astype(np.uint8)
+        speaking = speaking_labels(arrays_in.audio, people[partner].audio, config.speaking)
+        arrays[prefix + "speaking"] = np.pad(speaking, (0, max(0, pair.length - speaking.size)))[: pair.length].astype(np.uint8)
         arrays[prefix + "valid"] = arrays_in.valid.astype(np.uint8)
         arrays[prefix + "root_position"] = frames_out.joints[:, JOINT["pelvis"]].astype(np.float32)
         arrays[prefix + "root_rotation"] = frames_out.rotations[:, JOINT["pelvis"]].astype(np.float32)
