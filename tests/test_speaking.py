@@ -151,12 +151,14 @@ def test_clip_rule_is_the_speaking_fraction_threshold(labels, threshold):
 
 
 def test_clip_rule_on_labels_and_on_audio():
-    assert clip_is_speaking(frames([(0, 200)], 400))  # exactly half: speaking
-    assert not clip_is_speaking(frames([(0, 199)], 400))
+    assert CFG.clip_speaking_fraction == 0.6
+    assert clip_is_speaking(frames([(0, 240)], 400))  # exactly 60%: speaking
+    assert not clip_is_speaking(frames([(0, 239)], 400))
     assert not clip_is_speaking(np.zeros(0, dtype=bool))
     own = np.concatenate([tone(250, -25.0), silence(150)])
     assert clip_is_speaking(own, CFG, partner=np.zeros_like(own))
-    assert not clip_is_speaking(np.concatenate([tone(150, -25.0), silence(250)]))
+    assert not clip_is_speaking(own, CFG, partner=np.concatenate([tone(150, -10.0), silence(250)]))
+    assert not clip_is_speaking(np.concatenate([tone(230, -25.0), silence(170)]))
     assert speaking_fraction(speaking_labels(own, None)) == pytest.approx(250 / 400)
 
 

@@ -63,9 +63,9 @@ class HubertConfig:
 
     weights: local weight file; None -> torchaudio's cache file for the architecture.
     architecture: "large" (the paper's, 24 layers x 1024) or "base" (12 x 768).
-    layer: transformer layer whose output is the feature, 1-based; None -> the last layer followed by
-        the encoder's final layer norm, i.e. exactly what the model returns (``model(wave)``), the
-        "HuBERT features" of common use; the paper does not name a layer.
+    layer: transformer layer whose output is the feature, 1-based; None -> exactly what the model
+        returns (``model(wave)``: for "large" the 24th layer's output, for "base" the 12th after the
+        encoder's final layer norm), the "HuBERT features" of common use; the paper names no layer.
     normalize_waveform: zero mean, unit variance per model input (per clip offline, per window
         streaming), as torchaudio's HUBERT_LARGE bundle does.
     past_frames, chunk_frames: the streaming window (paper A.2: T - s = 396 past frames, s = 4).
@@ -172,6 +172,10 @@ class _Hubert:
             raise ValueError(f"hubert: layer must be in [1, {num_layers}], got {config.layer}")
         self.dim = model.encoder.feature_projection.projection.out_features
 
+    def move_to(self, device: torch.device) -> None:
+        self.model.to(device)
+        self.device = device
+
     @torch.inference_mode()
     def window(self, audio: np.ndarray, first_sample: int, frames: np.ndarray) -> np.ndarray:
         """Features of motion ``frames`` from one model pass over 48 kHz ``audio`` that starts at
@@ -183,10 +187,10 @@ class _Hubert:
         x = x[None]
         if self.config.normalize_waveform:
             x = torch.nn.functional.layer_norm(x, x.shape)  # what torchaudio's HUBERT_LARGE bundle does
-        outputs, _ = self.model.extract_features(x, num_layers=self.layer)
-        hidden = outputs[self.layer - 1][0]
-        if self.layer == len(self.model.encoder.transformer.layers) and self.model.encoder.transformer.layer_norm_first:
-            hidden = self.model.encoder.transformer.layer_norm(hidden)  # == the model's own output
+        if self.config.layer is None:
+            hidden = self.model(x)[0][0]
+        else:
+            hidden = self.model.extract_features(x, num_layers=self.layer)[0][self.layer - 1][0]
         # Interpolate from HuBERT frame centres to motion frame centres, in 16 kHz samples of the window.
         centres = (torch.as_tensor(frames, dtype=torch.float64) + 0.5) * (HUBERT_SAMPLE_RATE / FPS)
         centres -= first_sample * (HUBERT_SAMPLE_RATE / AUDIO_SAMPLE_RATE)
@@ -241,7 +245,7 @@ class HubertExtractor(AudioFeatureExtractor):
         return self._hubert.device
 
     def to(self, device: str | None) -> "HubertExtractor":
-        self._hubert = _Hubert(self._hubert.model, self.config, _resolve_device(device))
+        self._hubert.move_to(_resolve_device(device))  # in place: open streams follow
         return self
 
     def extract(self, wave: np.ndarray, num_frames: int) -> np.ndarray:

@@ -125,7 +125,12 @@ class _LogMel:
         self.mel = torchaudio.transforms.MelSpectrogram(
             sample_rate=config.sample_rate, n_fft=self.win, win_length=self.win, hop_length=self.hop,
             f_min=config.f_min, f_max=config.f_max, n_mels=config.n_mels, center=False, power=2.0,
-        ).to(device, torch.float32)
+        ).to(device, torch.float64)
+
+    def move_to(self, device: torch.device) -> None:
+        self.taps = self.taps.to(device)
+        self.mel = self.mel.to(device)
+        self.device = device
 
     def segment_start(self, first_frame: int) -> int:
         """Where a segment that serves frames >= ``first_frame`` starts (48 kHz sample index)."""
@@ -141,7 +146,9 @@ class _LogMel:
         assert start % self.period == 0 and len(segment) == end_frame * SAMPLES_PER_FRAME - start
         x = torch.from_numpy(np.ascontiguousarray(segment)).to(self.device, torch.float32)
         y = _causal_resample(x, self.ratio, self.taps)
-        z = torch.nn.functional.pad(y, (self.win - self.hop, 0))
+        # Spectra in float64: FFT and filterbank kernels may round differently for different numbers
+        # of frames; in double precision that can no longer show in the float32 result.
+        z = torch.nn.functional.pad(y.double(), (self.win - self.hop, 0))
         num_mel = len(y) // self.hop
         power = self.mel(z[: (num_mel - 1) * self.hop + self.win])  # (n_mels, num_mel)
         log_mel = power.clamp_min(self.config.log_floor).log().T
@@ -152,7 +159,7 @@ class _LogMel:
         keep = frame >= first_frame
         index = frame[keep] - first_frame
         sums = torch.zeros(count, self.config.n_mels, dtype=torch.float64, device=self.device)
-        sums.index_add_(0, index, log_mel[keep].to(torch.float64))
+        sums.index_add_(0, index, log_mel[keep])
         counts = torch.bincount(index, minlength=count).clamp_min(1)
         return (sums / counts[:, None]).to(torch.float32).cpu().numpy()
 
@@ -188,7 +195,7 @@ class LogMelExtractor(AudioFeatureExtractor):
     def to(self, device: str | None) -> "LogMelExtractor":
         if device is None:
             device = "cuda" if torch.cuda.is_available() else "cpu"
-        self._logmel = _LogMel(self.config, torch.device(device))
+        self._logmel.move_to(torch.device(device))  # in place: open streams follow
         return self
 
     def extract(self, wave: np.ndarray, num_frames: int) -> np.ndarray:
