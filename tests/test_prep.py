@@ -153,3 +153,85 @@ def test_split_sessions_is_deterministic_and_complete():
     assert abs(share["train"] - 0.8) < 0.05 and abs(share["val"] - 0.1) < 0.05
     small = split_sessions({"a": 1, "b": 1, "c": 1}, seed=0)
     assert all(len(v) == 1 for v in small.values())
+
+
+def _edit_manifest(raw: Path, edit) -> None:
+    path = raw / "aiagent" / "dataset.json"
+    manifest = json.loads(path.read_text())
+    edit(manifest)
+    path.write_text(json.dumps(manifest))
+
+
+def test_bad_input_corpus_every_case(tmp_path, capsys):
+    """One corpus with every kind of bad input: each gets a clear line naming the file (or the
+    sequence, for manifest problems) in the output and report.json; the rest is written."""
+    import soundfile
+
+    from sarah_data.fixtures.dyads import make_fixtures
+
+    raw = tmp_path / "raw"
+    make_fixtures(raw, sessions=7, sequences_per_session=2, seconds=4.0, seed=5)
+    section = raw / "aiagent"
+    manifest = json.loads((section / "dataset.json").read_text())
+    with_audio = sorted({s for person in manifest.values() for s, e in person.items() if e["audio"]})
+    persons = {s: sorted(p for p in manifest if s in manifest[p]) for s in with_audio}
+
+    def file(seq, kind, ext="npy", index=0):
+        folder = "audio_separated" if ext == "wav" else kind
+        return section / seq / persons[seq][index] / folder / f"{seq}.{ext}"
+
+    cases = dict(zip(["pickled", "shape", "longer", "no_wav", "bad_wav", "rate", "stereo", "partner",
+                      "name", "zero"], with_audio))
+    np.save(file(cases["pickled"], "smplx_mesh_betas"), np.array([{"a": 1}] * 3, dtype=object), allow_pickle=True)
+    np.save(file(cases["shape"], "smplx_mesh_body_pose"), np.zeros((120, 60), np.float32))
+    np.save(file(cases["longer"], "smplx_mesh_transl"), np.zeros((200, 3), np.float32))
+    file(cases["no_wav"], "", "wav").unlink()
+    file(cases["bad_wav"], "", "wav").write_bytes(b"RIFF not really a wave file")
+    audio, rate = soundfile.read(file(cases["rate"], "", "wav"), dtype="float32")
+    import torchaudio.functional as F
+    soundfile.write(file(cases["rate"], "", "wav"),
+                    F.resample(torch.from_numpy(audio), rate, 44_100).numpy(), 44_100)
+    audio, rate = soundfile.read(file(cases["stereo"], "", "wav"), dtype="float32")
+    soundfile.write(file(cases["stereo"], "", "wav"), np.stack([audio, audio], 1), rate)
+
+    def manifest_cases(m):
+        del m[persons[cases["partner"]][1]][cases["partner"]]
+        for p in persons[cases["name"]]:
+            m[p]["c--2025-bad-name"] = m[p].pop(cases["name"])
+        for p in persons[cases["zero"]]:
+            m[p][cases["zero"]]["length"] = 0
+    _edit_manifest(raw, manifest_cases)
+    # the same sequence listed again in a second section folder
+    duplicate = with_audio[-1]
+    (raw / "aiagent2").mkdir()
+    (raw / "aiagent2" / "dataset.json").write_text(json.dumps(
+        {p: {duplicate: manifest[p][duplicate]} for p in persons[duplicate]}))
+
+    out = tmp_path / "shards"
+    assert prep_main([str(raw), str(out), "-j", "1", "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "Traceback" not in printed
+    report = {s.get("sequence") or s["path"]: s for s in json.loads((out / "report.json").read_text())["skipped"]}
+    expect_file = {"pickled": file(cases["pickled"], "smplx_mesh_betas"),
+                   "shape": file(cases["shape"], "smplx_mesh_body_pose"),
+                   "longer": file(cases["longer"], "smplx_mesh_transl"),
+                   "no_wav": file(cases["no_wav"], "", "wav"),
+                   "bad_wav": file(cases["bad_wav"], "", "wav"),
+                   "stereo": file(cases["stereo"], "", "wav")}
+    for case, path in expect_file.items():
+        seq = cases[case]
+        assert seq in report, case
+        assert str(path) in report[seq]["reason"] and str(path) in printed, (case, report[seq]["reason"])
+    for case in ("partner", "zero"):
+        assert cases[case] in report and cases[case] in printed, case
+    assert "c--2025-bad-name" in report and "c--2025-bad-name" in printed
+    assert report[duplicate]["kind"] == "duplicate"
+    assert any(s.get("kind") == "no-audio" for s in report.values())
+
+    written = json.loads((out / "manifest.json").read_text())["sequences"]
+    assert cases["rate"] in written, "a sane sample rate is resampled, not skipped"
+    assert "resampl" in printed and str(file(cases["rate"], "", "wav")) in printed
+    bad = {cases[c] for c in expect_file} | {cases["partner"], cases["zero"], cases["name"]}
+    assert set(written) == set(with_audio) - bad
+    assert verify_shards(out) == []
+    assert not list(out.rglob(".*.tmp-*")) and not (out / ".work").exists()
