@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _inspect(args) -> int:
-    from sarah_data.shards import format_summary, summarize, verify_shards
+    from sarah_data.verify import format_summary, summarize, verify_shards
 
     status = 0
     for folder in args.paths:

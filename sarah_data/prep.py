@@ -26,7 +26,7 @@ from tqdm import tqdm
 from . import __version__
 from .config import PrepConfig
 from .constants import FPS, JOINT_NAMES
-from .embody3d import Corpus, PairRecord, read_corpus
+from .embody3d import PairRecord, read_corpus
 from .executors import make_executor
 from .process import TaskResult, fingerprint, run_task
 from .shards import atomic_write_bytes, file_sha256

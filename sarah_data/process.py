@@ -21,7 +21,7 @@ import torch
 
 from . import gaze, icosahedron
 from .config import PrepConfig
-from .constants import FPS, JOINT
+from .constants import JOINT
 from .embody3d import PairRecord, load_person
 from .loading import DataProblem
 from .shards import atomic_write_bytes, file_sha256

@@ -8,7 +8,6 @@ import math
 import numpy as np
 import pytest
 import soundfile as sf
-import torch
 from PIL import Image
 
 from cli.generate import main

@@ -10,14 +10,13 @@ import sys
 import time
 from pathlib import Path
 
-import h5py
 import numpy as np
 import pytest
 import torch
 
 from cli.prep import main as prep_main
 from sarah_data.dataset import WindowDataset
-from sarah_data.shards import verify_shards
+from sarah_data.verify import verify_shards
 from sarah_data.splits import split_sessions
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -15,7 +15,8 @@ from sarah_data.constants import JOINT_NAMES, SHARD_SCHEMA_VERSION
 from sarah_data.icosahedron import DEFAULT_RADIUS, TEMPLATE
 from sarah_data.shards import (Manifest, ProcessedPerson, ProcessedSequence, ShardAttrs,
                                ShardError, ShardWriter, SourceFile, open_shards, read_manifest, read_shard,
-                               summarize, format_summary, verify_shards, write_manifest, write_shard)
+                               write_manifest, write_shard)
+from sarah_data.verify import format_summary, summarize, verify_shards
 
 J, V = 3, 5
 EXTRACTORS = {"logmel": 4, "hubert-large": 6}
