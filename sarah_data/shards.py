@@ -32,7 +32,7 @@ from sarah_data.splits import SPLITS
 MANIFEST_NAME = "manifest.json"
 STATS_NAME = "stats.h5"
 DEFAULT_MAX_BYTES = 1 << 30  # 1 GiB per shard file
-CHUNK_FRAMES = 400  # one training window per chunk along time
+CHUNK_FRAMES = 100  # a random 400-frame window decompresses at most 500 frames per dataset
 COMPRESSION_LEVEL = 4  # gzip: readable by every HDF5 build, unlike lzf
 # Group headers, attributes and chunk indices a sequence adds beyond its array bytes; part of the
 # size estimate that decides when to start a new file.

@@ -13,7 +13,7 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 from sarah_data import shards
 from sarah_data.constants import JOINT_NAMES, SHARD_SCHEMA_VERSION
 from sarah_data.icosahedron import DEFAULT_RADIUS, TEMPLATE
-from sarah_data.shards import (Manifest, ProcessedPerson, ProcessedSequence, ShardAttrs,
+from sarah_data.shards import (CHUNK_FRAMES, Manifest, ProcessedPerson, ProcessedSequence, ShardAttrs,
                                ShardError, ShardWriter, SourceFile, open_shards, read_manifest, read_shard,
                                write_manifest, write_shard)
 from sarah_data.verify import format_summary, summarize, verify_shards
@@ -100,7 +100,7 @@ def test_round_trip_plain_h5py_and_api(tmp_path):
             "session": "c--s1", "split": "train", "frames": 900, "fps": 30, "persons": ["AAA111", "BBB222"]}
         ico = seq["AAA111/icosahedra"]
         assert ico.shape == (900, J, 12, 3) and ico.dtype == np.float32
-        assert ico.chunks == (400, J, 12, 3) and ico.compression == "gzip" and ico.shuffle and ico.fletcher32
+        assert ico.chunks == (CHUNK_FRAMES, J, 12, 3) and ico.compression == "gzip" and ico.shuffle and ico.fletcher32
         assert seq["BBB222/audio/logmel"].shape == (900, 4)
         assert seq["AAA111/valid"].dtype == np.uint8
         np.testing.assert_array_equal(seq["BBB222/shell"][()], seqs[0].persons[1].shell)

@@ -1,0 +1,654 @@
+"""The library behind ``sarah-eval``: the paper's Table 1 and Table 2 on a split's test windows.
+
+Windows (A.2): the split's non-overlapping T = 400-frame windows (``WindowDataset.sliding``:
+every tracked run tiled from its start, either person as the agent), in the dataset's order
+(sequence, start, agent). When there are more than ``windows`` of them, ``windows`` evenly
+spaced ones are kept (indices round(linspace(0, n - 1, windows))), so the subset spans the whole
+split; when there are fewer, all are used and the tables say so.
+
+Methods, each producing one (T, Dx) motion per window in its window frame:
+  gt      the window's own motion (a reference row: per-clip metrics of real motion; FGD "-")
+  random  RandomBaseline: a random training window
+  nn      NearestNeighbourBaseline: the nearest of 2048 random training windows (full clip)
+  model   the run's flow checkpoint, once per gaze setting: the offline protocol by default (all
+          T frames denoised at once under the causal mask), or streaming 4 frames at a time
+
+Speaking: a window is S when the agent's per-frame speaking labels stored in the shards
+(``sarah_data.speaking`` on the agent's separated audio energy) satisfy the clip rule
+``clip_is_speaking`` with the shards' speaking configuration, NS otherwise.
+
+FPS = T / median seconds to produce one window's motion (the paper: "generating all 400 frames
+in one go and then dividing the total time taken by 400"; the median ignores warm-up). R
+(real-time) is FPS >= 30, the motion's frame rate; C (causal) is a property of the method.
+
+Outputs in ``out``: table1.md/.json, table2.md/.json, windows.json (the windows evaluated and
+their S/NS flags), plots/metric_<name>.png (bars across methods) and plots/gaze_control.png.
+Memory stays at a few clips: clips are produced lazily while the metrics read them.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import statistics
+import time
+import warnings
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from sarah_data.constants import FPS
+
+from .metrics import (METRICS, CategoryValues, Clip, FrechetRidgeWarning, MetricsConfig,
+                      MetricsTable, evaluate, foot_slide, head_angle, wrist_speed)
+
+METHODS = ("gt", "random", "nn", "model")
+PROTOCOLS = ("offline", "stream")
+METRIC_LABELS = {"fgd": "FGD", "fgd_acc": "FGD_acc", "foot_slide": "Foot Slide",
+                 "wrist_speed": "Wrist Var", "head_angle": "Head Ang."}
+METRIC_ARROWS = {"fgd": "↓", "fgd_acc": "↓", "foot_slide": "↓", "wrist_speed": "↑",
+                 "head_angle": "↑"}
+METRIC_RANGES = {"foot_slide": " ∈ [0, 1]", "head_angle": " ∈ [-1, 1]"}
+DECIMALS = {"fgd": 2, "fgd_acc": 2, "foot_slide": 2, "wrist_speed": 1, "head_angle": 2}
+
+
+class EvalError(Exception):
+    """A problem with the inputs of an evaluation, stated in one line."""
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """sarah-eval settings; defaults are the paper's (sec. 4, A.2, A.3)."""
+
+    split: str = "test"
+    windows: int = 2048  # test windows evaluated ("2048 sequences in total")
+    window: int = 400  # T frames per window
+    gaze: tuple[float | None, ...] = (None, 0.0, 0.8, 1.0)  # Table 2 rows; None = no gaze control
+    table1_gaze: float | None = None  # the model row of Table 1 (the paper's "Ours" = the ∅ row)
+    methods: tuple[str, ...] = METHODS
+    batch_clips: int = 16  # clips per FGD batch of the Avg column
+    seed: int = 0
+    steps: int = 4  # solver steps (midpoint)
+    cfg_scale: float = 1.3
+    protocol: str = "offline"
+    library_size: int = 2048  # NN library and Random pool of training windows
+    train_split: str = "train"
+    features: str | None = None  # audio extractor when no model is evaluated (else the run's)
+    device: str | None = None
+
+    def __post_init__(self) -> None:
+        unknown = [m for m in self.methods if m not in METHODS]
+        if unknown or not self.methods:
+            raise EvalError(f"unknown method(s) {unknown or '(none given)'}; choose from "
+                            f"{', '.join(METHODS)}")
+        if self.protocol not in PROTOCOLS:
+            raise EvalError(f"unknown protocol {self.protocol!r}; choose offline or stream")
+        for name in ("windows", "window", "batch_clips", "steps", "library_size"):
+            if getattr(self, name) < 1:
+                raise EvalError(f"--{name.replace('_', '-')} must be positive, got "
+                                f"{getattr(self, name)}")
+        for g in (*self.gaze, self.table1_gaze):
+            if g is not None and not (math.isfinite(g) and -1.0 <= g <= 1.0):
+                raise EvalError(f"gaze targets must be in [-1, 1] or none, got {g}")
+
+    @property
+    def model_gazes(self) -> tuple[float | None, ...]:
+        """Every gaze setting the model runs with: the sweep, plus Table 1's if not in it."""
+        return tuple(self.gaze) + (() if self.table1_gaze in self.gaze else (self.table1_gaze,))
+
+
+# --------------------------------------------------------------------------- windows
+
+
+def select_windows(available: int, requested: int) -> np.ndarray:
+    """Indices of the evaluated windows: all of them, or ``requested`` evenly spaced ones."""
+    if available <= requested:
+        return np.arange(available, dtype=np.int64)
+    return np.unique(np.round(np.linspace(0, available - 1, requested)).astype(np.int64))
+
+
+class TestWindows:
+    """The evaluated windows of a split, read on demand (the last two items are cached: the
+    metrics read a method's clip and its ground truth one after the other)."""
+
+    def __init__(self, dataset, indices: np.ndarray) -> None:
+        self.dataset, self.indices = dataset, np.asarray(indices, np.int64)
+        self._cache: dict[int, dict] = {}
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, i: int) -> dict:
+        i = int(i)
+        if i not in self._cache:
+            if len(self._cache) >= 2:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[i] = self.dataset[int(self.indices[i])]
+        return self._cache[i]
+
+
+def motion_clip(motion, user_head) -> Clip:
+    """A metrics Clip from a (T, Dx) motion vector (icosahedra then shell) and (T, 2) user head."""
+    from .generate import split_motion
+
+    motion = np.asarray(motion.numpy() if hasattr(motion, "numpy") else motion, np.float32)
+    ico, shell = split_motion(motion)
+    head = user_head.numpy() if hasattr(user_head, "numpy") else user_head
+    return Clip(ico, shell, np.asarray(head, np.float32), fps=FPS)
+
+
+class MethodClips:
+    """Lazily produced clips of one method: clip i = ``produce(window i, i)`` scored against
+    window i's user head. Seconds per window are recorded in ``seconds``."""
+
+    def __init__(self, windows: TestWindows, produce: Callable[[dict, int], np.ndarray],
+                 progress=None) -> None:
+        self.windows, self.produce, self.progress = windows, produce, progress
+        self.seconds: list[float] = []
+        self._last: tuple[int, Clip] | None = None
+
+    def __len__(self) -> int:
+        return len(self.windows)
+
+    def __getitem__(self, i: int) -> Clip:
+        if self._last is not None and self._last[0] == i:
+            return self._last[1]
+        item = self.windows[i]
+        tick = time.perf_counter()
+        motion = self.produce(item, i)
+        self.seconds.append(time.perf_counter() - tick)
+        clip = motion_clip(motion, item["user_head"])
+        self._last = (i, clip)
+        if self.progress is not None:
+            self.progress.update(1)
+        return clip
+
+
+def gt_clips(windows: TestWindows) -> MethodClips:
+    return MethodClips(windows, lambda item, _: item["motion"])
+
+
+def reference_table(clips: Sequence[Clip], speaking: np.ndarray,
+                    config: MetricsConfig = MetricsConfig()) -> MetricsTable:
+    """The GT row: the per-clip metrics of real motion with the same S/NS pooling as
+    ``metrics.evaluate`` (Avg = mean over clips, S/NS = mean over each category's clips) and
+    FGD / FGD_acc NaN -- FGD of the ground truth against itself is 0 by definition, and
+    computing it would only measure the covariance square root's rounding."""
+    from sarah_data import icosahedron
+    from sarah_data.constants import JOINT
+
+    speaking = np.asarray(speaking, bool)
+    per_clip: dict[str, list[float]] = {"foot_slide": [], "wrist_speed": [], "head_angle": []}
+    for i in range(len(clips)):
+        clip = clips[i]
+        positions, rotations = icosahedron.decode(np.asarray(clip.icosahedra, np.float64))
+        head = JOINT[config.head_joint]
+        per_clip["foot_slide"].append(foot_slide(positions, clip.fps, config.foot_max_height,
+                                                 config.foot_min_speed, config.foot_joints))
+        per_clip["wrist_speed"].append(wrist_speed(positions, clip.fps, config.wrist_joints)
+                                       / config.report_unit)
+        per_clip["head_angle"].append(head_angle(positions[:, head], rotations[:, head],
+                                                 clip.user_head))
+    values = {name: CategoryValues(math.nan, math.nan, math.nan) for name in ("fgd", "fgd_acc")}
+    for name, clip_values in per_clip.items():
+        v = np.asarray(clip_values)
+        ns, s = (float(v[speaking == cat].mean()) if np.any(speaking == cat) else math.nan
+                 for cat in (False, True))
+        values[name] = CategoryValues(float(v.mean()), ns, s)
+    unit = {0.01: "cm", 1.0: "m", 0.001: "mm"}.get(config.report_unit, f"{config.report_unit} m")
+    return MetricsTable(
+        values=values,
+        units={"fgd": f"{unit}^2", "fgd_acc": f"({unit}/s^2)^2", "foot_slide": "fraction of frame steps",
+               "wrist_speed": f"{unit}/s", "head_angle": "gaze score in [-1, 1]"},
+        display_scale=dict(config.display_scale), num_clips=len(clips),
+        num_speaking=int(speaking.sum()), num_non_speaking=int((~speaking).sum()),
+        window_frames=clips[0].num_frames, fps=float(clips[0].fps),
+        batch_clips=config.batch_clips, num_batches=0)
+
+
+# --------------------------------------------------------------------------- results
+
+
+@dataclass
+class MethodResult:
+    """One table row: a method's metrics and speed."""
+
+    key: str  # "gt", "random", "nn", "model" or "model@<gaze>"
+    label: str  # shown in the table
+    causal: bool | None  # None: not applicable (GT)
+    fps: float | None
+    table: MetricsTable
+    gaze: float | None = None
+    reference: bool = False  # GT: FGD is "-"
+
+    @property
+    def realtime(self) -> bool | None:
+        return None if self.fps is None else self.fps >= FPS
+
+    def shown(self) -> dict[str, float | None]:
+        """Displayed values (scaled), None where the table shows '-'."""
+        row = self.table.to_row(scale=True)
+        out = {k: (None if math.isnan(v) else float(v)) for k, v in row.items()}
+        if self.reference:
+            for key in out:
+                if key.startswith("fgd"):
+                    out[key] = None
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"key": self.key, "method": self.label, "causal": self.causal,
+                "realtime": self.realtime, "fps": self.fps, "gaze": self.gaze,
+                "shown": self.shown(), "raw": self.table.to_dict()}
+
+
+def _fps(seconds: Sequence[float], frames: int) -> float | None:
+    return frames / max(statistics.median(seconds), 1e-12) if seconds else None
+
+
+def gaze_label(g: float | None) -> str:
+    return "∅" if g is None else f"{g:.1f}"
+
+
+# --------------------------------------------------------------------------- formatting
+
+
+def _num(value: float | None, decimals: int) -> str:
+    return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.{decimals}f}"
+
+
+def _mark(flag: bool | None) -> str:
+    return "-" if flag is None else ("✓" if flag else "✗")
+
+
+def _scale_note(scale: float) -> str:
+    if scale == 1.0:
+        return ""
+    exponent = math.log10(scale)
+    return f" (×10^{int(round(exponent))})" if abs(exponent - round(exponent)) < 1e-9 else f" (×{scale:g})"
+
+
+def metric_header(name: str, scale: float) -> str:
+    return f"{METRIC_LABELS[name]} {METRIC_ARROWS[name]}{_scale_note(scale)}{METRIC_RANGES.get(name, '')}"
+
+
+def table1_markdown(rows: Sequence[MethodResult], caption: str) -> str:
+    """Table 1 as markdown: Method, C, R, FPS, then every metric as Avg and NS/S."""
+    scale = rows[0].table.display_scale
+    head = ["Method", "C", "R", "FPS"]
+    for name in METRICS:
+        head += [f"{metric_header(name, scale[name])} Avg", "NS/S"]
+    lines = [f"**{caption}**", "", "| " + " | ".join(head) + " |",
+             "|" + "|".join([":---"] + [":---:"] * (len(head) - 1)) + "|"]
+    for row in rows:
+        shown = row.shown()
+        cells = [row.label, _mark(row.causal), _mark(row.realtime),
+                 "-" if row.fps is None else f"{row.fps:.0f}"]
+        for name in METRICS:
+            d = DECIMALS[name]
+            cells += [_num(shown[f"{name}/avg"], d),
+                      f"{_num(shown[f'{name}/ns'], d)}/{_num(shown[f'{name}/s'], d)}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def table2_markdown(rows: Sequence[MethodResult], caption: str) -> str:
+    """Table 2 as markdown: one row per gaze target g with every metric's Avg."""
+    scale = rows[0].table.display_scale
+    head = ["g"] + [metric_header(name, scale[name]) for name in METRICS]
+    lines = [f"**{caption}**", "", "| " + " | ".join(head) + " |",
+             "|" + "|".join([":---"] + [":---:"] * (len(head) - 1)) + "|"]
+    for row in rows:
+        shown = row.shown()
+        lines.append("| " + " | ".join([gaze_label(row.gaze)] + [
+            _num(shown[f"{name}/avg"], DECIMALS[name]) for name in METRICS]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _write_text(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _write_json(path: Path, data: Any) -> None:
+    _write_text(path, json.dumps(data, indent=2, ensure_ascii=False, allow_nan=False) + "\n")
+
+
+# --------------------------------------------------------------------------- plots
+
+
+def plot_metric_bars(folder: Path, rows: Sequence[MethodResult]) -> list[Path]:
+    """One PNG per metric: Avg, NS and S of every method (displayed units); GT's Avg dashed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    scale = rows[0].table.display_scale
+    for name in METRICS:
+        fig, ax = plt.subplots(figsize=(1.6 + 1.3 * len(rows), 3.6))
+        x = np.arange(len(rows))
+        for k, (column, colour) in enumerate((("avg", "tab:blue"), ("ns", "tab:gray"),
+                                              ("s", "tab:orange"))):
+            values = [row.shown()[f"{name}/{column}"] for row in rows]
+            heights = [np.nan if v is None else v for v in values]
+            ax.bar(x + (k - 1) * 0.27, heights, width=0.27, color=colour,
+                   label={"avg": "Avg", "ns": "NS", "s": "S"}[column])
+        gt = next((r for r in rows if r.reference), None)
+        if gt is not None and gt.shown()[f"{name}/avg"] is not None:
+            ax.axhline(gt.shown()[f"{name}/avg"], color="k", ls="--", lw=1, label="GT Avg")
+        ax.set_xticks(x, [row.label for row in rows], rotation=20, ha="right")
+        ax.set_title(metric_header(name, scale[name]))
+        ax.legend(fontsize=7)
+        ax.grid(axis="y", alpha=0.3)
+        fig.tight_layout()
+        paths.append(_save_figure(fig, folder / f"metric_{name}.png"))
+    return paths
+
+
+def plot_gaze_control(path: Path, sweep: Sequence[MethodResult], gt_head: float | None) -> Path:
+    """Target gaze g (x) against achieved Head Ang. Avg (y); GT dashed, ∅ dotted, y = x faint."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(4.8, 4.0))
+    points = sorted((r.gaze, r.shown()["head_angle/avg"]) for r in sweep if r.gaze is not None)
+    if points:
+        ax.plot([p[0] for p in points], [p[1] for p in points], "o-", color="tab:red",
+                label="model (gaze control)")
+    none = next((r for r in sweep if r.gaze is None), None)
+    if none is not None:
+        ax.axhline(none.shown()["head_angle/avg"], color="tab:red", ls=":", lw=1.2,
+                   label="model, no gaze control (∅)")
+    if gt_head is not None:
+        ax.axhline(gt_head, color="k", ls="--", lw=1.2, label="GT")
+    ax.plot([-1, 1], [-1, 1], color="0.8", lw=0.8, zorder=0, label="achieved = target")
+    ax.set_xlim(-0.05, 1.05)
+    ax.set_xlabel("target gaze score g")
+    ax.set_ylabel("achieved Head Ang. (Avg)")
+    ax.set_title("Gaze control (Table 2)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    return _save_figure(fig, path)
+
+
+def _save_figure(fig, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
+    try:
+        fig.savefig(tmp, format="png", dpi=100)
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+# --------------------------------------------------------------------------- running
+
+
+@dataclass
+class Evaluation:
+    """Everything an evaluation produced."""
+
+    table1: list[MethodResult]
+    table2: list[MethodResult]
+    num_windows: int
+    available_windows: int
+    num_speaking: int
+    paths: list[Path] = field(default_factory=list)
+
+
+def _open_shards(shards_dir: Path, split: str, features: str, window: int):
+    from sarah_data.dataset import WindowDataset
+    from sarah_data.loading import DataProblem
+    from sarah_data.shards import ShardSet
+
+    try:
+        shard_set = ShardSet(shards_dir)
+    except (DataProblem, OSError, ValueError) as exc:
+        raise EvalError(str(exc)) from None
+    try:
+        if not shard_set.manifest.shards:
+            raise EvalError(f"{shards_dir}: the shards folder holds no shard files")
+        stored = sorted(shard_set.attrs.extractors)
+        speaking = shard_set.manifest.config.get("speaking", {})
+    finally:
+        shard_set.close()
+    if features not in stored:
+        raise EvalError(f"{shards_dir}: mismatched feature extractor: {features!r} is needed, "
+                        f"the shards hold {stored or 'no features'}")
+    try:
+        dataset = WindowDataset.sliding(shards_dir, split, extractor=features, window=window)
+    except (DataProblem, OSError, ValueError) as exc:
+        raise EvalError(str(exc)) from None
+    if len(dataset) == 0:
+        reasons = "; ".join(f"{name}: {why}" for name, why in dataset.skipped[:3])
+        more = f" (+{len(dataset.skipped) - 3} more)" if len(dataset.skipped) > 3 else ""
+        raise EvalError(f"{shards_dir}: split {split!r} has no windows of {window} frames with "
+                        f"{features!r} audio" + (f" (skipped: {reasons}{more})" if reasons else ""))
+    return dataset, speaking
+
+
+def _training_windows(shards_dir: Path, features: str, config: EvalConfig):
+    from sarah_data.dataset import WindowDataset
+    from sarah_data.loading import DataProblem
+
+    try:
+        return WindowDataset(shards_dir, config.train_split, extractor=features,
+                             window=config.window, seed=config.seed, length=config.library_size)
+    except (DataProblem, OSError, ValueError) as exc:
+        raise EvalError(f"{shards_dir}: training windows for the baselines: {exc}") from None
+
+
+def _window_seed(seed: int, index: int) -> int:
+    return int(np.random.default_rng((seed, index)).integers(2**31 - 1))
+
+
+def _model_producer(models, config: EvalConfig, gaze: float | None):
+    from .generate import Inputs, generate
+    from .stream import IDENTITY, StreamConfig
+
+    def produce(item: dict, index: int) -> np.ndarray:
+        # Windows are already in the window frame: the identity anchor generates in that frame.
+        inputs = Inputs(user_head=item["user_head"].numpy(),
+                        agent_speaking=item["agent_speaking"].numpy() > 0.5,
+                        user_speaking=item["user_speaking"].numpy() > 0.5,
+                        anchor=IDENTITY, source={},
+                        agent_audio=item["agent_audio"].numpy(),
+                        user_audio=item["user_audio"].numpy())
+        stream = StreamConfig(steps=config.steps, cfg_scale=config.cfg_scale, gaze=gaze,
+                              seed=_window_seed(config.seed, index))
+        return generate(models, inputs, stream, offline=config.protocol == "offline").motion
+
+    return produce
+
+
+def _load_model(run: Path | None, config: EvalConfig):
+    from .generate import GenerateError, load_run
+
+    if run is None:
+        raise EvalError("--run is required to evaluate the model (or leave 'model' out of "
+                        "--methods)")
+    try:
+        models, _ = load_run(run, device=config.device)
+    except GenerateError as exc:
+        raise EvalError(str(exc)) from None
+    return models
+
+
+def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
+                   config: EvalConfig = EvalConfig(), progress: bool = True,
+                   echo: Callable[[str], None] = print) -> Evaluation:
+    """Everything ``sarah-eval`` does: windows, methods, metrics, tables, plots."""
+    import torch
+    from tqdm import tqdm
+
+    from sarah_data.speaking import SpeakingConfig, clip_is_speaking
+
+    shards, out = Path(shards), Path(out)
+    run = None if run is None else Path(run)
+    models = _load_model(run, config) if "model" in config.methods else None
+    features = models.features if models is not None else (config.features or "logmel")
+    if models is not None and config.window % models.vae.stride:
+        raise EvalError(f"--window {config.window} is not a multiple of the model's stride "
+                        f"{models.vae.stride}")
+    dataset, speaking_settings = _open_shards(shards, config.split, features, config.window)
+    if models is not None:
+        if dataset.audio_dim != models.flow.audio_dim:
+            raise EvalError(f"{shards}: mismatched feature extractor: {features!r} features have "
+                            f"{dataset.audio_dim} channels, the checkpoint expects "
+                            f"{models.flow.audio_dim}")
+        if dataset.motion_dim != models.dims["motion"]:
+            raise EvalError(f"{shards}: motion width {dataset.motion_dim} (shell points) differs "
+                            f"from the checkpoint's {models.dims['motion']}")
+    indices = select_windows(len(dataset), config.windows)
+    windows = TestWindows(dataset, indices)
+    try:
+        speaking_config = SpeakingConfig(**speaking_settings)
+    except TypeError as exc:
+        raise EvalError(f"{shards}: unreadable speaking settings in the manifest ({exc})") from None
+    speaking = np.array([clip_is_speaking(windows[i]["agent_speaking"].numpy() > 0.5,
+                                          speaking_config)
+                         for i in tqdm(range(len(windows)), desc="S/NS labels", unit="window",
+                                       disable=not progress, leave=False)], dtype=bool)
+    echo(f"{len(windows)} of {len(dataset)} {config.window}-frame windows of split "
+         f"{config.split!r} ({int(speaking.sum())} S, {int((~speaking).sum())} NS), features "
+         f"{features!r}")
+
+    metrics_config = MetricsConfig(batch_clips=config.batch_clips)
+    train_windows = None
+    if "random" in config.methods or "nn" in config.methods:
+        train_windows = _training_windows(shards, features, config)
+
+    def score(key: str, label: str, produce, causal: bool | None, gaze=None,
+              reference: bool = False) -> MethodResult:
+        with tqdm(total=len(windows), desc=label, unit="window", disable=not progress,
+                  leave=False) as bar:
+            clips = MethodClips(windows, produce, bar)
+            if reference:
+                table = reference_table(clips, speaking, metrics_config)
+            else:
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always", FrechetRidgeWarning)
+                    table = evaluate(clips, gt_clips(windows), speaking, config=metrics_config)
+                ridged = [w for w in caught if issubclass(w.category, FrechetRidgeWarning)]
+                for w in caught:
+                    if not issubclass(w.category, FrechetRidgeWarning):
+                        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+                if ridged:
+                    echo(f"{label}: {len(ridged)} Fréchet distance(s) needed a covariance ridge "
+                         f"(near-singular covariances; see metrics.frechet_distance_from_moments)")
+        fps = None if reference else _fps(clips.seconds, config.window)
+        result = MethodResult(key, label, causal, fps, table, gaze, reference)
+        shown = result.shown()
+        echo(f"{label}: " + ", ".join(f"{METRIC_LABELS[n]} {_num(shown[f'{n}/avg'], DECIMALS[n])}"
+                                      for n in METRICS)
+             + ("" if fps is None else f", {fps:.0f} FPS"))
+        return result
+
+    table1: list[MethodResult] = []
+    if "gt" in config.methods:
+        table1.append(score("gt", "GT", lambda item, _: item["motion"], None, reference=True))
+    if "random" in config.methods:
+        from .baselines import RandomBaseline
+
+        baseline = RandomBaseline(train_windows, seed=config.seed)
+        table1.append(score("random", "Random", baseline.motion, False))
+    if "nn" in config.methods:
+        from .baselines import NearestNeighbourBaseline, NNConfig
+
+        nn = NearestNeighbourBaseline(train_windows, NNConfig(library_size=config.library_size),
+                                      seed=config.seed, progress=progress)
+        table1.append(score("nn", "NN", nn.motion, False))
+    sweep: dict[float | None, MethodResult] = {}
+    if models is not None:
+        with torch.inference_mode():
+            for g in config.model_gazes:
+                label = f"Model (g = {gaze_label(g)}, {config.protocol})"
+                sweep[g] = score(f"model@{gaze_label(g)}", label,
+                                 _model_producer(models, config, g), True, gaze=g)
+        table1.append(replace(sweep[config.table1_gaze], key="model",
+                              label=f"Model ({config.protocol}, g = "
+                                    f"{gaze_label(config.table1_gaze)})"))
+    table2 = [sweep[g] for g in config.gaze] if models is not None else []
+
+    result = Evaluation(table1, table2, len(windows), len(dataset), int(speaking.sum()))
+    result.paths = write_outputs(out, result, config, shards, run, features, windows, speaking)
+    return result
+
+
+def _caption1(ev: Evaluation, config: EvalConfig, shards: Path) -> str:
+    if ev.available_windows > config.windows:
+        count = f"{ev.num_windows} of {ev.available_windows} {config.split} windows (evenly spaced)"
+    elif ev.available_windows < config.windows:
+        count = (f"{ev.num_windows} {config.split} windows (all the split has; {config.windows} "
+                 f"requested)")
+    else:
+        count = f"{ev.num_windows} {config.split} windows"
+    scale = ev.table1[0].table.display_scale if ev.table1 else MetricsConfig().display_scale
+    return (f"Table 1: comparison on {count} of T = {config.window} frames ({config.window / FPS:.1f} s) "
+            f"from {shards}. C = causal, R = real-time (FPS >= {FPS}). "
+            f"S = speaking ({ev.num_speaking} seq.), NS = non-speaking "
+            f"({ev.num_windows - ev.num_speaking} seq.). FGD in cm² shown ÷{scale['fgd']:g}, "
+            f"FGD_acc in (cm/s²)² shown ÷{scale['fgd_acc']:g}, Wrist Var = mean wrist speed in "
+            f"cm/s. FGD Avg = mean over batches of {config.batch_clips} clips; NS/S pooled. "
+            f"Model: {config.protocol} protocol, {config.steps} midpoint steps, cfg "
+            f"{config.cfg_scale:g}, seed {config.seed}.")
+
+
+def write_outputs(out: Path, ev: Evaluation, config: EvalConfig, shards: Path, run: Path | None,
+                  features: str, windows: TestWindows, speaking: np.ndarray) -> list[Path]:
+    """table1/2 .md and .json, windows.json and the plots."""
+    out.mkdir(parents=True, exist_ok=True)
+    settings = {**asdict(config), "run": None if run is None else str(run), "shards": str(shards),
+                "features": features}
+    common = {"window_frames": config.window, "num_windows": ev.num_windows,
+              "available_windows": ev.available_windows, "requested_windows": config.windows,
+              "num_speaking": ev.num_speaking,
+              "num_non_speaking": ev.num_windows - ev.num_speaking, "settings": settings}
+    paths = []
+    if ev.table1:
+        caption = _caption1(ev, config, shards)
+        _write_text(out / "table1.md", table1_markdown(ev.table1, caption))
+        _write_json(out / "table1.json", {"caption": caption, **common,
+                                          "display_scale": ev.table1[0].table.display_scale,
+                                          "units": ev.table1[0].table.units,
+                                          "rows": [r.to_dict() for r in ev.table1]})
+        paths += [out / "table1.md", out / "table1.json"]
+        paths += plot_metric_bars(out / "plots", ev.table1)
+    gt = next((r for r in ev.table1 if r.reference), None)
+    gt_head = None if gt is None else gt.shown()["head_angle/avg"]
+    if ev.table2:
+        caption = (f"Table 2: effect of gaze control on motion ({ev.num_windows} {config.split} "
+                   f"windows of {config.window} frames). ∅ = gaze control disabled. Values shown "
+                   f"as in Table 1 (Avg)." + ("" if gt_head is None else
+                                              f" GT Head Ang. = {gt_head:.2f}."))
+        _write_text(out / "table2.md", table2_markdown(ev.table2, caption))
+        _write_json(out / "table2.json", {"caption": caption, **common,
+                                          "gt_head_angle": gt_head,
+                                          "rows": [r.to_dict() for r in ev.table2]})
+        paths += [out / "table2.md", out / "table2.json"]
+        paths.append(plot_gaze_control(out / "plots" / "gaze_control.png", ev.table2, gt_head))
+    listing = []
+    for i in range(len(windows)):
+        sequence, agent, start = windows.dataset.locate(int(windows.indices[i]))
+        persons = windows.dataset.shards.entry(sequence).persons
+        listing.append({"sequence": sequence, "agent": persons[agent], "start": start,
+                        "speaking": bool(speaking[i])})
+    _write_json(out / "windows.json", {**common, "windows": listing})
+    paths.append(out / "windows.json")
+    return paths

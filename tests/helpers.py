@@ -1,0 +1,49 @@
+"""Shared test builders (owner: evaluation). Small shards with several splits, reusing the
+person builder of test_generate so every test writes shards the same way."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from sarah_data import icosahedron
+from sarah_data.constants import JOINT_NAMES
+from sarah_data.shards import (MANIFEST_NAME, Manifest, ProcessedSequence, ShardAttrs,
+                               ShardWriter, write_manifest)
+from test_generate import SHELL, make_person
+
+
+def write_split_shards(root: Path, sequences: dict[str, int], frames: int = 40,
+                       features: tuple[str, ...] = ("logmel",), seed: int = 0,
+                       shell_points: int = SHELL) -> dict[str, list[ProcessedSequence]]:
+    """A shards folder with ``sequences[split]`` two-person sequences of ``frames`` frames per
+    split (one session each; both persons tracked except the last 4 frames, random motion
+    around a slowly walking root, random audio features). Returns the sequences per split."""
+    if shell_points != SHELL:
+        raise ValueError(f"make_person writes {SHELL} shell points")
+    rng = np.random.default_rng(seed)
+    attrs = ShardAttrs(toolkit_version="0.1.0", joint_names=JOINT_NAMES,
+                       icosahedron_template=icosahedron.TEMPLATE,
+                       icosahedron_radius=icosahedron.DEFAULT_RADIUS,
+                       shell_vertex_ids=np.arange(shell_points), body_model_name="procedural",
+                       body_model_sha256="0" * 64, extractors={f: {} for f in features})
+    infos, entries, splits, written = [], {}, {}, {}
+    for split, count in sequences.items():
+        splits[split] = []
+        written[split] = []
+        with ShardWriter(root, split, attrs) as writer:
+            for n in range(count):
+                session = f"c--{split}--{n:04d}"
+                seq = ProcessedSequence(
+                    name=f"{session}--seq", session=session, split=split,
+                    persons=(make_person(rng, f"A{split[:2].upper()}{n:03d}", frames, features),
+                             make_person(rng, f"B{split[:2].upper()}{n:03d}", frames, features)))
+                writer.add(seq)
+                splits[split].append(session)
+                written[split].append(seq)
+            infos += writer.close()
+            entries.update(writer.entries)
+    write_manifest(root / MANIFEST_NAME, Manifest(toolkit_version="0.1.0", config={},
+                                                  splits=splits, shards=infos, sequences=entries))
+    return written

@@ -1,0 +1,180 @@
+"""sarah-eval: window selection, table formatting and the command end to end on tiny shards."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, strategies as st
+from PIL import Image
+
+from cli.eval import main
+from helpers import write_split_shards
+from sarah_models.evaluate import MethodResult, select_windows, table1_markdown, table2_markdown
+from sarah_models.metrics import METRICS, CategoryValues, MetricsConfig, MetricsTable
+from test_generate import save_run
+
+WINDOW = 16  # frames per evaluation window (a multiple of the tiny VAE's stride 4)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """Tiny models run fastest single-threaded on a shared 2-core machine. Restored afterwards."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+# --------------------------------------------------------------------------- windows
+
+
+@given(available=st.integers(0, 500), requested=st.integers(1, 300))
+def test_select_windows_all_or_evenly_spaced(available, requested):
+    chosen = select_windows(available, requested)
+    assert len(chosen) == min(available, requested)
+    assert np.all(np.diff(chosen) > 0) and (available == 0 or chosen.max() < available)
+    if available > requested > 1:
+        assert chosen[0] == 0 and chosen[-1] == available - 1  # spans the whole split
+        gaps = np.diff(chosen)
+        assert gaps.max() - gaps.min() <= 1
+
+
+# --------------------------------------------------------------------------- tables
+
+
+def table(values: dict[str, tuple[float, float, float]], speaking=3, clips=10) -> MetricsTable:
+    cfg = MetricsConfig()
+    return MetricsTable(values={k: CategoryValues(*v) for k, v in values.items()},
+                        units={k: "u" for k in METRICS}, display_scale=dict(cfg.display_scale),
+                        num_clips=clips, num_speaking=speaking, num_non_speaking=clips - speaking,
+                        window_frames=400, fps=30.0, batch_clips=16, num_batches=1)
+
+
+RAW = {"fgd": (12.8, 3.5, 8.7), "fgd_acc": (2.19e5, 0.01e5, 7.81e5),
+       "foot_slide": (0.01, 0.012, math.nan), "wrist_speed": (105.04, 90.1, 146.2),
+       "head_angle": (0.83, 0.82, 0.85)}
+
+
+def test_table1_markdown_columns_scales_and_dashes():
+    gt = MethodResult("gt", "GT", None, None, table({**RAW, "fgd": (math.nan,) * 3}), reference=True)
+    ours = MethodResult("model", "Ours", True, 312.4, table(RAW))
+    random = MethodResult("random", "Random", False, 25.0, table(RAW))
+    text = table1_markdown([gt, random, ours], "Table 1: caption")
+    lines = text.splitlines()
+    assert lines[0] == "**Table 1: caption**"
+    header, rule, *rows = lines[2:]
+    cells = [c.strip() for c in header.strip("|").split("|")]
+    assert cells[:4] == ["Method", "C", "R", "FPS"] and len(cells) == 4 + 2 * len(METRICS)
+    assert cells[4] == "FGD ↓ (×10^1) Avg" and cells[6] == "FGD_acc ↓ (×10^5) Avg"
+    assert cells[8] == "Foot Slide ↓ ∈ [0, 1] Avg" and cells[12] == "Head Ang. ↑ ∈ [-1, 1] Avg"
+    assert all(c == "NS/S" for c in cells[5::2])
+    assert rule.count("|") == len(cells) + 1
+    parse = lambda line: [c.strip() for c in line.strip("|").split("|")]  # noqa: E731
+    gt_cells, random_cells, ours_cells = (parse(r) for r in rows)
+    assert gt_cells[:6] == ["GT", "-", "-", "-", "-", "-/-"]  # FGD is not shown for GT
+    assert random_cells[1:4] == ["✗", "✗", "25"]  # 25 FPS is not real time at 30 fps
+    assert ours_cells[1:4] == ["✓", "✓", "312"]
+    assert ours_cells[4:8] == ["1.28", "0.35/0.87", "2.19", "0.01/7.81"]  # raw / 10, raw / 1e5
+    assert ours_cells[8:14] == ["0.01", "0.01/-", "105.0", "90.1/146.2", "0.83", "0.82/0.85"]
+
+
+def test_table2_markdown_rows_per_gaze():
+    rows = [MethodResult(f"model@{g}", "m", True, 300.0, table(RAW), gaze=g) for g in (None, 0.0, 1.0)]
+    lines = table2_markdown(rows, "Table 2").splitlines()
+    header = [c.strip() for c in lines[2].strip("|").split("|")]
+    assert header[0] == "g" and header[1] == "FGD ↓ (×10^1)" and len(header) == 1 + len(METRICS)
+    assert [line.split("|")[1].strip() for line in lines[4:]] == ["∅", "0.0", "1.0"]
+    assert lines[4].split("|")[2].strip() == "1.28"
+
+
+# --------------------------------------------------------------------------- end to end
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    root = tmp_path_factory.mktemp("eval")
+    shards = root / "shards"
+    # test: 2 sequences x 2 tracked windows of 16 frames x 2 agents = 8 windows
+    write_split_shards(shards, {"train": 3, "test": 2}, frames=40)
+    return {"shards": shards, "run": save_run(root / "run"), "root": root}
+
+
+def eval_args(tiny, out, *extra):
+    return ["--run", str(tiny["run"]), "--shards", str(tiny["shards"]), "--out", str(out),
+            "--window", str(WINDOW), "--library-size", "8", "--batch-clips", "3",
+            "--device", "cpu", "--no-progress", *extra]
+
+
+def test_end_to_end_tables_plots_and_determinism(tiny, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(eval_args(tiny, out, "--windows", "6", "--gaze", "none,0.0,1.0")) == 0
+    printed = capsys.readouterr().out
+    assert "Table 1" in printed and "Table 2" in printed
+    t1 = json.loads((out / "table1.json").read_text())
+    assert [r["key"] for r in t1["rows"]] == ["gt", "random", "nn", "model"]
+    assert t1["num_windows"] == 6 and t1["available_windows"] == 8
+    assert t1["num_speaking"] + t1["num_non_speaking"] == 6
+    assert "6 of 8 test windows" in t1["caption"] and f"T = {WINDOW} frames" in t1["caption"]
+    assert f"S = speaking ({t1['num_speaking']} seq.)" in t1["caption"]
+    gt, random, nn, model = t1["rows"]
+    assert gt["shown"]["fgd/avg"] is None and gt["fps"] is None
+    assert gt["shown"]["head_angle/avg"] is not None and -1 <= gt["shown"]["head_angle/avg"] <= 1
+    for row in (random, nn, model):
+        assert row["fps"] > 0 and row["shown"]["fgd/avg"] > 0
+        assert row["raw"]["num_clips"] == 6 and row["raw"]["num_batches"] == 2
+        assert row["shown"]["fgd/avg"] == pytest.approx(row["raw"]["values"]["fgd"]["avg"] / 10)
+    assert model["causal"] is True and random["causal"] is False and model["gaze"] is None
+    t2 = json.loads((out / "table2.json").read_text())
+    assert [r["gaze"] for r in t2["rows"]] == [None, 0.0, 1.0]
+    assert t2["rows"][0]["shown"] == model["shown"]  # Table 1's model row is the ∅ run
+    assert t2["gt_head_angle"] == gt["shown"]["head_angle/avg"]
+    md = (out / "table1.md").read_text().splitlines()
+    assert [line.split("|")[1].strip() for line in md[4:]][:3] == ["GT", "Random", "NN"]
+    listing = json.loads((out / "windows.json").read_text())["windows"]
+    assert len(listing) == 6 and {w["start"] for w in listing} <= {0, 16}
+    assert sum(w["speaking"] for w in listing) == t1["num_speaking"]
+    for name in [f"metric_{m}.png" for m in METRICS] + ["gaze_control.png"]:
+        with Image.open(out / "plots" / name) as png:
+            assert png.format == "PNG" and png.size[0] > 200
+    assert not [p for p in out.rglob(".*")]  # no temporary files left
+
+    # Same inputs, same seed: the same numbers (speed aside).
+    again = tmp_path / "again"
+    assert main(eval_args(tiny, again, "--windows", "6", "--gaze", "none,0.0,1.0")) == 0
+    rows_again = json.loads((again / "table1.json").read_text())["rows"]
+    assert [r["shown"] for r in rows_again] == [r["shown"] for r in t1["rows"]]
+
+
+def test_streaming_protocol_and_subset_of_methods(tiny, tmp_path):
+    out = tmp_path / "out"
+    assert main(eval_args(tiny, out, "--methods", "gt,model", "--gaze", "0.8", "--table1-gaze",
+                          "0.8", "--protocol", "stream", "--windows", "100")) == 0
+    t1 = json.loads((out / "table1.json").read_text())
+    assert [r["key"] for r in t1["rows"]] == ["gt", "model"] and t1["num_windows"] == 8
+    assert "all the split has; 100 requested" in t1["caption"]
+    assert t1["rows"][1]["gaze"] == 0.8 and "stream" in t1["rows"][1]["method"]
+
+
+def _error(capsys, argv) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("sarah-eval: error:")
+    return err[-1]
+
+
+def test_one_line_errors(tiny, tmp_path, capsys):
+    out = tmp_path / "out"
+    missing = dict(tiny, run=tmp_path / "nope")
+    assert "run folder does not exist" in _error(capsys, eval_args(missing, out))
+    assert "no windows of 16 frames" in _error(capsys, eval_args(tiny, out, "--split", "val"))
+    hubert = tmp_path / "hubert"
+    write_split_shards(hubert, {"train": 1, "test": 1}, features=("hubert-large",))
+    assert "mismatched feature extractor" in _error(capsys, eval_args(dict(tiny, shards=hubert), out))
+    assert "--run is required" in _error(capsys, eval_args(dict(tiny, run=None), out)[2:])
+    assert "unknown method" in _error(capsys, eval_args(tiny, out, "--methods", "gt,mdm"))
+    assert "no manifest" in _error(capsys, eval_args(dict(tiny, shards=tmp_path), out))
+    assert not out.exists()
