@@ -20,15 +20,6 @@ from test_generate import save_run
 WINDOW = 16  # frames per evaluation window (a multiple of the tiny VAE's stride 4)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Tiny models run fastest single-threaded on a shared 2-core machine. Restored afterwards."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 # --------------------------------------------------------------------------- windows
 
 
