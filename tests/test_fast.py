@@ -1,0 +1,181 @@
+"""Inference optimizations stay within their stated tolerance of the plain fp32 models, the
+naive streaming reference computes what the generator computes, and sarah-bench runs.
+
+Tolerances (a stream of fixed seed and inputs, joints = icosahedron centroids, world frame):
+  fp32 (time cache + buffered decoder cache)   identical frames (0 mm)
+  bf16 Linears in the flow's blocks            max joint deviation <= 1 mm
+  int8 Linears in the flow's blocks            max joint deviation <= 1 mm, paper size too
+  both                                          |head-angle delta| <= 0.01, |wrist-speed delta| <= 0.01 m/s
+Models have random weights and a motion std of 0.1 m per coordinate (bench.random_models).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings, strategies as st
+
+from sarah_models.bench import NaiveStreamer, random_models
+from sarah_models.checkpoint import LoadedModels
+from sarah_models.config import RunConfig
+from sarah_models.fast import (BF16Linear, BufferedKVCache, TimeMemo, optimize_for_inference,
+                               solver_times, stream_deviation, stream_inputs)
+from sarah_models.layers import KVCache
+from sarah_models.stream import StreamConfig, StreamingGenerator
+
+AUDIO_DIM = 8
+SHELL = 4
+TOLERANCE_MM = 1.0
+METRIC_TOLERANCE = 0.01
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    return random_models("tiny", audio_dim=AUDIO_DIM, shell_points=SHELL, seed=0)
+
+
+def test_fp32_mode_is_exact_and_fully_precomputed(tiny):
+    fast = optimize_for_inference(tiny, "fp32")
+    memos = [m for m in fast[1].modules() if isinstance(m, TimeMemo)]
+    assert len(memos) == 2 + len(fast[1].blocks)  # time MLP, every block, the output layer
+    misses = [m.misses for m in memos]
+    deviation = stream_deviation(tiny, fast, frames=24)
+    assert deviation.max_joint_mm == 0.0
+    assert deviation.head_angle_delta == 0.0
+    # Every evaluation found its tau in the grid computed up front: nothing computed anew.
+    assert [m.misses for m in memos] == misses
+    assert all(m.hits > 0 for m in memos)
+
+
+def test_optimized_copies_leave_the_originals_alone(tiny):
+    vae, flow, _ = tiny
+    before = {k: v.clone() for k, v in flow.state_dict().items()}
+    fast = optimize_for_inference(tiny, "int8")
+    assert not any(isinstance(m, TimeMemo) for m in flow.modules())
+    assert all(torch.equal(before[k], v) for k, v in flow.state_dict().items())
+    assert fast[0] is not vae and fast[2] is tiny[2]
+    assert not any(isinstance(m, torch.nn.Linear) for m in fast[1].blocks[0].mlp)
+
+
+def test_loaded_models_in_loaded_models_out(tiny):
+    vae, flow, normalizer = tiny
+    loaded = LoadedModels(vae, flow, normalizer, RunConfig.preset("tiny"),
+                          {"motion": vae.motion_dim, "audio": AUDIO_DIM}, "logmel", 0, "flow")
+    fast = optimize_for_inference(loaded, "bf16")
+    assert isinstance(fast, LoadedModels) and fast.features == "logmel"
+    assert any(isinstance(m, BF16Linear) for m in fast.flow.modules())
+    assert fast.vae is not vae
+
+
+def test_bad_arguments(tiny):
+    with pytest.raises(ValueError, match="unknown optimization mode"):
+        optimize_for_inference(tiny, "fp8")
+    with pytest.raises(ValueError, match="threads"):
+        optimize_for_inference(tiny, "fp32", threads=0)
+    with pytest.raises(TypeError, match="LoadedModels"):
+        optimize_for_inference(tiny[1], "fp32")
+
+
+@pytest.mark.parametrize("mode", ["bf16", "int8"])
+def test_reduced_precision_within_tolerance(tiny, mode):
+    deviation = stream_deviation(tiny, optimize_for_inference(tiny, mode), frames=32)
+    assert 0.0 < deviation.max_joint_mm <= TOLERANCE_MM, deviation
+    assert deviation.head_angle_delta <= METRIC_TOLERANCE
+    assert deviation.wrist_speed_delta <= METRIC_TOLERANCE
+
+
+def test_int8_within_tolerance_at_paper_size():
+    paper = random_models("paper", audio_dim=AUDIO_DIM, shell_points=SHELL, seed=1)
+    deviation = stream_deviation(paper, optimize_for_inference(paper, "int8"), frames=12)
+    assert 0.0 < deviation.max_joint_mm <= TOLERANCE_MM, deviation
+    assert deviation.head_angle_delta <= METRIC_TOLERANCE
+
+
+def test_solver_times_are_the_midpoint_grid():
+    assert solver_times(StreamConfig(steps=4)) == [0.0, 0.125, 0.25, 0.375, 0.5, 0.625, 0.75, 0.875]
+    assert solver_times(StreamConfig(steps=2, solver="euler")) == [0.0, 0.5]
+
+
+def test_time_memo_computes_afresh_with_autograd():
+    layer = TimeMemo(torch.nn.Linear(3, 2))
+    x = torch.ones(1, 3)
+    with torch.inference_mode():
+        stored = layer(x)
+        assert layer(x) is stored and layer.hits == 1
+    fresh = layer(x)
+    assert fresh is not stored and fresh.requires_grad
+    assert torch.equal(fresh.detach(), stored)
+
+
+@settings(max_examples=40, deadline=None)
+@given(max_tokens=st.one_of(st.none(), st.integers(1, 7)),
+       calls=st.lists(st.tuples(st.integers(1, 5), st.booleans()), min_size=1, max_size=12))
+def test_buffered_kv_cache_equals_kv_cache(max_tokens, calls):
+    plain, buffered = KVCache(max_tokens), BufferedKVCache(max_tokens)
+    g = torch.Generator().manual_seed(len(calls))
+    for n, commit in calls:
+        k, v = torch.randn(2, 3, n, 4, generator=g), torch.randn(2, 3, n, 4, generator=g)
+        expected, got = plain.extend(k, v, commit), buffered.extend(k, v, commit)
+        assert torch.equal(expected[0], got[0]) and torch.equal(expected[1], got[1])
+        assert len(plain) == len(buffered)
+    if len(plain):
+        assert torch.equal(plain.k, buffered.k) and torch.equal(plain.v, buffered.v)
+    buffered.reset()
+    assert len(buffered) == 0 and buffered.k is None
+
+
+def test_naive_reference_computes_what_the_generator_computes(tiny):
+    vae, flow, normalizer = tiny
+    head, a, b = stream_inputs(24, AUDIO_DIM, seed=3)
+    config = StreamConfig(decoder_blocks=100)
+    generator = StreamingGenerator(vae, flow, normalizer, config)
+    naive = NaiveStreamer(vae, flow, normalizer, config)
+    for i in range(0, 24, 4):
+        timings: dict[str, float] = {}
+        expected = generator.step(head[i:i + 4], a[i:i + 4], b[i:i + 4])
+        got = naive.step(head[i:i + 4], a[i:i + 4], b[i:i + 4], timings)
+        np.testing.assert_allclose(got, expected, atol=1e-4)
+        assert timings["flow"] > 0 and timings["decode"] > 0
+
+
+def test_bench_quick_runs_end_to_end(tmp_path):
+    from cli.bench import main
+
+    history = tmp_path / "performance.md"
+    history.write_text("| date | cpu |\n| --- | --- |\n| old | row |\n\nafter the table\n")
+    out = tmp_path / "bench.json"
+    assert main(["--quick", "--threads", "1", "--json", str(out), "--history", str(history)]) == 0
+    results = json.loads(out.read_text())
+    assert results["environment"]["threads"] == 1
+    tiny_stream = results["streaming"]["tiny"]
+    assert tiny_stream["fps"] > 0 and tiny_stream["naive"]["fps"] > 0
+    assert set(tiny_stream["stages_ms"]) == {"audio", "flow", "decode", "other"}
+    assert tiny_stream["deviation"]["max_joint_mm"] <= TOLERANCE_MM
+    assert results["prep"]["logmel"]["rtf"] > 0 and results["loader"]["workers_2"]["windows"] > 0
+    goals = {g["goal"]: g for g in results["goals"]}
+    assert goals["prep.logmel.rtf"]["met"] is not None
+    assert goals["offline.paper.fps"]["met"] is None  # the quick run has no paper-size model
+    lines = history.read_text().splitlines()
+    assert lines[3].startswith("| ") and "int8" in lines[3] and lines[-1] == "after the table"
+
+
+def test_bench_config_rejects_bad_values():
+    from sarah_models.bench import BenchConfig
+
+    with pytest.raises(ValueError, match="multiple of 4"):
+        BenchConfig(stream_frames=10)
+    with pytest.raises(ValueError, match="sizes"):
+        BenchConfig(sizes=("huge",))
+    assert dataclasses.replace(BenchConfig.quick(), threads=1).sizes == ("tiny",)
