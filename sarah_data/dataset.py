@@ -49,8 +49,12 @@ def normalize_window(icosahedra: np.ndarray, shell: np.ndarray, user_head: np.nd
     [yaw, x, z, 0] that maps world to window coordinates.
     """
     transform = window_transform(root_position, root_rotation)
-    motion = motion_vector(transform.apply_points(icosahedra), transform.apply_points(shell))
-    return (motion.astype(np.float32), transform.apply_floor(user_head).astype(np.float32),
+    frames, joint_points = icosahedra.shape[0], icosahedra.shape[1] * icosahedra.shape[2]
+    # Both rotate straight into one (T, J*12 + V, 3) buffer whose flat view is the motion vector.
+    points = np.empty((frames, joint_points + shell.shape[1], 3), np.float32)
+    transform.apply_points(icosahedra.reshape(frames, joint_points, 3), out=points[:, :joint_points])
+    transform.apply_points(shell, out=points[:, joint_points:])
+    return (points.reshape(frames, -1), transform.apply_floor(user_head).astype(np.float32),
             transform.as_array())
 
 

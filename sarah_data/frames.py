@@ -40,20 +40,21 @@ class WindowTransform:
     def _to_window(self) -> np.ndarray:
         return rotation_about_y(-self.yaw)
 
-    def apply_points(self, points: np.ndarray) -> np.ndarray:
-        return self._rotate(np.asarray(points), -self.yaw, before=(self.x, self.z))
+    def apply_points(self, points: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        return self._rotate(np.asarray(points), -self.yaw, before=(self.x, self.z), out=out)
 
     def invert_points(self, points: np.ndarray) -> np.ndarray:
         return self._rotate(np.asarray(points), self.yaw, after=(self.x, self.z))
 
     @staticmethod
-    def _rotate(points: np.ndarray, angle: float, before=(0.0, 0.0), after=(0.0, 0.0)) -> np.ndarray:
+    def _rotate(points: np.ndarray, angle: float, before=(0.0, 0.0), after=(0.0, 0.0),
+                out: np.ndarray | None = None) -> np.ndarray:
         # Rotation about y touches only x and z: two fused element-wise lines instead of a
         # (N,3)x(3,3) matmul, which numpy runs several times slower for 3-wide rows.
         c, s = float(np.cos(angle)), float(np.sin(angle))  # Python floats keep float32 float32
         x = points[..., 0] - before[0]
         z = points[..., 2] - before[1]
-        out = np.empty_like(points)
+        out = np.empty_like(points) if out is None else out
         out[..., 0] = c * x + s * z + after[0]
         out[..., 1] = points[..., 1]
         out[..., 2] = c * z - s * x + after[1]
