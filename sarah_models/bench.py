@@ -43,7 +43,8 @@ from .config import RunConfig
 from .fast import MODES, optimize_for_inference, stream_deviation, warm_time_grid
 from .flow import FlowModel
 from .normalizer import Normalizer
-from .stream import StreamConfig, StreamingGenerator, drop_masks, generate_offline, token_noise
+from .stream import (StreamConfig, StreamingGenerator, drop_masks, generate_offline, imputer, integrate,
+                     token_noise)
 from .vae import CausalVAE
 
 CHUNK_FRAMES = 4  # paper A.3: chunks of s = 4 frames
@@ -219,27 +220,15 @@ class NaiveStreamer:
     def _solve(self, branches: list[torch.Tensor], noise: torch.Tensor,
                known: torch.Tensor | None) -> torch.Tensor:
         cfg, flow = self.config, self.flow
-        m = 0 if known is None else known.shape[0]
-
-        def impute(z: torch.Tensor, tau: float) -> torch.Tensor:
-            return z if m == 0 else torch.cat((tau * known + (1.0 - tau) * noise[:m], z[m:]))
 
         def velocity(z: torch.Tensor, tau: float) -> torch.Tensor:
+            # naive on purpose: one network call per guidance branch instead of one batch
             x1 = [flow(z[None], tau, cond_tokens=tokens)[0] for tokens in branches]
             if len(x1) == 2:
                 x1 = [x1[1] + cfg.cfg_scale * (x1[0] - x1[1])]
             return flow.velocity(x1[0], z, tau)
 
-        z, h = noise.clone(), 1.0 / cfg.steps
-        for i in range(cfg.steps):
-            tau = i * h
-            z = impute(z, tau)
-            if cfg.solver == "midpoint":
-                z_mid = impute(z + 0.5 * h * velocity(z, tau), tau + 0.5 * h)
-                z = z + h * velocity(z_mid, tau + 0.5 * h)
-            else:
-                z = z + h * velocity(z, tau)
-        return impute(z, 1.0)
+        return integrate(velocity, noise, imputer(noise, known), cfg)
 
 
 # --------------------------------------------------------------------------- timing helpers

@@ -44,6 +44,7 @@ from sarah_data.constants import FPS
 
 from .metrics import (METRICS, CategoryValues, Clip, FrechetRidgeWarning, MetricsConfig,
                       MetricsTable, evaluate, foot_slide, head_angle, wrist_speed)
+from .plots import save_figure
 
 METHODS = ("gt", "random", "nn", "model")
 PROTOCOLS = ("offline", "stream")
@@ -350,7 +351,7 @@ def plot_metric_bars(folder: Path, rows: Sequence[MethodResult]) -> list[Path]:
         ax.legend(fontsize=7)
         ax.grid(axis="y", alpha=0.3)
         fig.tight_layout()
-        paths.append(_save_figure(fig, folder / f"metric_{name}.png"))
+        paths.append(save_figure(fig, folder / f"metric_{name}.png"))
     return paths
 
 
@@ -380,21 +381,7 @@ def plot_gaze_control(path: Path, sweep: Sequence[MethodResult], gt_head: float 
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
-    return _save_figure(fig, path)
-
-
-def _save_figure(fig, path: Path) -> Path:
-    import matplotlib.pyplot as plt
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
-    try:
-        fig.savefig(tmp, format="png", dpi=100)
-        os.replace(tmp, path)
-    finally:
-        plt.close(fig)
-        tmp.unlink(missing_ok=True)
-    return path
+    return save_figure(fig, path)
 
 
 # --------------------------------------------------------------------------- running

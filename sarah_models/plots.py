@@ -28,6 +28,20 @@ def _temporary(path: Path) -> Path:
     return path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
 
 
+def save_figure(fig, path: str | Path) -> Path:
+    """Write a figure as PNG through a temporary file and a rename, then close it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _temporary(path)
+    try:
+        fig.savefig(tmp, format="png", dpi=100)
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        tmp.unlink(missing_ok=True)
+    return path
+
+
 def _time_line(ax, xz: np.ndarray, cmap: str) -> None:
     segments = np.stack([xz[:-1], xz[1:]], axis=1)
     lines = LineCollection(segments, cmap=cmap, linewidths=2.5, zorder=2)
@@ -72,14 +86,7 @@ def plot_topview(path: str | Path, agent_xz: np.ndarray, agent_facing_xz: np.nda
     ax.plot([], [], color=plt.get_cmap("autumn_r")(0.6), lw=2.5, label="agent (yellow -> red)")
     ax.plot([], [], color=plt.get_cmap("winter")(0.5), lw=2.5, label="user (blue -> green)")
     ax.legend(loc="upper right", fontsize=8)
-    tmp = _temporary(path)
-    try:
-        fig.savefig(tmp, format="png", dpi=100)
-        os.replace(tmp, path)
-    finally:
-        plt.close(fig)
-        tmp.unlink(missing_ok=True)
-    return path
+    return save_figure(fig, path)
 
 
 def animate_skeleton(path: str | Path, joints: np.ndarray, parents: Sequence[int],

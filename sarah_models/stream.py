@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Mapping
 
@@ -123,29 +124,20 @@ def drop_masks(gaze: float | None, guide: tuple[str, ...], cfg_scale: float) -> 
     return torch.stack((cond, uncond))
 
 
-def solve(flow: FlowModel, cond_tokens: Tensor, noise: Tensor, known: Tensor | None,
-          config: StreamConfig) -> Tensor:
-    """Integrate tau 0 -> 1 for L tokens; returns z (L, Dz).
-
-    cond_tokens (B, L, hidden): B = 1, or 2 for (conditional, unconditional) with guidance.
-    noise (L, Dz): each token's eps. known (m, Dz) or None: final latents of the first m tokens,
-    imputed as tau * known + (1 - tau) * eps before every evaluation."""
+def imputer(noise: Tensor, known: Tensor | None) -> Callable[[Tensor, float], Tensor]:
+    """Eq. 4 imputation: the first m tokens set to tau * known + (1 - tau) * eps."""
     m = 0 if known is None else known.shape[0]
-    branches = cond_tokens.shape[0]
 
     def impute(z: Tensor, tau: float) -> Tensor:
         if m == 0:
             return z
         return torch.cat((tau * known + (1.0 - tau) * noise[:m], z[m:]), dim=0)
+    return impute
 
-    def velocity(z: Tensor, tau: float) -> Tensor:
-        x1 = flow(z[None].expand(branches, -1, -1), tau, cond_tokens=cond_tokens)
-        if branches == 2:
-            x1 = x1[1] + config.cfg_scale * (x1[0] - x1[1])
-        else:
-            x1 = x1[0]
-        return flow.velocity(x1, z, tau)
 
+def integrate(velocity: Callable[[Tensor, float], Tensor], noise: Tensor,
+              impute: Callable[[Tensor, float], Tensor], config: StreamConfig) -> Tensor:
+    """The solver: tau from 0 to 1 in `config.steps` midpoint (or Euler) steps, imputing first."""
     z, h = noise.clone(), 1.0 / config.steps
     for i in range(config.steps):
         tau = i * h
@@ -156,6 +148,26 @@ def solve(flow: FlowModel, cond_tokens: Tensor, noise: Tensor, known: Tensor | N
         else:
             z = z + h * velocity(z, tau)
     return impute(z, 1.0)
+
+
+def solve(flow: FlowModel, cond_tokens: Tensor, noise: Tensor, known: Tensor | None,
+          config: StreamConfig) -> Tensor:
+    """Integrate tau 0 -> 1 for L tokens; returns z (L, Dz).
+
+    cond_tokens (B, L, hidden): B = 1, or 2 for (conditional, unconditional) with guidance, run
+    as one batch. noise (L, Dz): each token's eps. known (m, Dz) or None: final latents of the
+    first m tokens, imputed as tau * known + (1 - tau) * eps before every evaluation."""
+    branches = cond_tokens.shape[0]
+
+    def velocity(z: Tensor, tau: float) -> Tensor:
+        x1 = flow(z[None].expand(branches, -1, -1), tau, cond_tokens=cond_tokens)
+        if branches == 2:
+            x1 = x1[1] + config.cfg_scale * (x1[0] - x1[1])
+        else:
+            x1 = x1[0]
+        return flow.velocity(x1, z, tau)
+
+    return integrate(velocity, noise, imputer(noise, known), config)
 
 
 def _as_tensor(x, shape_tail: tuple[int, ...], name: str, frames: int | None) -> Tensor:
