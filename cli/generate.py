@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from sarah_models.fast import MODE_HELP, MODES
+
 EXIT_ERROR = 2
 
 
@@ -80,6 +82,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--offline", action="store_true",
                         help="the offline protocol: all tokens denoised jointly")
     parser.add_argument("--no-animation", action="store_true", help="skip skeleton.gif")
+    parser.add_argument("--speed", choices=MODES, default="fp32",
+                        help="inference fast path: " + "; ".join(f"{k}: {v}" for k, v in MODE_HELP.items())
+                             + " (int8 stays within 1 mm of fp32; see docs/performance.md)")
     shard = parser.add_argument_group("shard input")
     shard.add_argument("--shards", type=Path, default=None, help="shards folder")
     shard.add_argument("--split", default="test")
@@ -119,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
             start=args.start, frames=args.frames, trajectory=args.user_trajectory,
             agent_audio=args.agent_audio, user_audio=args.user_audio,
             agent_start=args.agent_start, feature_options=dict(args.feature_option),
-            offline=args.offline, animation=not args.no_animation)
+            offline=args.offline, animation=not args.no_animation, speed=args.speed)
     except (GenerateError, DataProblem) as exc:
         print(f"sarah-generate: error: {exc}", file=sys.stderr)
         return EXIT_ERROR

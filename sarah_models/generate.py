@@ -401,8 +401,12 @@ def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
         user_audio: str | Path | None = None,
         agent_start: tuple[float, float, float] = (0.0, 0.0, 0.0),
         feature_options: dict[str, Any] | None = None, offline: bool = False,
-        animation: bool = True, echo: Callable[[str], None] = print) -> Summary:
-    """Everything ``sarah-generate`` does: load, read inputs, generate, write, plot."""
+        animation: bool = True, speed: str = "fp32", echo: Callable[[str], None] = print) -> Summary:
+    """Everything ``sarah-generate`` does: load, read inputs, generate, write, plot.
+
+    speed: the inference fast path of ``fast.optimize_for_inference`` ("fp32" is exact; "int8"
+    stays within 1 mm of it and is the real-time setting on a CPU; "none" the plain models)."""
+    from .fast import optimize_for_inference
     from .plots import animate_skeleton, plot_topview
 
     try:
@@ -410,6 +414,8 @@ def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
     except ValueError as exc:
         raise GenerateError(str(exc)) from None
     models, ckpt = load_run(run_dir, checkpoint, device)
+    if speed != "none":
+        models = optimize_for_inference(models, mode=speed, stream_config=config)
     stride = models.vae.stride
     if shards is not None:
         if trajectory is not None or agent_audio is not None or user_audio is not None:

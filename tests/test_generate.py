@@ -239,3 +239,14 @@ def test_prepared_fixture_shards(prepared_shards, tmp_path):
     assert data["icosahedra"].shape == (12, NUM_JOINTS, 12, 3)
     assert data["shell"].shape == (12, shell_points, 3)
     assert np.isfinite(data["joint_positions"]).all()
+
+
+def test_speed_paths_match_the_plain_models(run_dir, raw, tmp_path):
+    """--speed fp32 (the default) is exact; int8 stays within the documented 1 mm."""
+    motion = {}
+    for speed in ("none", "fp32", "int8"):
+        out = tmp_path / speed
+        assert main(raw_args(run_dir, raw, out, "--gaze", "0.8", "--speed", speed, "--no-animation")) == 0
+        motion[speed] = np.load(out / "motion.npz", allow_pickle=False)["joint_positions"]
+    np.testing.assert_array_equal(motion["fp32"], motion["none"])
+    assert np.abs(motion["int8"] - motion["none"]).max() < 1e-3
