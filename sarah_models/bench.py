@@ -109,10 +109,16 @@ class BenchConfig:
 
 
 def random_models(size: str = "paper", audio_dim: int = 80, shell_points: int = 256,
-                  seed: int = 0, motion_std: float = 0.1) -> tuple[CausalVAE, FlowModel, Normalizer]:
-    """VAE + flow of the ``size`` preset with random weights (zero-initialised parameters drawn
-    N(0, 0.02)), in eval mode, with a normalizer: a standing pose as the motion mean, per
-    coordinate std ``motion_std`` m, unit audio and latent statistics."""
+                  seed: int = 0, motion_std: float = 0.1, *, init_std: float = 0.02,
+                  audio_mean: float = -5.0, audio_std: float = 3.0, latent_mean_std: float = 0.0
+                  ) -> tuple[CausalVAE, FlowModel, Normalizer]:
+    """VAE + flow of the ``size`` preset with random weights, in eval mode, with a normalizer.
+
+    AdaLN-Zero starts every block and the output at zero, which would make the flow predict
+    x1 = 0 whatever its input; those parameters are drawn N(0, init_std) so that conditioning,
+    noise and history all matter, as in a trained model. The normalizer: a standing pose as the
+    motion mean with per-coordinate std ``motion_std`` m, constant audio statistics, and latent
+    means drawn N(0, latent_mean_std) with unit std."""
     config = RunConfig.preset(size)
     dims = {"motion": NUM_JOINTS * 36 + 3 * shell_points, "audio": audio_dim}
     torch.manual_seed(seed)
@@ -121,7 +127,7 @@ def random_models(size: str = "paper", audio_dim: int = 80, shell_points: int = 
     with torch.no_grad():
         for p in flow.parameters():
             if not p.any():
-                p.copy_(torch.randn(p.shape, generator=g) * 0.02)
+                p.copy_(torch.randn(p.shape, generator=g) * init_std)
     rng = np.random.default_rng(seed)
     positions = np.stack([np.zeros(NUM_JOINTS), np.linspace(0.1, 1.7, NUM_JOINTS),
                           np.zeros(NUM_JOINTS)], 1)
@@ -132,8 +138,8 @@ def random_models(size: str = "paper", audio_dim: int = 80, shell_points: int = 
         "motion": (np.concatenate([ico.reshape(-1), shell.reshape(-1)]),
                    np.full(dims["motion"], motion_std)),
         "user_head": (np.zeros(2), np.full(2, 1.5)),
-        "audio": (np.full(audio_dim, -5.0), np.full(audio_dim, 3.0)),
-        "latent": (np.zeros(dz), np.ones(dz)),
+        "audio": (np.full(audio_dim, audio_mean), np.full(audio_dim, audio_std)),
+        "latent": (rng.normal(0, latent_mean_std, dz) if latent_mean_std else np.zeros(dz), np.ones(dz)),
     })
     return vae.eval(), flow.eval(), normalizer
 

@@ -10,9 +10,8 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 from sarah_data import icosahedron
 from sarah_data.constants import NUM_JOINTS, SAMPLES_PER_FRAME
 from sarah_data.frames import rotation_about_y, window_transform
-from sarah_models.checkpoint import build_models
+from sarah_models.bench import random_models
 from sarah_models.config import RunConfig
-from sarah_models.normalizer import Normalizer
 from sarah_models.stream import (StreamConfig, StreamingGenerator, StreamingSession, drop_masks,
                                  generate_offline, solve)
 
@@ -22,35 +21,13 @@ S = 4  # stride of the tiny VAE
 
 def tiny_models(audio_dim: int = 8, seed: int = 0, audio_mean: float = 0.0,
                 audio_std: float = 1.0, shell_points: int = SHELL):
-    """A tiny VAE + flow (untrained) and a normalizer, in eval mode.
-
-    AdaLN-Zero starts every block and the output at zero, which would make the flow predict
-    x1 = 0 whatever its input; those parameters get small random values so that conditioning,
-    noise and history all matter, as they do in a trained model."""
-    torch.manual_seed(seed)
+    """A tiny VAE + flow (untrained, random AdaLN weights) and a normalizer, in eval mode."""
     config = RunConfig.preset("tiny")
     dims = {"motion": NUM_JOINTS * 36 + 3 * shell_points, "audio": audio_dim}
-    vae, flow = build_models(config, dims)
-    g = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for p in flow.parameters():
-            if not p.any():
-                p.copy_(torch.randn(p.shape, generator=g) * 0.05)
-    rng = np.random.default_rng(seed)
-    # A plausible mean pose: joints stacked up a column, identity rotations, shell around it.
-    positions = np.stack([np.zeros(NUM_JOINTS), np.linspace(0.1, 1.7, NUM_JOINTS),
-                          np.zeros(NUM_JOINTS)], 1)
-    ico = icosahedron.encode(positions, np.broadcast_to(np.eye(3), (NUM_JOINTS, 3, 3)))
-    shell = rng.normal(0, 0.2, (shell_points, 3)) + [0, 1, 0]
-    mean = np.concatenate([ico.reshape(-1), shell.reshape(-1)])
-    dz = config.vae.latent_dim
-    normalizer = Normalizer({
-        "motion": (mean, np.full(dims["motion"], 0.02)),
-        "user_head": (np.zeros(2), np.full(2, 1.5)),
-        "audio": (np.full(audio_dim, audio_mean), np.full(audio_dim, audio_std)),
-        "latent": (rng.normal(0, 0.1, dz), np.full(dz, 1.0)),
-    })
-    return config, dims, vae.eval(), flow.eval(), normalizer
+    vae, flow, normalizer = random_models("tiny", audio_dim, shell_points, seed, motion_std=0.02,
+                                          init_std=0.05, audio_mean=audio_mean, audio_std=audio_std,
+                                          latent_mean_std=0.1)
+    return config, dims, vae, flow, normalizer
 
 
 @pytest.fixture(scope="module")
