@@ -43,7 +43,8 @@ import numpy as np
 from sarah_data.constants import FPS
 
 from .metrics import (METRICS, CategoryValues, Clip, FrechetRidgeWarning, MetricsConfig,
-                      MetricsTable, evaluate, foot_slide, head_angle, wrist_speed)
+                      MetricsTable, category_means, evaluate, foot_slide, head_angle, metric_units,
+                      wrist_speed)
 from .plots import save_figure
 
 METHODS = ("gt", "random", "nn", "model")
@@ -195,15 +196,10 @@ def reference_table(clips: Sequence[Clip], speaking: np.ndarray,
                                                  clip.user_head))
     values = {name: CategoryValues(math.nan, math.nan, math.nan) for name in ("fgd", "fgd_acc")}
     for name, clip_values in per_clip.items():
-        v = np.asarray(clip_values)
-        ns, s = (float(v[speaking == cat].mean()) if np.any(speaking == cat) else math.nan
-                 for cat in (False, True))
-        values[name] = CategoryValues(float(v.mean()), ns, s)
-    unit = {0.01: "cm", 1.0: "m", 0.001: "mm"}.get(config.report_unit, f"{config.report_unit} m")
+        values[name] = category_means(np.asarray(clip_values), speaking)
     return MetricsTable(
         values=values,
-        units={"fgd": f"{unit}^2", "fgd_acc": f"({unit}/s^2)^2", "foot_slide": "fraction of frame steps",
-               "wrist_speed": f"{unit}/s", "head_angle": "gaze score in [-1, 1]"},
+        units=metric_units(config.report_unit),
         display_scale=dict(config.display_scale), num_clips=len(clips),
         num_speaking=int(speaking.sum()), num_non_speaking=int((~speaking).sum()),
         window_frames=clips[0].num_frames, fps=float(clips[0].fps),

@@ -356,6 +356,20 @@ def _check_like(kind: str, index: int, clip: Clip, reference: Clip) -> None:
                          f"{reference.num_frames} at {reference.fps} with {reference.shell.shape[1]}")
 
 
+def category_means(per_clip: np.ndarray, speaking: np.ndarray) -> CategoryValues:
+    """Avg, NS and S of a per-clip metric: Avg is the mean over all clips, i.e. the clip-count
+    weighted mean of the NS and S means (NaN for a category without clips)."""
+    ns, s = (float(per_clip[speaking == cat].mean()) if np.any(speaking == cat) else math.nan
+             for cat in (False, True))
+    return CategoryValues(float(per_clip.mean()), ns, s)
+
+
+def metric_units(report_unit: float) -> dict[str, str]:
+    unit = {0.01: "cm", 1.0: "m", 0.001: "mm"}.get(report_unit, f"{report_unit} m")
+    return {"fgd": f"{unit}^2", "fgd_acc": f"({unit}/s^2)^2", "foot_slide": "fraction of frame steps",
+            "wrist_speed": f"{unit}/s", "head_angle": "gaze score in [-1, 1]"}
+
+
 def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
              batch_clips: int | None = None, config: MetricsConfig | None = None) -> MetricsTable:
     """Score generated clips against their ground truth (clip i of each is the same window).
@@ -406,16 +420,12 @@ def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
                  for cat in (False, True))
         values[kind] = CategoryValues(float(np.mean(batch_values[kind])) * length**2, ns * length**2, s * length**2)
     for name, clip_values in per_clip.items():
-        v = np.asarray(clip_values) * (length if name == "wrist_speed" else 1.0)
-        ns, s = (float(v[speaking == cat].mean()) if np.any(speaking == cat) else math.nan
-                 for cat in (False, True))
-        values[name] = CategoryValues(float(v.mean()), ns, s)
+        values[name] = category_means(np.asarray(clip_values) * (length if name == "wrist_speed" else 1.0),
+                                      speaking)
 
-    unit = {0.01: "cm", 1.0: "m", 0.001: "mm"}.get(cfg.report_unit, f"{cfg.report_unit} m")
     return MetricsTable(
         values=values,
-        units={"fgd": f"{unit}^2", "fgd_acc": f"({unit}/s^2)^2", "foot_slide": "fraction of frame steps",
-               "wrist_speed": f"{unit}/s", "head_angle": "gaze score in [-1, 1]"},
+        units=metric_units(cfg.report_unit),
         display_scale=dict(cfg.display_scale),
         num_clips=len(generated), num_speaking=int(speaking.sum()),
         num_non_speaking=int((~speaking).sum()), window_frames=reference.num_frames,
