@@ -25,6 +25,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from sarah_data.chunks import LEVEL as COMPRESSION_LEVEL
+from sarah_data.chunks import write_chunks
 from sarah_data.constants import FPS, SHARD_SCHEMA_VERSION
 from sarah_data.loading import DataProblem
 from sarah_data.splits import SPLITS
@@ -33,7 +35,6 @@ MANIFEST_NAME = "manifest.json"
 STATS_NAME = "stats.h5"
 DEFAULT_MAX_BYTES = 1 << 30  # 1 GiB per shard file
 CHUNK_FRAMES = 100  # a random 400-frame window decompresses at most 500 frames per dataset
-COMPRESSION_LEVEL = 4  # gzip: readable by every HDF5 build, unlike lzf
 # Group headers, attributes and chunk indices a sequence adds beyond its array bytes; part of the
 # size estimate that decides when to start a new file.
 SEQUENCE_OVERHEAD_BYTES = 64 * 1024
@@ -366,12 +367,17 @@ def create_group(parent: h5py.Group, name: str) -> h5py.Group:
 
 
 def create_dataset(group: h5py.Group, name: str, data: np.ndarray) -> h5py.Dataset:
-    """A time-chunked, gzip+shuffle compressed, fletcher32-checksummed dataset (axis 0 = time)."""
-    data = np.ascontiguousarray(data)
+    """A time-chunked, gzip+shuffle compressed, fletcher32-checksummed dataset (axis 0 = time).
+
+    The chunks are encoded by `chunks.write_chunks` (same filters, cheaper choices inside deflate).
+    """
+    data = np.ascontiguousarray(data, dtype=np.asarray(data).dtype.newbyteorder("="))
     chunks = (max(1, min(CHUNK_FRAMES, data.shape[0])),) + data.shape[1:]
-    return group.create_dataset(name, data=data, chunks=chunks, compression="gzip",
-                                compression_opts=COMPRESSION_LEVEL, shuffle=True,
-                                fletcher32=True, track_times=False)
+    dataset = group.create_dataset(name, shape=data.shape, dtype=data.dtype, chunks=chunks,
+                                   compression="gzip", compression_opts=COMPRESSION_LEVEL,
+                                   shuffle=True, fletcher32=True, track_times=False)
+    write_chunks(dataset, data)
+    return dataset
 
 
 @contextlib.contextmanager
