@@ -181,7 +181,7 @@ class EpochBatches:
 
 # --------------------------------------------------------------------------- logging
 
-PLOTTED = ("loss", "recon", "kl")  # positive losses, drawn on a log scale
+PLOTTED = ("loss", "recon", "velocity", "kl")  # positive losses, drawn on a log scale
 
 
 class RunLog:

@@ -32,7 +32,8 @@ latency of one block.
 
 Positions: RoPE over the index of each token in its interleaved sequence. The loss is the mean
 squared error per motion element plus beta times the KL per latent element (both means, so
-beta = 1e-4 keeps its paper meaning of "a small KL weight" independent of T, Dx and Dz).
+beta = 1e-4 keeps its paper meaning of "a small KL weight" independent of T, Dx and Dz), plus
+``velocity_weight`` times the mean squared error of frame-to-frame differences (0 in the paper).
 """
 
 from __future__ import annotations
@@ -176,7 +177,14 @@ class CausalVAE(nn.Module):
         noise = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
         z = mu + noise * (0.5 * logvar).exp()
         x_hat = self.decode(z)
-        recon = (x_hat.float() - x.float()).square().mean()
+        terms = self.loss_terms(x_hat, x)
         kl = self.kl(mu.float(), logvar.float())
-        return {"loss": recon + self.config.beta * kl, "recon": recon, "kl": kl, "x_hat": x_hat,
-                "mu": mu, "logvar": logvar}
+        loss = terms["recon"] + self.config.beta * kl + self.config.velocity_weight * terms["velocity"]
+        return {"loss": loss, **terms, "kl": kl, "x_hat": x_hat, "mu": mu, "logvar": logvar}
+
+    @staticmethod
+    def loss_terms(x_hat: Tensor, x: Tensor) -> dict[str, Tensor]:
+        """Reconstruction MSE and the MSE of frame-to-frame differences (velocity error)."""
+        error = x_hat.float() - x.float()
+        return {"recon": error.square().mean(),
+                "velocity": (error[:, 1:] - error[:, :-1]).square().mean()}

@@ -23,9 +23,28 @@ def test_shapes(vae):
     assert mu.shape == logvar.shape == (3, 8, CFG.latent_dim)
     assert vae.decode(mu).shape == x.shape
     out = vae(x, torch.Generator().manual_seed(0))
-    assert set(out) >= {"loss", "recon", "kl", "x_hat"}
+    assert set(out) >= {"loss", "recon", "velocity", "kl", "x_hat"}
     assert out["x_hat"].shape == x.shape and out["loss"].dim() == 0
-    torch.testing.assert_close(out["loss"], out["recon"] + CFG.beta * out["kl"])
+    torch.testing.assert_close(out["loss"], out["recon"] + CFG.beta * out["kl"]
+                               + CFG.velocity_weight * out["velocity"])
+
+
+def test_velocity_term_is_the_error_of_frame_differences():
+    """The extra term (not in the paper, on in the tiny preset) is the MSE of the error's
+    frame-to-frame change, so a constant offset costs nothing there."""
+    torch.manual_seed(0)
+    vae = CausalVAE(VAEConfig.tiny(), DX).eval()
+    x = torch.randn(1, 4 * CFG.stride, DX)
+    x_hat = vae(x, torch.Generator().manual_seed(0))["x_hat"].detach()
+    error = x_hat - x
+    out = vae(x, torch.Generator().manual_seed(0))
+    torch.testing.assert_close(out["velocity"], (error[:, 1:] - error[:, :-1]).square().mean())
+    # the same prediction against a target shifted by a constant: position error grows,
+    # the velocity term does not move
+    torch.testing.assert_close(vae.loss_terms(x_hat, x - 0.5)["velocity"], out["velocity"])
+    assert vae.loss_terms(x_hat, x - 0.5)["recon"] > out["recon"] + 0.2
+    assert VAEConfig.paper().velocity_weight == 0.0  # eq. 3 of the paper has no such term
+    assert VAEConfig.tiny().velocity_weight > 0
 
 
 def test_rejects_length_not_multiple_of_stride(vae):
