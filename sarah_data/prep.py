@@ -3,10 +3,12 @@
     read the corpus -> split sessions -> process each dyad (any executor) into a work file
     -> assemble shards per split in sorted order -> train statistics -> manifest, report
 
-Work files (`shards/.work/<sequence>.npz` and a `.json` marker written after it) make a killed
-run resumable: a rerun keeps every sequence whose marker matches its inputs and redoes the rest.
-Shards are assembled from work files in sorted order, so `-j 1`, `-j 8` and a resumed run write
-identical bytes. The work folder is removed once the manifest is written.
+Work files (`shards/.work/<sequence>.h5`, a compressed one-sequence shard written by the task,
+and a `.json` marker written after it) make a killed run resumable: a rerun keeps every sequence
+whose marker matches its inputs and redoes the rest. Shards are assembled from work files in
+sorted order by copying their compressed chunks (nothing is decoded or compressed again in this
+process), so `-j 1`, `-j 8` and a resumed run write identical bytes. The train statistics are
+merged from the moments each task stored. The work folder is removed once the manifest is written.
 """
 
 from __future__ import annotations
@@ -20,15 +22,15 @@ from concurrent.futures import Executor, as_completed
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-import numpy as np
+import h5py
 from tqdm import tqdm
 
 from . import __version__
 from .config import PrepConfig
-from .constants import FPS, JOINT_NAMES
+from .constants import FPS
 from .embody3d import PairRecord, read_corpus
 from .executors import make_executor
-from .process import TaskResult, fingerprint, run_task
+from .process import MOMENTS_GROUP, TaskResult, fingerprint, jsonable, run_task
 from .shards import atomic_write_bytes, file_sha256
 from .splits import SPLITS, session_frames_of, split_sessions
 
@@ -93,8 +95,8 @@ def prepare(inputs: list[Path] | Path, out_dir: Path, config: PrepConfig = PrepC
             body_model: str | None = None, jobs: int = 1, executor: str | Executor = "process",
             ray_address: str | None = None, progress: bool = True, log=print) -> PrepResult:
     """Run the whole pipeline; bad sequences are reported and skipped, never fatal."""
-    from .shards import Manifest, ShardWriter, SourceFile, write_manifest
-    from .stats import compute_stats
+    from .shards import Manifest, SourceFile, write_manifest
+    from .stats import merge_moments, write_stats
 
     started = time.perf_counter()
     inputs = [Path(p) for p in ([inputs] if isinstance(inputs, (str, Path)) else inputs)]
@@ -117,8 +119,8 @@ def prepare(inputs: list[Path] | Path, out_dir: Path, config: PrepConfig = PrepC
     work_dir.mkdir(exist_ok=True)
     _remove_temporaries(out_dir)
 
-    results = _run_tasks(corpus.pairs, model_path, model_sha, config, work_dir, jobs, executor,
-                         ray_address, progress)
+    results = _run_tasks(corpus.pairs, split_of, model_path, model_sha, config, work_dir, jobs,
+                         executor, ray_address, progress)
     done: dict[str, list[PairRecord]] = {name: [] for name in SPLITS}
     sources: dict[str, list[dict]] = {}
     for pair in corpus.pairs:
@@ -132,24 +134,19 @@ def prepare(inputs: list[Path] | Path, out_dir: Path, config: PrepConfig = PrepC
             _skip(result, log, {"sequence": pair.sequence, "reason": task.reason, "kind": task.status,
                                 **({"traceback": task.detail} if task.detail else {})})
 
-    attrs = _shard_attrs(model_path, model_sha, config)
-    shards, entries = [], {}
     _remove_old_shards(out_dir)
-    for name in SPLITS:
-        with ShardWriter(out_dir, name, attrs, max_bytes=config.max_shard_bytes) as writer:
-            for pair in done[name]:
-                writer.add(_load_work(work_dir, pair, name))
-            shards += writer.close()
-            entries.update(writer.entries)
+    shards, entries, moments = _assemble(out_dir, work_dir, done, config)
     result.shards = [asdict(info) for info in shards]
     result.written = [p.sequence for name in SPLITS for p in done[name]]
     result.hours = {name: sum(p.length for p in done[name]) / FPS / 3600 for name in SPLITS}
     sequences = {seq: replace(entry, sources=tuple(SourceFile(**d) for d in sources[seq]))
                  for seq, entry in sorted(entries.items())}
-    run_config = {**_jsonable(asdict(config)), "body_model": {"name": model_path.stem, "sha256": model_sha}}
+    run_config = {**jsonable(asdict(config)), "body_model": {"name": model_path.stem, "sha256": model_sha}}
     write_manifest(out_dir / "manifest.json", Manifest(__version__, run_config, splits, shards, sequences))
     if result.written:
-        compute_stats(out_dir)  # reads through the manifest, so it comes after it
+        # the same numbers compute_stats(out_dir) gets from the shards, without reading them
+        write_stats(out_dir, merge_moments([moments[name] for name in sorted(moments)],
+                                           sorted(_attrs_of(work_dir, done).extractors)), len(moments))
     report = {"written": len(result.written), "skipped": result.skipped}
     atomic_write_bytes(out_dir / "report.json", (json.dumps(report, indent=2, sort_keys=True) + "\n").encode())
     shutil.rmtree(work_dir, ignore_errors=True)
@@ -157,12 +154,43 @@ def prepare(inputs: list[Path] | Path, out_dir: Path, config: PrepConfig = PrepC
     return result
 
 
-def _run_tasks(pairs, model_path, model_sha, config, work_dir, jobs, executor, ray_address, progress
-               ) -> dict[str, TaskResult]:
+def _attrs_of(work_dir: Path, done: dict[str, list[PairRecord]]):
+    """The shards' root attributes, as the tasks wrote them into their work files."""
+    from .shards import ShardAttrs
+
+    first = next(pair for name in SPLITS for pair in done[name])
+    path = work_dir / f"{first.sequence}.h5"
+    with h5py.File(path, "r") as handle:
+        return ShardAttrs.read(handle.attrs, path)
+
+
+def _assemble(out_dir: Path, work_dir: Path, done: dict[str, list[PairRecord]], config: PrepConfig):
+    """Copy every work file's sequence into the split's shards; collect the train moments."""
+    from .shards import ShardWriter
+    from .stats import STATS_SPLIT, read_moments
+
+    shards, entries, moments = [], {}, {}
+    if not any(done.values()):
+        return shards, entries, moments
+    attrs = _attrs_of(work_dir, done)
+    for name in SPLITS:
+        with ShardWriter(out_dir, name, attrs, max_bytes=config.max_shard_bytes) as writer:
+            for pair in done[name]:
+                with h5py.File(work_dir / f"{pair.sequence}.h5", "r") as handle:
+                    writer.add_copy(handle[pair.sequence])
+                    if name == STATS_SPLIT:
+                        moments[pair.sequence] = read_moments(handle[MOMENTS_GROUP])
+            shards += writer.close()
+            entries.update(writer.entries)
+    return shards, entries, moments
+
+
+def _run_tasks(pairs, split_of, model_path, model_sha, config, work_dir, jobs, executor, ray_address,
+               progress) -> dict[str, TaskResult]:
     results: dict[str, TaskResult] = {}
     todo = []
     for pair in pairs:
-        reused = _reusable(work_dir, pair, model_sha, config)
+        reused = _reusable(work_dir, pair, split_of[pair.session], model_sha, config)
         if reused is not None:
             results[pair.sequence] = reused
         else:
@@ -173,7 +201,8 @@ def _run_tasks(pairs, model_path, model_sha, config, work_dir, jobs, executor, r
     bar = tqdm(total=round(total), unit="dyad-s", desc="sarah-prep", disable=not progress,
                initial=round(sum(p.length for p in pairs if p.sequence in results) / FPS), file=sys.stderr)
     try:
-        futures = {pool.submit(run_task, pair, str(model_path), model_sha, config, str(work_dir)): pair
+        futures = {pool.submit(run_task, pair, split_of[pair.session], str(model_path), model_sha,
+                               config, str(work_dir)): pair
                    for pair in todo}
         for future in as_completed(futures):
             pair = futures[future]
@@ -186,7 +215,8 @@ def _run_tasks(pairs, model_path, model_sha, config, work_dir, jobs, executor, r
     return results
 
 
-def _reusable(work_dir: Path, pair: PairRecord, model_sha: str, config: PrepConfig) -> TaskResult | None:
+def _reusable(work_dir: Path, pair: PairRecord, split: str, model_sha: str, config: PrepConfig
+              ) -> TaskResult | None:
     marker = work_dir / f"{pair.sequence}.json"
     if not marker.exists():
         return None
@@ -194,41 +224,12 @@ def _reusable(work_dir: Path, pair: PairRecord, model_sha: str, config: PrepConf
         saved = json.loads(marker.read_text())
     except (OSError, json.JSONDecodeError):
         return None
-    if saved.get("fingerprint") != fingerprint(pair, model_sha, config):
+    if saved.get("fingerprint") != fingerprint(pair, split, model_sha, config):
         return None
-    if saved["status"] == "ok" and not (work_dir / f"{pair.sequence}.npz").exists():
+    if saved["status"] == "ok" and not (work_dir / f"{pair.sequence}.h5").exists():
         return None
     fields = TaskResult.__dataclass_fields__
     return TaskResult(**{k: v for k, v in saved.items() if k in fields})
-
-
-def _load_work(work_dir: Path, pair: PairRecord, split: str):
-    from .shards import ProcessedSequence
-
-    with np.load(work_dir / f"{pair.sequence}.npz", allow_pickle=False) as data:
-        arrays = {key: data[key] for key in data.files}
-    return ProcessedSequence.from_arrays(pair.sequence, session=pair.session, split=split,
-                                         persons=list(pair.persons), arrays=arrays)
-
-
-def _shard_attrs(model_path: Path, model_sha: str, config: PrepConfig):
-    from .body import BodyModel
-    from .features import get_extractor
-    from .icosahedron import TEMPLATE
-    from .shards import ShardAttrs
-
-    body = BodyModel.from_file(model_path, device="cpu", shell_points=config.shell_points)
-    extractors = {name: get_extractor(name, **config.extractor_options(name)) for name in config.extractors}
-    return ShardAttrs(
-        toolkit_version=__version__,
-        joint_names=tuple(JOINT_NAMES),
-        icosahedron_template=TEMPLATE,
-        icosahedron_radius=config.icosahedron_radius,
-        shell_vertex_ids=np.asarray(body.shell_ids, dtype=np.int64),
-        body_model_name=model_path.stem,
-        body_model_sha256=model_sha,
-        extractors={name: {"dim": e.dim, **_jsonable(asdict(e.config))} for name, e in extractors.items()},
-    )
 
 
 def _skip(result: PrepResult, log, entry: dict) -> None:
@@ -247,13 +248,3 @@ def _remove_old_shards(out_dir: Path) -> None:
     for name in SPLITS:
         for path in out_dir.glob(f"{name}-*.h5"):
             path.unlink()
-
-
-def _jsonable(value):
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, Path):
-        return str(value)
-    return value

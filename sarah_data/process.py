@@ -3,12 +3,14 @@
 The task runs wherever the executor puts it (this process, a spawned worker, a Ray worker), so
 it takes only picklable arguments, loads the body model and feature extractors once per process,
 and writes its result to a work file named after the sequence instead of sending arrays back.
+The work file is a one-sequence shard file (compressed here, in parallel; the parent copies its
+chunks into the shards without decoding them) plus, for train sequences, the sequence's share of
+the normalization statistics (so the parent never reads the arrays back).
 """
 
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import os
 import time
@@ -19,14 +21,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from . import gaze, icosahedron
+from . import __version__, gaze, icosahedron
 from .config import PrepConfig
-from .constants import JOINT
+from .constants import JOINT, JOINT_NAMES
 from .embody3d import PairRecord, load_person
 from .loading import DataProblem
-from .shards import atomic_write_bytes, file_sha256
+from .shards import (ProcessedSequence, ShardAttrs, atomic_h5, atomic_write_bytes, create_group,
+                     file_sha256, write_sequence)
 
 _MODELS: dict[tuple, object] = {}  # per process: loading a body model or HuBERT once is enough
+WORK_FORMAT = 2  # 1: npz arrays; 2: one-sequence shard file + statistics moments
+MOMENTS_GROUP = ".moments"  # in a work file; sequence names never start with "."
 
 
 @dataclass
@@ -59,6 +64,34 @@ def _extractor(name: str, config: PrepConfig):
     if key not in _MODELS:
         _MODELS[key] = get_extractor(name, **options).to(config.device)
     return _MODELS[key]
+
+
+def shard_attrs(body_model_path: str, body_model_sha: str, config: PrepConfig) -> ShardAttrs:
+    """The root attributes of this run's shards (from the models this process has loaded)."""
+    from .icosahedron import TEMPLATE
+
+    body = _body_model(body_model_path, config)
+    extractors = {name: _extractor(name, config) for name in config.extractors}
+    return ShardAttrs(
+        toolkit_version=__version__,
+        joint_names=tuple(JOINT_NAMES),
+        icosahedron_template=TEMPLATE,
+        icosahedron_radius=config.icosahedron_radius,
+        shell_vertex_ids=np.asarray(body.shell_ids, dtype=np.int64),
+        body_model_name=Path(body_model_path).stem,
+        body_model_sha256=body_model_sha,
+        extractors={name: {"dim": e.dim, **jsonable(asdict(e.config))} for name, e in extractors.items()},
+    )
+
+
+def jsonable(value):
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    return value
 
 
 def process_pair(pair: PairRecord, body_model_path: str, config: PrepConfig
@@ -96,17 +129,18 @@ def process_pair(pair: PairRecord, body_model_path: str, config: PrepConfig
     return arrays, [w for p in people for w in p.warnings]
 
 
-def fingerprint(pair: PairRecord, body_model_sha: str, config: PrepConfig) -> str:
+def fingerprint(pair: PairRecord, split: str, body_model_sha: str, config: PrepConfig) -> str:
     """Identifies a work file's inputs: a resumed run reuses a work file only on a match."""
     stats = [(str(p), os.stat(p).st_size, os.stat(p).st_mtime_ns) for person in pair.persons
              for p in pair.files[person].paths() if p.exists()]
-    payload = json.dumps([pair.sequence, body_model_sha, asdict(config), stats], sort_keys=True, default=str)
+    payload = json.dumps([WORK_FORMAT, __version__, pair.sequence, split, body_model_sha, asdict(config),
+                          stats], sort_keys=True, default=str)
     return hashlib.sha256(payload.encode()).hexdigest()
 
 
-def run_task(pair: PairRecord, body_model_path: str, body_model_sha: str, config: PrepConfig,
-             work_dir: str) -> TaskResult:
-    """Process one dyad into `<work_dir>/<sequence>.npz` (+ `.json`, written last as the marker)."""
+def run_task(pair: PairRecord, split: str, body_model_path: str, body_model_sha: str,
+             config: PrepConfig, work_dir: str) -> TaskResult:
+    """Process one dyad into `<work_dir>/<sequence>.h5` (+ `.json`, written last as the marker)."""
     torch.set_num_threads(1)  # one thread per task: results do not depend on -j (byte-identical shards)
     start = time.perf_counter()
     result = TaskResult(pair.sequence, "ok", frames=pair.length)
@@ -115,8 +149,10 @@ def run_task(pair: PairRecord, body_model_path: str, body_model_sha: str, config
                           for person in pair.persons for p in pair.files[person].paths()
                           if p.exists()]
         arrays, result.warnings = process_pair(pair, body_model_path, config)
-        npz_path = Path(work_dir) / f"{pair.sequence}.npz"
-        write_npz_atomic(npz_path, arrays)
+        seq = ProcessedSequence.from_arrays(pair.sequence, session=pair.session, split=split,
+                                            persons=list(pair.persons), arrays=arrays)
+        write_work_file(Path(work_dir) / f"{pair.sequence}.h5", seq,
+                        shard_attrs(body_model_path, body_model_sha, config))
     except DataProblem as problem:
         result.status, result.reason = "skipped", str(problem)
     except Exception as error:  # noqa: BLE001 - a bug must not stop a long run; it is reported
@@ -124,13 +160,21 @@ def run_task(pair: PairRecord, body_model_path: str, body_model_sha: str, config
         result.reason = f"{pair.sequence}: unexpected {type(error).__name__}: {error}"
         result.detail = traceback.format_exc()
     result_seconds = time.perf_counter() - start
-    marker = {**asdict(result), "fingerprint": fingerprint(pair, body_model_sha, config),
+    marker = {**asdict(result), "fingerprint": fingerprint(pair, split, body_model_sha, config),
               "wall_seconds": result_seconds}
     atomic_write_bytes(Path(work_dir) / f"{pair.sequence}.json", json.dumps(marker, sort_keys=True).encode())
     return result
 
 
-def write_npz_atomic(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
-    atomic_write_bytes(path, buffer.getvalue())
+def write_work_file(path: Path, seq: ProcessedSequence, attrs: ShardAttrs) -> None:
+    """A shard file holding `seq` alone, and for a train sequence its statistics moments."""
+    from .stats import STATS_SPLIT, sequence_moments, write_moments
+
+    with atomic_h5(path) as handle:
+        attrs.write(handle.attrs, seq.split)
+        stored = write_sequence(handle, seq, attrs)
+        if seq.split == STATS_SPLIT:
+            persons = [{**arrays, "audio": {k[len("audio/"):]: v for k, v in arrays.items()
+                                            if k.startswith("audio/")}} for _, arrays in stored]
+            write_moments(create_group(handle, MOMENTS_GROUP),
+                          sequence_moments(persons, sorted(attrs.extractors)))

@@ -348,12 +348,18 @@ def _temporary_name(path: Path) -> Path:
     return path.with_name(f".{path.name}.tmp-{os.getpid()}")
 
 
-def create_h5(path: Path | str) -> h5py.File:
-    """A new HDF5 file (truncating) whose bytes depend only on what is written into it."""
+def create_h5(path: Path | str, in_memory: bool = False) -> h5py.File:
+    """A new HDF5 file (truncating) whose bytes depend only on what is written into it.
+
+    `in_memory`: a scratch file that never touches the disk (`path` only has to be unique among
+    this process's open files).
+    """
     fapl = h5py.h5p.create(h5py.h5p.FILE_ACCESS)
     # Pinned format range: every object in the oldest encoding that can hold it, never one newer
     # than HDF5 1.10's, so a library upgrade cannot change the bytes written.
     fapl.set_libver_bounds(h5py.h5f.LIBVER_EARLIEST, h5py.h5f.LIBVER_V110)
+    if in_memory:
+        fapl.set_fapl_core(block_size=1 << 20, backing_store=False)
     fcpl = h5py.h5p.create(h5py.h5p.FILE_CREATE)
     fcpl.set_obj_track_times(False)
     fid = h5py.h5f.create(os.fsencode(path), h5py.h5f.ACC_TRUNC, fcpl=fcpl, fapl=fapl)
@@ -473,6 +479,16 @@ def _sequence_arrays(seq: ProcessedSequence, attrs: ShardAttrs, split: str
 
 def _write_sequence(handle: h5py.File, seq: ProcessedSequence,
                     persons: list[tuple[str, dict[str, np.ndarray]]]) -> None:
+    """Build the sequence in a scratch file and copy it in: a group copied (H5Ocopy) is laid out
+    differently from one built in place, and prep copies sequences from work files, so every
+    writer copies and the same sequence gives the same bytes whichever way it arrives."""
+    with create_h5(f"scratch-{os.getpid()}-{id(seq)}", in_memory=True) as scratch:
+        _build_sequence(scratch, seq, persons)
+        scratch.copy(scratch[seq.name], handle, name=seq.name)
+
+
+def _build_sequence(handle: h5py.File, seq: ProcessedSequence,
+                    persons: list[tuple[str, dict[str, np.ndarray]]]) -> None:
     group = create_group(handle, seq.name)
     group.attrs["session"] = seq.session
     group.attrs["split"] = seq.split
@@ -485,6 +501,16 @@ def _write_sequence(handle: h5py.File, seq: ProcessedSequence,
             create_group(person_group, "audio")
         for key, array in arrays.items():
             create_dataset(person_group, key, array)
+
+
+def write_sequence(handle: h5py.File, seq: ProcessedSequence, attrs: ShardAttrs
+                   ) -> list[tuple[str, dict[str, np.ndarray]]]:
+    """Check one sequence against the schema (ShardError, nothing written) and write it into an
+    open shard-format file whose root attributes are `attrs`; returns each person's arrays as
+    stored (`{dataset or "audio/<extractor>": array}`)."""
+    persons = _sequence_arrays(seq, attrs, seq.split)
+    _write_sequence(handle, seq, persons)
+    return persons
 
 
 def write_shard(path: Path | str, sequences: list[ProcessedSequence], attrs: ShardAttrs | Mapping
@@ -586,24 +612,53 @@ class ShardWriter:
         if seq.name in self.entries:
             raise ShardError(f"sequence {seq.name}", "added twice")
         persons = _sequence_arrays(seq, self.attrs, self.split)
-        size = sum(a.nbytes for _, arrays in persons for a in arrays.values()) + SEQUENCE_OVERHEAD_BYTES
+        size = sum(a.nbytes for _, arrays in persons for a in arrays.values())
+        self._append(seq.name, size, lambda handle: _write_sequence(handle, seq, persons))
+        return self._entry(seq.name, seq.session, tuple(name for name, _ in persons),
+                           seq.frames, seq.fps)
+
+    def add_copy(self, source: h5py.Group) -> str:
+        """Append a sequence group of another file in this format with these root attributes
+        (prep's per-sequence work files, written by `write_shard`): its chunks are copied as
+        stored, nothing is decoded. The same bytes as `add` of that sequence."""
+        if self._state != "open":
+            raise RuntimeError(f"ShardWriter for {self.split!r} is {self._state}")
+        name = source.name.lstrip("/")
+        where = f"{source.file.filename}: sequence {name}"
+        if name in self.entries:
+            raise ShardError(f"sequence {name}", "added twice")
+        if ShardAttrs.read(source.file.attrs, source.file.filename).to_json() != self.attrs.to_json():
+            raise ShardError(where, "root attributes differ from this writer's")
+        if str(source.attrs["split"]) != self.split:
+            raise ShardError(where, f"belongs to split {source.attrs['split']!r}, this writer "
+                                    f"writes {self.split!r}")
+        sizes: list[int] = []
+        source.visititems(lambda _, obj: sizes.append(obj.size * obj.dtype.itemsize)
+                          if isinstance(obj, h5py.Dataset) else None)
+        self._append(name, sum(sizes), lambda handle: source.file.copy(source, handle, name=name))
+        return self._entry(name, str(source.attrs["session"]),
+                           tuple(str(p) for p in source.attrs["persons"]),
+                           int(source.attrs["frames"]), int(source.attrs["fps"]))
+
+    def _append(self, name: str, array_bytes: int, write) -> None:
+        size = array_bytes + SEQUENCE_OVERHEAD_BYTES
         try:
             if self._file is not None and self._file_bytes + size > self.max_bytes:
                 self._finish_file()
             if self._file is None:
                 self._file = create_h5(_temporary_name(self.out_dir / self._current_name))
                 self.attrs.write(self._file.attrs, self.split)
-            _write_sequence(self._file, seq, persons)
+            write(self._file)
             self._file.flush()
             self._file_bytes = os.path.getsize(self._file.filename)
         except BaseException:
             self.abort()
             raise
-        self._file_sequences.append(seq.name)
-        self.entries[seq.name] = SequenceEntry(
-            session=seq.session, split=seq.split, file=self._current_name,
-            persons=tuple(name for name, _ in persons), frames=seq.frames,
-            seconds=seq.frames / seq.fps)
+        self._file_sequences.append(name)
+
+    def _entry(self, name: str, session: str, persons: tuple[str, ...], frames: int, fps: int) -> str:
+        self.entries[name] = SequenceEntry(session=session, split=self.split, file=self._current_name,
+                                           persons=persons, frames=frames, seconds=frames / fps)
         return self._current_name
 
     def _finish_file(self) -> None:

@@ -11,8 +11,10 @@ tracked (the frames training windows are drawn from):
   shorter), each normalized to the agent's root at its own first frame;
 - audio features of each person over the same frames, pooled per extractor (they serve as both
   agent and user audio);
-- population statistics accumulated in float64 (Chan's pairwise update), std floored at
-  `epsilon` so constant channels standardize to 0 instead of dividing by zero.
+- population statistics accumulated in float64 (Chan's pairwise update): window by window
+  within a sequence (`sequence_moments`, which prep runs in its workers), then sequence by
+  sequence in name order (`merge_moments`); std floored at `epsilon` so constant channels
+  standardize to 0 instead of dividing by zero.
 
 The same shards give byte-identical `stats.h5`.
 """
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Mapping
 from pathlib import Path
 
 import h5py
@@ -28,7 +31,8 @@ import numpy as np
 
 from sarah_data.constants import SHARD_SCHEMA_VERSION
 from sarah_data.dataset import DEFAULT_WINDOW, normalize_window, tracked_runs
-from sarah_data.shards import STATS_NAME, ShardError, ShardSet, atomic_h5, create_dataset, create_group
+from sarah_data.shards import (MANIFEST_NAME, STATS_NAME, ShardError, ShardSet, atomic_h5, create_dataset,
+                               create_group, read_manifest)
 
 log = logging.getLogger(__name__)
 
@@ -36,34 +40,86 @@ STD_EPSILON = 1e-4  # metres for motion and head; feature units for audio
 STATS_SPLIT = "train"
 
 
-class _Moments:
-    """Running per-channel count, mean and sum of squared deviations."""
+class Moments:
+    """Running per-channel count, mean and sum of squared deviations (float64)."""
 
-    def __init__(self) -> None:
-        self.count = 0
-        self.mean: np.ndarray | None = None
-        self.m2: np.ndarray | None = None
+    def __init__(self, count: int = 0, mean: np.ndarray | None = None, m2: np.ndarray | None = None):
+        self.count, self.mean, self.m2 = count, mean, m2
 
     def add(self, x: np.ndarray) -> None:
         x = np.asarray(x, np.float64).reshape(len(x), -1)
-        if len(x) == 0:
+        if len(x):
+            batch_mean = x.mean(axis=0)
+            self.merge(Moments(len(x), batch_mean, ((x - batch_mean) ** 2).sum(axis=0)))
+
+    def merge(self, other: "Moments") -> None:
+        """Chan's pairwise update: as if `other`'s frames had been added here."""
+        if other.count == 0:
             return
-        batch_mean = x.mean(axis=0)
-        batch_m2 = ((x - batch_mean) ** 2).sum(axis=0)
-        if self.mean is None:
-            self.count, self.mean, self.m2 = len(x), batch_mean, batch_m2
+        if self.count == 0:
+            self.count, self.mean, self.m2 = other.count, other.mean.copy(), other.m2.copy()
             return
-        if x.shape[1] != self.mean.shape[0]:
-            raise ValueError(f"channel count changed from {self.mean.shape[0]} to {x.shape[1]}")
-        total = self.count + len(x)
-        delta = batch_mean - self.mean
-        self.mean = self.mean + delta * (len(x) / total)
-        self.m2 = self.m2 + batch_m2 + delta ** 2 * (self.count * len(x) / total)
+        if other.mean.shape != self.mean.shape:
+            raise ValueError(f"channel count changed from {self.mean.shape[0]} to {other.mean.shape[0]}")
+        total = self.count + other.count
+        delta = other.mean - self.mean
+        self.mean = self.mean + delta * (other.count / total)
+        self.m2 = self.m2 + other.m2 + delta ** 2 * (self.count * other.count / total)
         self.count = total
 
     def result(self, epsilon: float) -> tuple[np.ndarray, np.ndarray]:
         std = np.sqrt(self.m2 / self.count)
         return self.mean.astype(np.float32), np.maximum(std, epsilon).astype(np.float32)
+
+
+def sequence_moments(persons: list[Mapping], extractors: list[str], window: int = DEFAULT_WINDOW
+                     ) -> dict[str, Moments]:
+    """One sequence's contribution to the statistics: `persons` are its two persons' arrays
+    (`icosahedra`, `shell`, `head`, `valid`, `root_position`, `root_rotation`, and `audio`, a
+    mapping extractor -> (T, D)), as numpy arrays or h5py datasets."""
+    moments = {"motion": Moments(), "user_head": Moments()}
+    moments.update({f"audio/{name}": Moments() for name in extractors})
+    runs = tracked_runs(np.logical_and(*(np.asarray(p["valid"][()], bool) for p in persons)))
+    for agent, user in ((persons[0], persons[1]), (persons[1], persons[0])):
+        for run_start, run_stop in runs:
+            for start in range(run_start, run_stop, window):
+                frames = slice(start, min(start + window, run_stop))
+                motion, head, _ = normalize_window(
+                    agent["icosahedra"][frames], agent["shell"][frames], user["head"][frames],
+                    agent["root_position"][start], agent["root_rotation"][start])
+                moments["motion"].add(motion)
+                moments["user_head"].add(head)
+            audio = agent.get("audio", {})
+            for extractor in extractors:
+                if extractor in audio:
+                    moments[f"audio/{extractor}"].add(audio[extractor][run_start:run_stop])
+    return moments
+
+
+def merge_moments(parts: list[dict[str, Moments]], extractors: list[str]) -> dict[str, Moments]:
+    """The sequences' moments combined in the order given (prep and compute_stats: name order)."""
+    total = {"motion": Moments(), "user_head": Moments()}
+    total.update({f"audio/{name}": Moments() for name in extractors})
+    for part in parts:
+        for key, value in part.items():
+            total[key].merge(value)
+    return total
+
+
+def write_moments(group: h5py.Group, moments: dict[str, Moments]) -> None:
+    """Moments as plain float64 datasets (a work file's, exact), for `read_moments`."""
+    for key, value in moments.items():
+        if value.count:
+            sub = group.create_group(key)
+            sub.attrs["count"] = np.int64(value.count)
+            sub["mean"], sub["m2"] = value.mean, value.m2
+
+
+def read_moments(group: h5py.Group) -> dict[str, Moments]:
+    found: dict[str, Moments] = {}
+    group.visititems(lambda key, obj: found.__setitem__(key, Moments(
+        int(obj.attrs["count"]), obj["mean"][()], obj["m2"][()])) if "count" in obj.attrs else None)
+    return found
 
 
 def compute_stats(shards_dir: Path | str, window: int = DEFAULT_WINDOW,
@@ -74,14 +130,30 @@ def compute_stats(shards_dir: Path | str, window: int = DEFAULT_WINDOW,
     """
     shards = ShardSet(shards_dir)
     try:
-        moments, sequences = _accumulate(shards, window)
-        train_files = sorted((s.file, s.sha256) for s in shards.manifest.shards
-                             if s.split == STATS_SPLIT)
+        extractors = sorted(shards.attrs.extractors) if shards.manifest.shards else []
+        names = shards.sequences(STATS_SPLIT)
+        parts = [sequence_moments(_persons(shards.group(name)), extractors, window) for name in names]
     finally:
         shards.close()
+    return write_stats(shards_dir, merge_moments(parts, extractors), len(names), window, epsilon)
+
+
+def _persons(group: h5py.Group) -> list[dict]:
+    persons = [group[str(p)] for p in group.attrs["persons"]]
+    return [{**{key: p[key][()] for key in p if key != "audio"},
+             "audio": {k: v[()] for k, v in p["audio"].items()} if "audio" in p else {}}
+            for p in persons]
+
+
+def write_stats(shards_dir: Path | str, moments: dict[str, Moments], sequences: int,
+                window: int = DEFAULT_WINDOW, epsilon: float = STD_EPSILON) -> dict[str, np.ndarray]:
+    """Write `<shards_dir>/stats.h5` from the train split's merged moments (the manifest lists the
+    train files recorded in it); returns `load_stats`'s dict."""
     if moments["motion"].count == 0:
         raise ShardError(Path(shards_dir), f"no tracked frames in the {STATS_SPLIT} split to "
                                            "compute normalization statistics from")
+    manifest = read_manifest(Path(shards_dir) / MANIFEST_NAME)
+    train_files = sorted((s.file, s.sha256) for s in manifest.shards if s.split == STATS_SPLIT)
     path = Path(shards_dir) / STATS_NAME
     with atomic_h5(path) as handle:
         handle.attrs["schema_version"] = np.int64(SHARD_SCHEMA_VERSION)
@@ -102,31 +174,6 @@ def compute_stats(shards_dir: Path | str, window: int = DEFAULT_WINDOW,
             create_dataset(group, "mean", mean)
             create_dataset(group, "std", std)
     return load_stats(shards_dir)
-
-
-def _accumulate(shards: ShardSet, window: int) -> tuple[dict[str, _Moments], int]:
-    extractors = sorted(shards.attrs.extractors) if shards.manifest.shards else []
-    moments = {"motion": _Moments(), "user_head": _Moments()}
-    moments.update({f"audio/{name}": _Moments() for name in extractors})
-    names = shards.sequences(STATS_SPLIT)
-    for name in names:
-        group = shards.group(name)
-        persons = [group[str(p)] for p in group.attrs["persons"]]
-        both = np.logical_and(*(p["valid"][()].astype(bool) for p in persons))
-        runs = tracked_runs(both)
-        for agent, user in ((persons[0], persons[1]), (persons[1], persons[0])):
-            for run_start, run_stop in runs:
-                for start in range(run_start, run_stop, window):
-                    frames = slice(start, min(start + window, run_stop))
-                    motion, head, _ = normalize_window(
-                        agent["icosahedra"][frames], agent["shell"][frames], user["head"][frames],
-                        agent["root_position"][start], agent["root_rotation"][start])
-                    moments["motion"].add(motion)
-                    moments["user_head"].add(head)
-                for extractor in extractors:
-                    if "audio" in agent and extractor in agent["audio"]:
-                        moments[f"audio/{extractor}"].add(agent["audio"][extractor][run_start:run_stop])
-    return moments, len(names)
 
 
 def load_stats(shards_dir: Path | str) -> dict[str, np.ndarray]:

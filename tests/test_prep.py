@@ -57,6 +57,17 @@ def test_end_to_end_shards_verify_and_load_with_workers(prepared_shards, prep_ra
     assert "OK" in out and "train" in out and "test" in out
 
 
+def test_stats_merged_from_work_files_equal_stats_from_the_shards(prepared_shards, tmp_path):
+    """Prep merges the moments its tasks stored; recomputing from the shards gives the same file."""
+    from sarah_data.stats import compute_stats
+
+    copy = tmp_path / "copy"
+    shutil.copytree(prepared_shards, copy)
+    (copy / "stats.h5").unlink()
+    compute_stats(copy)
+    assert (copy / "stats.h5").read_bytes() == (prepared_shards / "stats.h5").read_bytes()
+
+
 def test_parallel_run_is_byte_identical(prepared_shards, prep_raw_dir, tmp_path):
     assert prep_main([str(prep_raw_dir), str(tmp_path / "shards"), "-j", "2", "--no-progress"]) == 0
     assert _digests(tmp_path / "shards") == _digests(prepared_shards)
@@ -70,11 +81,11 @@ def test_kill_and_resume_equals_uninterrupted_run(prepared_shards, prep_raw_dir,
     process = subprocess.Popen(command, env=env, start_new_session=True,
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and len(list((out / ".work").glob("*.npz"))) < 2:
+    while time.monotonic() < deadline and len(list((out / ".work").glob("*.h5"))) < 2:
         time.sleep(0.05)
     os.killpg(process.pid, signal.SIGKILL)
     process.wait()
-    kept = sorted(p.name for p in (out / ".work").glob("*.npz"))
+    kept = sorted(p.name for p in (out / ".work").glob("*.h5"))
     assert kept, "the run was killed before any sequence finished"
     assert not list(out.glob("*.h5")) or not (out / "manifest.json").exists()
     mtimes = {name: (out / ".work" / name).stat().st_mtime_ns for name in kept}
