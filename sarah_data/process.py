@@ -100,11 +100,12 @@ def process_pair(pair: PairRecord, body_model_path: str, config: PrepConfig
 
     Raises DataProblem for bad input.
     """
-    from .speaking import speaking_labels
+    from .speaking import frame_energy_db, labels_from_levels
 
     people = [load_person(pair, person) for person in pair.persons]
     if any(p.audio is None for p in people):
         raise DataProblem(pair.folder / pair.sequence, "no audio")
+    levels = [frame_energy_db(p.audio) for p in people]
     body = _body_model(body_model_path, config)
     posed = [body.forward(p.params, batch_frames=config.body_batch_frames) for p in people]
     heads = [gaze.head_trajectory(b.eye_mid) for b in posed]
@@ -118,7 +119,7 @@ def process_pair(pair: PairRecord, body_model_path: str, config: PrepConfig
         arrays[prefix + "head"] = heads[i].astype(np.float32)
         arrays[prefix + "gaze"] = gaze.gaze_score(frames_out.head_front, frames_out.head_back,
                                                   heads[partner]).astype(np.float32)
-        speaking = speaking_labels(arrays_in.audio, people[partner].audio, config.speaking)
+        speaking = labels_from_levels(levels[i], levels[partner], config.speaking)
         arrays[prefix + "speaking"] = np.pad(speaking, (0, max(0, pair.length - speaking.size)))[: pair.length].astype(np.uint8)
         arrays[prefix + "valid"] = arrays_in.valid.astype(np.uint8)
         arrays[prefix + "root_position"] = frames_out.joints[:, JOINT["pelvis"]].astype(np.float32)

@@ -96,9 +96,15 @@ def frame_energy_db(wave: np.ndarray, samples_per_frame: float | Fraction = SAMP
     """
     wave = _as_wave(wave, "frame_energy_db")
     bounds = frame_bounds(len(wave), samples_per_frame)
-    # Sums of squares from a float64 running sum: exact enough and independent of frame size.
-    cumulative = np.concatenate([[0.0], np.cumsum(np.square(wave, dtype=np.float64))])
-    power = (cumulative[bounds[1:]] - cumulative[bounds[:-1]]) / np.diff(bounds)
+    size = int(bounds[1] - bounds[0]) if len(bounds) > 1 else 0
+    if len(bounds) > 1 and bounds[-1] == size * (len(bounds) - 1):
+        # Equal frames (48 kHz: 1600 samples): one float64 dot product per frame.
+        frames = wave[: bounds[-1]].reshape(-1, size).astype(np.float64)
+        power = np.einsum("ij,ij->i", frames, frames) / size
+    else:
+        # Sums of squares from a float64 running sum: exact enough and independent of frame size.
+        cumulative = np.concatenate([[0.0], np.cumsum(np.square(wave, dtype=np.float64))])
+        power = (cumulative[bounds[1:]] - cumulative[bounds[:-1]]) / np.diff(bounds)
     return 10.0 * np.log10(np.maximum(power, _POWER_FLOOR))
 
 
@@ -162,10 +168,18 @@ def speaking_labels(
     its frames past T are ignored, missing ones count as silence); None disables the crosstalk rule.
     """
     samples_per_frame = Fraction(sample_rate, FPS)
-    own_db = frame_energy_db(own, samples_per_frame)
-    gate = np.ones(len(own_db), dtype=bool)
+    partner_db = None
     if partner is not None and math.isfinite(config.crosstalk_margin_db):
         partner_db = frame_energy_db(partner, samples_per_frame)
+    return labels_from_levels(frame_energy_db(own, samples_per_frame), partner_db, config)
+
+
+def labels_from_levels(own_db: np.ndarray, partner_db: np.ndarray | None,
+                       config: SpeakingConfig = SpeakingConfig()) -> np.ndarray:
+    """`speaking_labels` from the tracks' `frame_energy_db` levels (a dyad needs each track's
+    levels twice: once as own, once as partner)."""
+    gate = np.ones(len(own_db), dtype=bool)
+    if partner_db is not None and math.isfinite(config.crosstalk_margin_db):
         aligned = np.full(len(own_db), 10.0 * np.log10(_POWER_FLOOR))
         n = min(len(own_db), len(partner_db))
         aligned[:n] = partner_db[:n]

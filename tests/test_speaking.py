@@ -16,6 +16,7 @@ from sarah_data.speaking import (
     _hysteresis,
     clip_is_speaking,
     frame_energy_db,
+    labels_from_levels,
     speaking_fraction,
     speaking_labels,
 )
@@ -50,6 +51,24 @@ def test_frame_energy_is_rms_dbfs_per_whole_frame():
     np.testing.assert_allclose(level[:2], -120.0)  # the floor on digital silence
     np.testing.assert_allclose(level[2:5], -20.0, atol=1e-4)
     np.testing.assert_allclose(level[5], 0.0, atol=1e-9)
+
+
+def test_labels_from_levels_equal_labels_from_waves():
+    """prep computes each track's levels once and labels both persons from them."""
+    own, partner = synthesize_dyad_audio_pair()
+    for a, b in ((own, partner), (partner, own)):
+        expected = speaking_labels(a, b, CFG)
+        np.testing.assert_array_equal(labels_from_levels(frame_energy_db(a), frame_energy_db(b), CFG), expected)
+    levels = frame_energy_db(own)
+    exact = [10 * np.log10(max(np.mean(own[t * SPF:(t + 1) * SPF].astype(np.float64) ** 2), 1e-12))
+             for t in range(len(levels))]
+    np.testing.assert_allclose(levels, exact, atol=1e-9)
+
+
+def synthesize_dyad_audio_pair() -> tuple[np.ndarray, np.ndarray]:
+    parts = [tone(20, -30.0), silence(7), tone(11, -45.0, 440.0), tone(9, -60.0), silence(3)]
+    own = np.concatenate(parts) + np.random.default_rng(0).normal(0, 1e-4, 50 * SPF).astype(np.float32)
+    return own.astype(np.float32), np.roll(own, 17 * SPF) * np.float32(0.3)
 
 
 def test_frame_energy_with_fractional_samples_per_frame():
