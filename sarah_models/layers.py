@@ -32,26 +32,39 @@ def causal_mask(num_queries: int, num_keys: int | None = None, window: int | Non
     return allowed
 
 
-class RotaryEmbedding(nn.Module):
-    """Rotary position embedding (rotate-half form) applied to (B, H, L, Dh) tensors.
+class RopeAngles(nn.Module):
+    """cos and sin of the rotary angles of integer positions: (..., L) -> (2, ..., L, head_dim/2)
+    float32, computed in float64 so that long streams (large positions) keep their precision.
 
-    Angles are computed in float64 so that long streams (large positions) keep their precision.
-    """
+    A module of its own because it depends on the positions only: inference wraps it in a memo
+    (``fast.InputMemo``), since every solver evaluation of a chunk uses the same positions."""
+
+    def __init__(self, head_dim: int, base: float = 10_000.0) -> None:
+        super().__init__()
+        self.half, self.base = head_dim // 2, float(base)
+
+    def forward(self, positions: Tensor) -> Tensor:
+        inv_freq = self.base ** (-torch.arange(self.half, device=positions.device,
+                                               dtype=torch.float64) / self.half)
+        angles = positions.to(torch.float64)[..., None] * inv_freq
+        return torch.stack((angles.cos(), angles.sin())).float()
+
+
+class RotaryEmbedding(nn.Module):
+    """Rotary position embedding (rotate-half form) applied to (B, H, L, Dh) tensors."""
 
     def __init__(self, head_dim: int, base: float = 10_000.0) -> None:
         super().__init__()
         if head_dim % 2:
             raise ValueError(f"RoPE needs an even head dimension, got {head_dim}")
         self.head_dim = head_dim
-        self.base = float(base)
+        self.angles = RopeAngles(head_dim, base)
 
     def forward(self, x: Tensor, positions: Tensor) -> Tensor:
+        cos, sin = self.angles(positions.to(x.device)).to(x.dtype)
+        if cos.dim() == 3:  # per-sample positions (B, L, half) -> (B, 1, L, half)
+            cos, sin = cos[:, None], sin[:, None]
         half = self.head_dim // 2
-        inv_freq = self.base ** (-torch.arange(half, device=x.device, dtype=torch.float64) / half)
-        angles = positions.to(device=x.device, dtype=torch.float64)[..., None] * inv_freq
-        if angles.dim() == 3:  # per-sample positions (B, L, half) -> (B, 1, L, half)
-            angles = angles[:, None]
-        cos, sin = angles.cos().to(x.dtype), angles.sin().to(x.dtype)
         x1, x2 = x[..., :half], x[..., half:]
         return torch.cat((x1 * cos - x2 * sin, x1 * sin + x2 * cos), dim=-1)
 

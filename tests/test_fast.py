@@ -22,9 +22,9 @@ from hypothesis import given, settings, strategies as st
 from sarah_models.bench import NaiveStreamer, random_models
 from sarah_models.checkpoint import LoadedModels
 from sarah_models.config import RunConfig
-from sarah_models.fast import (BF16Linear, BufferedKVCache, TimeMemo, optimize_for_inference,
+from sarah_models.fast import (BF16Linear, BufferedKVCache, InputMemo, optimize_for_inference,
                                solver_times, stream_deviation, stream_inputs)
-from sarah_models.layers import KVCache
+from sarah_models.layers import KVCache, RopeAngles
 from sarah_models.stream import StreamConfig, StreamingGenerator
 
 AUDIO_DIM = 8
@@ -48,22 +48,27 @@ def tiny():
 
 def test_fp32_mode_is_exact_and_fully_precomputed(tiny):
     fast = optimize_for_inference(tiny, "fp32")
-    memos = [m for m in fast[1].modules() if isinstance(m, TimeMemo)]
-    assert len(memos) == 2 + len(fast[1].blocks)  # time MLP, every block, the output layer
-    misses = [m.misses for m in memos]
+    memos = [m for m in fast[1].modules() if isinstance(m, InputMemo)]
+    rope = [m for m in memos if isinstance(m.module, RopeAngles)]
+    time = [m for m in memos if m not in rope]
+    assert len(time) == 2 + len(fast[1].blocks)  # time MLP, every block, the output layer
+    assert len(rope) == len(fast[1].blocks)
+    misses = [m.misses for m in time]
     deviation = stream_deviation(tiny, fast, frames=24)
     assert deviation.max_joint_mm == 0.0
     assert deviation.head_angle_delta == 0.0
     # Every evaluation found its tau in the grid computed up front: nothing computed anew.
-    assert [m.misses for m in memos] == misses
-    assert all(m.hits > 0 for m in memos)
+    assert [m.misses for m in time] == misses
+    assert all(m.hits > 0 for m in time)
+    # Rotary angles: computed once per context length (1, 2, then 3 tokens), then looked up.
+    assert all(m.misses == StreamConfig().history_tokens + 1 and m.hits > m.misses for m in rope)
 
 
 def test_optimized_copies_leave_the_originals_alone(tiny):
     vae, flow, _ = tiny
     before = {k: v.clone() for k, v in flow.state_dict().items()}
     fast = optimize_for_inference(tiny, "int8")
-    assert not any(isinstance(m, TimeMemo) for m in flow.modules())
+    assert not any(isinstance(m, InputMemo) for m in flow.modules())
     assert all(torch.equal(before[k], v) for k, v in flow.state_dict().items())
     assert fast[0] is not vae and fast[2] is tiny[2]
     assert not any(isinstance(m, torch.nn.Linear) for m in fast[1].blocks[0].mlp)
@@ -109,7 +114,7 @@ def test_solver_times_are_the_midpoint_grid():
 
 
 def test_time_memo_computes_afresh_with_autograd():
-    layer = TimeMemo(torch.nn.Linear(3, 2))
+    layer = InputMemo(torch.nn.Linear(3, 2))
     x = torch.ones(1, 3)
     with torch.inference_mode():
         stored = layer(x)
