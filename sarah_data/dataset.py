@@ -18,12 +18,14 @@ Two ways to choose windows (paper A.2):
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 
 import numpy as np
 import torch
+from torch.utils.data import default_collate
 
-from sarah_data.frames import window_transform
+from sarah_data.frames import WindowTransform, window_transform
 from sarah_data.shards import ShardSet
 
 log = logging.getLogger(__name__)
@@ -33,10 +35,31 @@ DEFAULT_CACHE_BYTES = 2 << 30  # per process; a split that fits is read once, th
 _PER_PERSON = ("icosahedra", "shell", "head", "gaze", "speaking", "root_position", "root_rotation")
 
 
-def motion_vector(icosahedra: np.ndarray, shell: np.ndarray) -> np.ndarray:
-    """(T,J,12,3) icosahedra and (T,V,3) shell -> (T, J*12*3 + V*3), the flattened motion."""
+def homogeneous_points(icosahedra: np.ndarray, shell: np.ndarray) -> np.ndarray:
+    """(T,J,12,3) icosahedra and (T,V,3) shell -> (T, J*12 + V, 4) float32 points [x, y, z, 1]:
+    flattened per frame, the first three columns are the motion vector's layout, and the 1s let
+    `WindowTransform.matrix()` rotate and translate a whole window in one matmul."""
     frames = icosahedra.shape[0]
-    return np.concatenate([icosahedra.reshape(frames, -1), shell.reshape(frames, -1)], axis=1)
+    points = np.empty((frames, icosahedra.shape[1] * icosahedra.shape[2] + shell.shape[1], 4),
+                      np.float32)
+    points[:, :-shell.shape[1], :3] = icosahedra.reshape(frames, -1, 3)
+    points[:, -shell.shape[1]:, :3] = shell
+    points[..., 3] = 1.0
+    return points
+
+
+def window_motion(points: np.ndarray, transform: WindowTransform,
+                  out: torch.Tensor | None = None) -> torch.Tensor:
+    """Homogeneous world points (T, N, 4) -> the motion (T, N*3) float32 in the window frame.
+
+    One float32 matmul writes the result straight into `out` (e.g. a row of a batch buffer): the
+    window is the loader's biggest array, and every extra pass over it costs about a millisecond.
+    """
+    frames = points.shape[0]
+    out = torch.empty((frames, points.shape[1] * 3)) if out is None else out
+    matrix = torch.from_numpy(transform.matrix().astype(np.float32))
+    torch.mm(torch.from_numpy(points).view(-1, 4), matrix, out=out.view(-1, 3))
+    return out
 
 
 def normalize_window(icosahedra: np.ndarray, shell: np.ndarray, user_head: np.ndarray,
@@ -46,15 +69,11 @@ def normalize_window(icosahedra: np.ndarray, shell: np.ndarray, user_head: np.nd
 
     `root_position (3,)` and `root_rotation (3,3)` are the agent's pelvis at the window's first
     frame. Returns motion (T, D) float32, user_head (T, 2) float32 and the transform (4,)
-    [yaw, x, z, 0] that maps world to window coordinates.
+    [yaw, x, z, 0] that maps world to window coordinates. `WindowDataset` items equal this.
     """
     transform = window_transform(root_position, root_rotation)
-    frames, joint_points = icosahedra.shape[0], icosahedra.shape[1] * icosahedra.shape[2]
-    # Both rotate straight into one (T, J*12 + V, 3) buffer whose flat view is the motion vector.
-    points = np.empty((frames, joint_points + shell.shape[1], 3), np.float32)
-    transform.apply_points(icosahedra.reshape(frames, joint_points, 3), out=points[:, :joint_points])
-    transform.apply_points(shell, out=points[:, joint_points:])
-    return (points.reshape(frames, -1), transform.apply_floor(user_head).astype(np.float32),
+    motion = window_motion(homogeneous_points(icosahedra, shell), transform)
+    return (motion.numpy(), transform.apply_floor(user_head).astype(np.float32),
             transform.as_array())
 
 
@@ -118,6 +137,12 @@ class WindowDataset(torch.utils.data.Dataset):
             attrs = self.shards.attrs if self.shards.manifest.shards else None
             self.motion_dim = (len(attrs.joint_names) * 12 * 3 + len(attrs.shell_vertex_ids) * 3
                                if attrs else None)
+            self.in_memory = self._split_bytes <= cache_bytes
+            if self.in_memory:
+                # Read here, before any DataLoader forks its workers: they then share these pages
+                # instead of each re-reading the split at every epoch's start.
+                for name in dict.fromkeys(name for name, _, _ in self.pairs):
+                    self._arrays(name)
         finally:
             self.shards.close()  # no open file may cross into DataLoader workers
         if deterministic:
@@ -135,7 +160,6 @@ class WindowDataset(torch.utils.data.Dataset):
                                  f"{window} frames: {self.skipped}")
         if not self.pairs:
             log.warning("split %r of %s has no usable window of %d frames", split, shards_dir, window)
-        self.in_memory = self._split_bytes <= cache_bytes
 
     @classmethod
     def sliding(cls, shards_dir: Path | str, split: str, extractor: str | None = "logmel",
@@ -164,8 +188,7 @@ class WindowDataset(torch.utils.data.Dataset):
                 continue
             if self.extractor is not None:
                 self.audio_dim = int(group[persons[0]]["audio"][self.extractor].shape[1])
-            self._split_bytes += sum(group[p][key].size * group[p][key].dtype.itemsize
-                                     for p in persons for key in self._keys())
+            self._split_bytes += sum(_cached_bytes(group[p], self._keys()) for p in persons)
             for agent in range(len(persons)):
                 self.pairs.append((name, agent, starts))
 
@@ -191,13 +214,14 @@ class WindowDataset(torch.utils.data.Dataset):
         return _PER_PERSON + ((f"audio/{self.extractor}",) if self.extractor is not None else ())
 
     def _arrays(self, name: str) -> dict[str, dict]:
-        """The sequence's per-person datasets: h5py datasets, or arrays read once into memory."""
+        """The sequence's per-person arrays: h5py datasets, or, when the split fits in memory,
+        arrays read once, icosahedra and shell stored as one `homogeneous_points` array."""
+        if name in self._cache:
+            return self._cache[name]
         group = self.shards.group(name)
         if not self.in_memory:
             return {p: {key: group[p][key] for key in self._keys()} for p in group.attrs["persons"]}
-        if name not in self._cache:
-            self._cache[name] = {p: {key: group[p][key][()] for key in self._keys()}
-                                 for p in group.attrs["persons"]}
+        self._cache[name] = {p: _read_person(group[p], self._keys()) for p in group.attrs["persons"]}
         return self._cache[name]
 
     def __getstate__(self) -> dict:
@@ -206,27 +230,98 @@ class WindowDataset(torch.utils.data.Dataset):
         return state
 
     def __getitem__(self, index: int) -> dict:
-        name, agent, start = self.locate(int(index))
-        persons = self.shards.entry(name).persons  # verify checks they match the file's
-        arrays = self._arrays(name)
-        a, u = arrays[persons[agent]], arrays[persons[1 - agent]]
-        frames = slice(start, start + self.window)
-        motion, user_head, transform = normalize_window(
-            a["icosahedra"][frames], a["shell"][frames], u["head"][frames],
-            a["root_position"][start], a["root_rotation"][start])
-        item = {
-            "motion": torch.from_numpy(motion),
-            "user_head": torch.from_numpy(user_head),
-            "gaze": torch.from_numpy(a["gaze"][frames].astype(np.float32)),
-            "agent_speaking": torch.from_numpy(a["speaking"][frames].astype(np.float32)),
-            "user_speaking": torch.from_numpy(u["speaking"][frames].astype(np.float32)),
-            "transform": torch.from_numpy(transform),
-            "sequence": name,
-            "agent": persons[agent],
-            "start": start,
-        }
+        return self.__getitems__([index])[0]
+
+    def __getitems__(self, indices: list[int]) -> list[dict]:
+        """The items of `indices` (a DataLoader calls this with a batch's indices), written
+        straight into one batch buffer per field: each item's tensors are rows of those buffers,
+        which `collate_windows` hands on without another copy."""
+        located = [self.locate(int(index)) for index in indices]
+        batch = self._batch_buffers(len(located))
+        rows = {key: value.numpy() for key, value in batch.items()}
+        items = []
+        for row, (name, agent, start) in enumerate(located):
+            persons = self.shards.entry(name).persons  # verify checks they match the file's
+            arrays = self._arrays(name)
+            a, u = arrays[persons[agent]], arrays[persons[1 - agent]]
+            frames = slice(start, start + self.window)
+            transform = window_transform(a["root_position"][start], a["root_rotation"][start])
+            window_motion(_window_points(a, frames), transform, out=batch["motion"][row])
+            rows["user_head"][row] = transform.apply_floor(u["head"][frames])
+            rows["transform"][row] = transform.as_array()
+            # numpy assignment casts (speaking is bool) without an intermediate copy
+            rows["gaze"][row] = a["gaze"][frames]
+            rows["agent_speaking"][row] = a["speaking"][frames]
+            rows["user_speaking"][row] = u["speaking"][frames]
+            if self.extractor is not None:
+                key = f"audio/{self.extractor}"
+                rows["agent_audio"][row] = a[key][frames]
+                rows["user_audio"][row] = u[key][frames]
+            item = {key: value[row] for key, value in batch.items()}
+            item.update(sequence=name, agent=persons[agent], start=start)
+            items.append(item)
+        return items
+
+    def _batch_buffers(self, size: int) -> dict[str, torch.Tensor]:
+        frames = self.window
+        shapes = {"motion": (frames, self.motion_dim), "user_head": (frames, 2),
+                  "gaze": (frames,), "agent_speaking": (frames,), "user_speaking": (frames,),
+                  "transform": (4,)}
         if self.extractor is not None:
-            key = f"audio/{self.extractor}"
-            item["agent_audio"] = torch.from_numpy(a[key][frames].astype(np.float32))
-            item["user_audio"] = torch.from_numpy(u[key][frames].astype(np.float32))
-        return item
+            shapes.update(agent_audio=(frames, self.audio_dim), user_audio=(frames, self.audio_dim))
+        return {key: _empty_float32((size,) + shape) for key, shape in shapes.items()}
+
+
+def collate_windows(items: list[dict]) -> dict:
+    """`default_collate` for WindowDataset items, except that a field whose tensors are, in
+    order, the rows of one tensor (as `WindowDataset.__getitems__` writes them) is that tensor:
+    a batch of 400-frame windows is 70 MB, and copying it again costs as much as making it.
+    Pass it as a DataLoader's `collate_fn`; any other items are collated as usual."""
+    batch = {}
+    for key in items[0]:
+        values = [item[key] for item in items]
+        rows_of = _rows_of(values)
+        batch[key] = rows_of if rows_of is not None else default_collate(values)
+    return batch
+
+
+def _rows_of(values: list) -> torch.Tensor | None:
+    """The tensor whose rows 0..n-1 are exactly `values`, or None."""
+    base = getattr(values[0], "_base", None)
+    if base is None or base.dim() == 0 or base.shape[0] != len(values):
+        return None
+    row_bytes = base.stride(0) * base.element_size()
+    for row, value in enumerate(values):
+        if (getattr(value, "_base", None) is not base or value.shape != base.shape[1:]
+                or value.stride() != base.stride()[1:]
+                or value.data_ptr() != base.data_ptr() + row * row_bytes):
+            return None
+    return base
+
+
+def _empty_float32(shape: tuple[int, ...]) -> torch.Tensor:
+    """In a DataLoader worker the buffer lives in shared memory, as `default_collate` does it,
+    so that sending the batch to the main process does not copy it once more."""
+    if torch.utils.data.get_worker_info() is None:
+        return torch.empty(shape)
+    storage = torch.UntypedStorage._new_shared(math.prod(shape) * 4)
+    return torch.empty(0).set_(storage, 0, shape)  # not a view: its rows' `_base` is this tensor
+
+
+def _read_person(group, keys: tuple[str, ...]) -> dict[str, np.ndarray]:
+    arrays = {key: group[key][()] for key in keys if key not in ("icosahedra", "shell")}
+    arrays["points"] = homogeneous_points(group["icosahedra"][()], group["shell"][()])
+    return arrays
+
+
+def _cached_bytes(group, keys: tuple[str, ...]) -> int:
+    """What `_read_person` keeps of one person: 4 floats per icosahedron and shell point."""
+    points = sum(math.prod(group[key].shape[:-1]) for key in ("icosahedra", "shell"))
+    return points * 4 * 4 + sum(group[key].size * group[key].dtype.itemsize
+                                for key in keys if key not in ("icosahedra", "shell"))
+
+
+def _window_points(arrays: dict, frames: slice) -> np.ndarray:
+    if "points" in arrays:
+        return arrays["points"][frames]
+    return homogeneous_points(arrays["icosahedra"][frames], arrays["shell"][frames])

@@ -78,6 +78,12 @@ class WindowTransform:
         rotations = np.asarray(rotations)
         return (self._to_window.T.astype(rotations.dtype) @ rotations).astype(rotations.dtype)
 
+    def matrix(self) -> np.ndarray:
+        """(4, 3) M with [p, 1] @ M = apply_points(p): the transform as one matmul over
+        homogeneous points, which the window loader runs over a whole window at once."""
+        rotation = self._to_window
+        return np.concatenate([rotation.T, -(rotation @ np.array([self.x, 0.0, self.z]))[None]])
+
     def as_array(self) -> np.ndarray:
         """(4,) float32 [yaw, x, z, 0], the form datasets and checkpoints carry."""
         return np.array([self.yaw, self.x, self.z, 0.0], dtype=np.float32)

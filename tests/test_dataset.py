@@ -11,7 +11,8 @@ from scipy.spatial.transform import Rotation
 
 from sarah_data import icosahedron
 from sarah_data.constants import JOINT_NAMES
-from sarah_data.dataset import WindowDataset, sliding_starts, tracked_runs, valid_starts
+from sarah_data.dataset import (WindowDataset, collate_windows, normalize_window, sliding_starts,
+                                tracked_runs, valid_starts)
 from sarah_data.frames import WindowTransform, window_transform
 from sarah_data.shards import (MANIFEST_NAME, STATS_NAME, Manifest, ProcessedPerson,
                                ProcessedSequence, ShardAttrs, ShardError, ShardWriter, write_manifest)
@@ -116,6 +117,15 @@ def check_item(item, seqs, window=W):
     np.testing.assert_allclose(positions[0, 0, 1], a.root_position[start, 1], atol=1e-5)
     forward = rotations[0, 0, :, 2]  # pelvis facing direction
     assert abs(forward[0]) < 1e-4 and forward[2] > 0.9
+
+    # The per-point transform in float64 is the reference: items match it to float32 rounding.
+    tf = window_transform(a.root_position[start], a.root_rotation[start])
+    expected = np.concatenate([tf.apply_points(a.icosahedra[frames].astype(np.float64)).reshape(window, -1),
+                               tf.apply_points(a.shell[frames].astype(np.float64)).reshape(window, -1)], 1)
+    np.testing.assert_allclose(item["motion"].numpy(), expected, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(item["user_head"].numpy(), tf.apply_floor(u.head[frames].astype(np.float64)),
+                               rtol=0, atol=1e-5)
+    np.testing.assert_array_equal(item["transform"].numpy(), tf.as_array())
 
     back = WindowTransform.from_array(item["transform"].numpy())
     np.testing.assert_allclose(back.invert_points(ico), a.icosahedra[frames], atol=1e-4)
@@ -230,6 +240,83 @@ def test_default_window_is_400(folder, tmp_path):
         assert start <= 20 or 430 <= start <= 500
 
 
+def test_batched_items_equal_single_items_and_collate_without_copying(folder):
+    root, seqs = folder
+    ds = WindowDataset(root, "train", window=W, length=12, seed=7)
+    indices = [5, 0, 11, 3]
+    items = ds.__getitems__(indices)
+    assert [ds.locate(i) for i in indices] == [(x["sequence"], ["AAA111", "BBB222"].index(x["agent"]),
+                                               x["start"]) for x in items]
+    for index, item in zip(indices, items):
+        check_item(item, seqs)
+        single = ds[index]
+        assert single.keys() == item.keys()
+        for key, value in single.items():
+            assert torch.equal(value, item[key]) if isinstance(value, torch.Tensor) else value == item[key]
+
+    batch, reference = collate_windows(items), torch.utils.data.default_collate(items)
+    assert batch.keys() == reference.keys()
+    for key, value in reference.items():
+        if isinstance(value, torch.Tensor):
+            assert torch.equal(batch[key], value), key
+        else:
+            assert batch[key] == value, key
+    # the items are rows of the batch tensors, which collate_windows returns as they are
+    assert batch["motion"].data_ptr() == items[0]["motion"].data_ptr()
+    assert batch["user_audio"].data_ptr() == items[0]["user_audio"].data_ptr()
+    # items of separate calls are not rows of one tensor: collated like default_collate
+    separate = [ds[i] for i in indices]
+    copied = collate_windows(separate)
+    assert torch.equal(copied["motion"], batch["motion"])
+    assert all(copied["motion"].data_ptr() != item["motion"].data_ptr() for item in separate)
+    assert collate_windows(separate[::-1])["start"].tolist() == [x["start"] for x in separate[::-1]]
+    assert collate_windows(items[1:])["motion"].data_ptr() != items[1]["motion"].data_ptr()
+
+
+def test_normalize_window_is_the_item_transform(folder):
+    root, seqs = folder
+    ds = WindowDataset(root, "train", window=W, length=4, seed=1)
+    for index in range(len(ds)):
+        item = ds[index]
+        a, u = [p for p in seqs[item["sequence"]].persons], None
+        agent = [p.name for p in a].index(item["agent"])
+        a, u = a[agent], a[1 - agent]
+        frames = slice(item["start"], item["start"] + W)
+        motion, head, transform = normalize_window(a.icosahedra[frames], a.shell[frames], u.head[frames],
+                                                   a.root_position[item["start"]],
+                                                   a.root_rotation[item["start"]])
+        assert motion.dtype == head.dtype == np.float32
+        np.testing.assert_array_equal(motion, item["motion"].numpy())
+        np.testing.assert_array_equal(head, item["user_head"].numpy())
+        np.testing.assert_array_equal(transform, item["transform"].numpy())
+
+
+def test_split_is_read_once_at_construction_unless_too_large(folder, tmp_path):
+    root, _ = folder
+    copy = tmp_path / "shards"
+    write_folder(copy, corpus())
+    cached = WindowDataset(copy, "train", window=W, length=8, seed=2)
+    streamed = WindowDataset(copy, "train", window=W, length=8, seed=2, cache_bytes=0)
+    assert cached.in_memory and not streamed.in_memory
+    expected = [streamed[i] for i in range(8)]
+    streamed.shards.close()
+    for path in copy.glob("train-*.h5"):
+        path.rename(path.with_suffix(".moved"))
+    # forked workers share what the parent read: none of them opens the (now missing) files
+    loader = torch.utils.data.DataLoader(cached, batch_size=4, num_workers=2, collate_fn=collate_windows,
+                                         multiprocessing_context="fork")
+    got = _collect(loader)
+    assert len(got) == len(expected)
+    for x, y in zip(got, expected):
+        for key, value in y.items():
+            if isinstance(value, torch.Tensor):
+                np.testing.assert_allclose(x[key].numpy(), value.numpy(), rtol=0, atol=1e-6, err_msg=key)
+            else:
+                assert x[key] == value, key
+    with pytest.raises((OSError, ShardError)):
+        streamed[0]
+
+
 def _collect(loader):
     items = []
     for batch in loader:
@@ -238,21 +325,34 @@ def _collect(loader):
     return items
 
 
+def _rows_collated(items):
+    """collate_windows, failing (also inside a worker) unless it could skip the copy."""
+    batch = collate_windows(items)
+    assert all(batch[key].data_ptr() == items[0][key].data_ptr()
+               for key in batch if isinstance(batch[key], torch.Tensor) and key != "start")
+    return batch
+
+
 def test_dataloader_workers_return_the_same_items(folder):
     root, _ = folder
     ds = WindowDataset(root, "train", window=W, length=12, seed=5)
     ds.set_epoch(2)
     ds[0]  # a file handle open in the parent must not leak into the forked workers
     single = _collect(torch.utils.data.DataLoader(ds, batch_size=4, num_workers=0))
-    multi = _collect(torch.utils.data.DataLoader(ds, batch_size=4, num_workers=2))
-    assert len(single) == len(multi) == 12
-    for x, y in zip(single, multi):
-        assert x.keys() == y.keys()
-        for key in x:
-            if isinstance(x[key], torch.Tensor):
-                assert torch.equal(x[key], y[key]), key
-            else:
-                assert x[key] == y[key]
+    runs = [_collect(torch.utils.data.DataLoader(ds, batch_size=4, num_workers=2)),
+            _collect(torch.utils.data.DataLoader(ds, batch_size=4, num_workers=0,
+                                                 collate_fn=_rows_collated)),
+            _collect(torch.utils.data.DataLoader(ds, batch_size=4, num_workers=2,
+                                                 collate_fn=_rows_collated))]
+    for multi in runs:
+        assert len(single) == len(multi) == 12
+        for x, y in zip(single, multi):
+            assert x.keys() == y.keys()
+            for key in x:
+                if isinstance(x[key], torch.Tensor):
+                    assert torch.equal(x[key], y[key]), key
+                else:
+                    assert x[key] == y[key]
     # what a spawned worker receives: the pickled dataset, without open files
     clone = pickle.loads(pickle.dumps(ds))
     assert clone.shards._handles == {}

@@ -21,6 +21,8 @@ def test_window_transform_puts_root_at_origin_facing_z(seed):
 
     points = rng.normal(size=(7, 3))
     np.testing.assert_allclose(t.invert_points(t.apply_points(points)), points, atol=1e-12)
+    homogeneous = np.concatenate([points, np.ones((7, 1))], 1)
+    np.testing.assert_allclose(homogeneous @ t.matrix(), t.apply_points(points), atol=1e-12)
     floor = rng.normal(size=(7, 2))
     np.testing.assert_allclose(t.invert_floor(t.apply_floor(floor)), floor, atol=1e-12)
     np.testing.assert_allclose(t.apply_floor(points[:, [0, 2]]), t.apply_points(points)[:, [0, 2]], atol=1e-12)
