@@ -480,14 +480,23 @@ def bench_prep(raw: Path, out: Path, config, jobs: int, threads: int) -> dict[st
 
 def bench_loader(shards: Path, windows: int, batch: int, workers: int, seed: int = 0
                  ) -> dict[str, float]:
-    """400-frame training windows per second through a DataLoader; the first batch (worker
-    start-up) is timed separately."""
-    from sarah_data.dataset import WindowDataset
+    """400-frame training windows per second through a DataLoader, batched as training does it
+    (`collate_windows`); the first batch (worker start-up) is timed separately. `cpu_ms_per_window`
+    is the CPU time of this process and its workers over the whole loop, a figure that depends far
+    less on other load than the rates do."""
+    import resource
+
+    from sarah_data.dataset import WindowDataset, collate_windows
 
     dataset = WindowDataset(shards, "train", extractor="logmel", window=400, seed=seed,
                             length=windows)
     loader = torch.utils.data.DataLoader(dataset, batch_size=batch, num_workers=workers,
-                                         shuffle=False)
+                                         shuffle=False, collate_fn=collate_windows)
+    def cpu() -> float:  # an exhausted loader has joined its workers: they count as children
+        usages = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)]
+        return sum(usage.ru_utime + usage.ru_stime for usage in usages)
+
+    cpu_before = cpu()
     started = time.perf_counter()
     first, count = None, 0
     for batch_items in loader:
@@ -499,7 +508,8 @@ def bench_loader(shards: Path, windows: int, batch: int, workers: int, seed: int
     steady = time.perf_counter() - first if first is not None else float("nan")
     return {"workers": workers, "windows": windows, "startup_s": (first or started) - started,
             "windows_per_s": count / steady if count else float("nan"),
-            "windows_per_s_with_startup": windows / total}
+            "windows_per_s_with_startup": windows / total,
+            "cpu_ms_per_window": (cpu() - cpu_before) / windows * 1e3}
 
 
 # --------------------------------------------------------------------------- the whole run
