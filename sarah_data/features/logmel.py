@@ -5,7 +5,8 @@ Pipeline for a 48 kHz track:
 1. Resample to 16 kHz with torchaudio's windowed-sinc filter, made causal by delaying the input by
    the filter's lookahead (21 samples at 48 kHz, 0.44 ms): 16 kHz sample j then depends on 48 kHz
    samples up to 3 j only.
-2. Mel power spectrogram (torchaudio MelSpectrogram, Hann window of 25 ms, hop 10 ms, 80 bands
+2. Mel power spectrogram (torchaudio MelSpectrogram's window and filterbank, power as re^2 + im^2;
+   Hann window of 25 ms, hop 10 ms, 80 bands
    from 0 to 8 kHz, ``center=False``) over the resampled audio left-padded with zeros, so mel frame
    m is the window that *ends* at 16 kHz sample 160 (m + 1).
 3. Natural log of max(power, ``log_floor``).
@@ -137,6 +138,16 @@ class _LogMel:
         wanted = first_frame * SAMPLES_PER_FRAME - self.context
         return max(0, wanted // self.period * self.period)
 
+    def _mel_power(self, z: torch.Tensor) -> torch.Tensor:
+        """(num_mel, n_mels): torchaudio's MelSpectrogram (its window and filterbank) with the
+        power taken as re^2 + im^2; its |X|.pow(2) goes through hypot, ~40 % of this step."""
+        spectrogram = self.mel.spectrogram
+        spec = torch.stft(z, n_fft=spectrogram.n_fft, hop_length=spectrogram.hop_length,
+                          win_length=spectrogram.win_length, window=spectrogram.window, center=False,
+                          normalized=False, onesided=True, return_complex=True)
+        power = spec.real.square() + spec.imag.square()  # (freq, num_mel)
+        return power.T @ self.mel.mel_scale.fb
+
     @torch.inference_mode()
     def features(self, segment: np.ndarray, start: int, first_frame: int, end_frame: int) -> np.ndarray:
         """Features of frames [first_frame, end_frame) from samples [start, end_frame * 1600)."""
@@ -150,8 +161,7 @@ class _LogMel:
         # of frames; in double precision that can no longer show in the float32 result.
         z = torch.nn.functional.pad(y.double(), (self.win - self.hop, 0))
         num_mel = len(y) // self.hop
-        power = self.mel(z[: (num_mel - 1) * self.hop + self.win])  # (n_mels, num_mel)
-        log_mel = power.clamp_min(self.config.log_floor).log().T
+        log_mel = self._mel_power(z[: (num_mel - 1) * self.hop + self.win]).clamp_min(self.config.log_floor).log()
         # Mel frame m ends at 48 kHz sample `ends[m]`; it belongs to the motion frame whose end is
         # the first at or after it.
         ends = start + self.ratio * self.hop * torch.arange(1, num_mel + 1, device=self.device)
