@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import math
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +34,7 @@ log = logging.getLogger(__name__)
 DEFAULT_WINDOW = 400  # frames (paper: T = 400 at 30 fps)
 DEFAULT_CACHE_BYTES = 2 << 30  # per process; a split that fits is read once, then sliced
 _PER_PERSON = ("icosahedra", "shell", "head", "gaze", "speaking", "root_position", "root_rotation")
+_BATCH_BUFFERS: "weakref.WeakValueDictionary[int, torch.Tensor]" = weakref.WeakValueDictionary()
 
 
 def homogeneous_points(icosahedra: np.ndarray, shell: np.ndarray) -> np.ndarray:
@@ -109,9 +111,14 @@ class WindowDataset(torch.utils.data.Dataset):
     Sequences without a single all-tracked window are skipped; `skipped` lists (sequence, reason).
     `motion_dim` (J*12*3 + V*3) and `audio_dim` (D, None without audio) size the models.
 
-    When the split's arrays fit in `cache_bytes` (decompressed), each process reads every
-    sequence once and serves windows as slices of memory; a larger split is read window by window
-    from the compressed chunks (a cache smaller than the data would thrash on random windows).
+    When the split's arrays fit in `cache_bytes` (decompressed), the constructor reads them all
+    and windows are served from memory (forked DataLoader workers share the parent's pages; a
+    pickled copy, as spawned workers get, reads what it needs once); a larger split is read window
+    by window from the compressed chunks (a cache smaller than the data would thrash on random
+    windows).
+
+    A DataLoader fetches a batch with `__getitems__`, which writes the windows into one tensor
+    per field; give it `collate_fn=collate_windows` to receive those tensors without a copy.
     """
 
     def __init__(self, shards_dir: Path | str, split: str, extractor: str | None = "logmel",
@@ -226,7 +233,7 @@ class WindowDataset(torch.utils.data.Dataset):
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        state["_cache"] = {}  # each worker fills its own
+        state["_cache"] = {}  # up to cache_bytes: a spawned worker reads its own, not a pickle
         return state
 
     def __getitem__(self, index: int) -> dict:
@@ -269,7 +276,9 @@ class WindowDataset(torch.utils.data.Dataset):
                   "transform": (4,)}
         if self.extractor is not None:
             shapes.update(agent_audio=(frames, self.audio_dim), user_audio=(frames, self.audio_dim))
-        return {key: _empty_float32((size,) + shape) for key, shape in shapes.items()}
+        buffers = {key: _empty_float32((size,) + shape) for key, shape in shapes.items()}
+        _BATCH_BUFFERS.update((id(buffer), buffer) for buffer in buffers.values())
+        return buffers
 
 
 def collate_windows(items: list[dict]) -> dict:
@@ -286,9 +295,11 @@ def collate_windows(items: list[dict]) -> dict:
 
 
 def _rows_of(values: list) -> torch.Tensor | None:
-    """The tensor whose rows 0..n-1 are exactly `values`, or None."""
+    """The batch buffer whose rows 0..n-1 are exactly `values`, or None. Only buffers made by
+    `_batch_buffers` qualify: rows of any other tensor, say a dataset's own, would otherwise
+    come back as that tensor itself, and changing the batch in place would change the dataset."""
     base = getattr(values[0], "_base", None)
-    if base is None or base.dim() == 0 or base.shape[0] != len(values):
+    if base is None or _BATCH_BUFFERS.get(id(base)) is not base or base.shape[0] != len(values):
         return None
     row_bytes = base.stride(0) * base.element_size()
     for row, value in enumerate(values):

@@ -171,8 +171,11 @@ class EpochBatches:
         while True:
             if hasattr(self.dataset, "set_epoch"):
                 self.dataset.set_epoch(epoch)
+            # collate_windows: WindowDataset batches arrive collated; other items as usual
+            from sarah_data.dataset import collate_windows
+
             loader = DataLoader(self.dataset, batch_sampler=self.epoch_batches(epoch)[skip:],
-                                num_workers=self.config.num_workers,
+                                collate_fn=collate_windows, num_workers=self.config.num_workers,
                                 pin_memory=self.info.device.type == "cuda",
                                 generator=torch.Generator().manual_seed(self.seed * 1_000_003 + epoch))
             yield from loader

@@ -271,6 +271,10 @@ def test_batched_items_equal_single_items_and_collate_without_copying(folder):
     assert all(copied["motion"].data_ptr() != item["motion"].data_ptr() for item in separate)
     assert collate_windows(separate[::-1])["start"].tolist() == [x["start"] for x in separate[::-1]]
     assert collate_windows(items[1:])["motion"].data_ptr() != items[1]["motion"].data_ptr()
+    # rows of a tensor the dataset did not make for the batch are copied, never aliased
+    own = torch.arange(6.0).reshape(2, 3)
+    foreign = collate_windows([{"motion": own[0]}, {"motion": own[1]}])["motion"]
+    assert torch.equal(foreign, own) and foreign.data_ptr() != own.data_ptr()
 
 
 def test_normalize_window_is_the_item_transform(folder):
