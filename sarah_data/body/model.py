@@ -274,8 +274,10 @@ class BodyModel:
         # (m = 1) when the whole batch shares it.
         betas = p["betas"]
         if bool((betas == betas[:1]).all()):
-            # the usual case; torch.unique would sort every row to find it (~10 % of a forward)
-            shapes, which = betas[:1], torch.zeros(n, dtype=torch.long, device=betas.device)
+            # The usual case; torch.unique would sort every row to find it (~10 % of a forward).
+            # A fresh tensor like unique's: BLAS may round differently for differently aligned
+            # inputs, and the numpy-owned batch has no fixed alignment.
+            shapes, which = betas[:1].clone(), torch.zeros(n, dtype=torch.long, device=betas.device)
         else:
             shapes, which = torch.unique(betas, dim=0, return_inverse=True)
         rest = self._joint_template + (shapes @ self._joint_dirs).reshape(-1, NUM_JOINTS, 3)
