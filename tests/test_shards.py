@@ -401,3 +401,10 @@ def test_encoded_chunks_read_back_through_hdf5s_own_filters(tmp_path, shape, dty
         ours.id.write_direct_chunk((0,) * data.ndim, raw[:5] + bytes([raw[5] ^ 1]) + raw[6:])
         with pytest.raises(OSError):
             ours[()]
+
+
+def test_icosahedron_template_keeps_trimesh_vertex_order():
+    """Shards store vertices in trimesh's icosahedron order; icosahedron.py writes it out."""
+    trimesh = pytest.importorskip("trimesh")
+    vertices = np.asarray(trimesh.creation.icosahedron().vertices, dtype=np.float64)
+    np.testing.assert_array_equal(TEMPLATE, vertices / np.linalg.norm(vertices, axis=1, keepdims=True))
