@@ -111,11 +111,11 @@ class WindowDataset(torch.utils.data.Dataset):
     Sequences without a single all-tracked window are skipped; `skipped` lists (sequence, reason).
     `motion_dim` (J*12*3 + V*3) and `audio_dim` (D, None without audio) size the models.
 
-    When the split's arrays fit in `cache_bytes` (decompressed), the constructor reads them all
-    and windows are served from memory (forked DataLoader workers share the parent's pages; a
-    pickled copy, as spawned workers get, reads what it needs once); a larger split is read window
-    by window from the compressed chunks (a cache smaller than the data would thrash on random
-    windows).
+    When the split's arrays fit in `cache_bytes` (decompressed), the first item read in a process
+    reads them all and windows are then served from memory (DataLoader workers forked after that
+    share the parent's pages; a pickled copy, as spawned workers get, reads its own); a larger
+    split is read window by window from the compressed chunks (a cache smaller than the data
+    would thrash on random windows).
 
     A DataLoader fetches a batch with `__getitems__`, which writes the windows into one tensor
     per field; give it `collate_fn=collate_windows` to receive those tensors without a copy.
@@ -144,12 +144,6 @@ class WindowDataset(torch.utils.data.Dataset):
             attrs = self.shards.attrs if self.shards.manifest.shards else None
             self.motion_dim = (len(attrs.joint_names) * 12 * 3 + len(attrs.shell_vertex_ids) * 3
                                if attrs else None)
-            self.in_memory = self._split_bytes <= cache_bytes
-            if self.in_memory:
-                # Read here, before any DataLoader forks its workers: they then share these pages
-                # instead of each re-reading the split at every epoch's start.
-                for name in dict.fromkeys(name for name, _, _ in self.pairs):
-                    self._arrays(name)
         finally:
             self.shards.close()  # no open file may cross into DataLoader workers
         if deterministic:
@@ -167,6 +161,7 @@ class WindowDataset(torch.utils.data.Dataset):
                                  f"{window} frames: {self.skipped}")
         if not self.pairs:
             log.warning("split %r of %s has no usable window of %d frames", split, shards_dir, window)
+        self.in_memory = self._split_bytes <= cache_bytes
 
     @classmethod
     def sliding(cls, shards_dir: Path | str, split: str, extractor: str | None = "logmel",
@@ -225,10 +220,16 @@ class WindowDataset(torch.utils.data.Dataset):
         arrays read once, icosahedra and shell stored as one `homogeneous_points` array."""
         if name in self._cache:
             return self._cache[name]
-        group = self.shards.group(name)
         if not self.in_memory:
+            group = self.shards.group(name)
             return {p: {key: group[p][key] for key in self._keys()} for p in group.attrs["persons"]}
-        self._cache[name] = {p: _read_person(group[p], self._keys()) for p in group.attrs["persons"]}
+        # The first window read reads the whole split: DataLoader workers forked after it (training
+        # reads an item first) share these pages instead of each reading the split every epoch.
+        for other in dict.fromkeys(other for other, _, _ in self.pairs):
+            group = self.shards.group(other)
+            self._cache[other] = {p: _read_person(group[p], self._keys())
+                                  for p in group.attrs["persons"]}
+        self.shards.close()  # no longer needed, and no open file may cross into forked workers
         return self._cache[name]
 
     def __getstate__(self) -> dict:

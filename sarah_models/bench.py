@@ -488,14 +488,15 @@ def bench_loader(shards: Path, windows: int, batch: int, workers: int, seed: int
 
     from sarah_data.dataset import WindowDataset, collate_windows
 
-    dataset = WindowDataset(shards, "train", extractor="logmel", window=400, seed=seed,
-                            length=windows)
-    loader = torch.utils.data.DataLoader(dataset, batch_size=batch, num_workers=workers,
-                                         shuffle=False, collate_fn=collate_windows)
     def cpu() -> float:  # an exhausted loader has joined its workers: they count as children
         usages = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)]
         return sum(usage.ru_utime + usage.ru_stime for usage in usages)
 
+    dataset = WindowDataset(shards, "train", extractor="logmel", window=400, seed=seed,
+                            length=windows)
+    dataset[0]  # as training does before its loaders: the split is read once, workers share it
+    loader = torch.utils.data.DataLoader(dataset, batch_size=batch, num_workers=workers,
+                                         shuffle=False, collate_fn=collate_windows)
     cpu_before = cpu()
     started = time.perf_counter()
     first, count = None, 0

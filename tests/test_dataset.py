@@ -295,15 +295,16 @@ def test_normalize_window_is_the_item_transform(folder):
         np.testing.assert_array_equal(transform, item["transform"].numpy())
 
 
-def test_split_is_read_once_at_construction_unless_too_large(folder, tmp_path):
-    root, _ = folder
+def test_split_is_read_whole_at_the_first_item_unless_too_large(tmp_path):
     copy = tmp_path / "shards"
     write_folder(copy, corpus())
     cached = WindowDataset(copy, "train", window=W, length=8, seed=2)
+    untouched = WindowDataset(copy, "train", window=W, length=8, seed=2)
     streamed = WindowDataset(copy, "train", window=W, length=8, seed=2, cache_bytes=0)
     assert cached.in_memory and not streamed.in_memory
     expected = [streamed[i] for i in range(8)]
     streamed.shards.close()
+    assert cached[0]["sequence"] == expected[0]["sequence"] == "seq-a"  # and reads seq-b too
     for path in copy.glob("train-*.h5"):
         path.rename(path.with_suffix(".moved"))
     # forked workers share what the parent read: none of them opens the (now missing) files
@@ -317,8 +318,9 @@ def test_split_is_read_once_at_construction_unless_too_large(folder, tmp_path):
                 np.testing.assert_allclose(x[key].numpy(), value.numpy(), rtol=0, atol=1e-6, err_msg=key)
             else:
                 assert x[key] == value, key
-    with pytest.raises((OSError, ShardError)):
-        streamed[0]
+    for lazy in (streamed, untouched):
+        with pytest.raises((OSError, ShardError)):
+            lazy[0]
 
 
 def _collect(loader):
