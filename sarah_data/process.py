@@ -114,8 +114,8 @@ def process_pair(pair: PairRecord, body_model_path: str, config: PrepConfig
         partner = 1 - i
         prefix = f"{person}/"
         arrays[prefix + "icosahedra"] = icosahedron.encode(
-            frames_out.joints, frames_out.rotations, config.icosahedron_radius).astype(np.float32)
-        arrays[prefix + "shell"] = frames_out.shell.astype(np.float32)
+            frames_out.joints, frames_out.rotations, config.icosahedron_radius).astype(np.float32, copy=False)
+        arrays[prefix + "shell"] = frames_out.shell.astype(np.float32, copy=False)
         arrays[prefix + "head"] = heads[i].astype(np.float32)
         arrays[prefix + "gaze"] = gaze.gaze_score(frames_out.head_front, frames_out.head_back,
                                                   heads[partner]).astype(np.float32)
@@ -126,7 +126,7 @@ def process_pair(pair: PairRecord, body_model_path: str, config: PrepConfig
         arrays[prefix + "root_rotation"] = frames_out.rotations[:, JOINT["pelvis"]].astype(np.float32)
         for name in config.extractors:
             arrays[prefix + f"audio/{name}"] = _extractor(name, config).extract(
-                arrays_in.audio, pair.length).astype(np.float32)
+                arrays_in.audio, pair.length).astype(np.float32, copy=False)
     return arrays, [w for p in people for w in p.warnings]
 
 

@@ -445,12 +445,12 @@ def _cast(value: np.ndarray, dtype, where: str) -> np.ndarray:
     if dtype is np.uint8:
         if value.dtype.kind not in "biu" or not np.isin(value, (0, 1)).all():
             raise ShardError(where, f"must be boolean 0/1, got dtype {value.dtype}")
-        return value.astype(np.uint8)
+        return value.astype(np.uint8, copy=False)
     if value.dtype.kind != "f":
         raise ShardError(where, f"must be floating point, got dtype {value.dtype}")
     if not np.isfinite(value).all():
         raise ShardError(where, "contains NaN or infinite values")
-    return value.astype(np.float32)
+    return value.astype(np.float32, copy=False)
 
 
 def _sequence_arrays(seq: ProcessedSequence, attrs: ShardAttrs, split: str
