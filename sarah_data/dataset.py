@@ -17,6 +17,7 @@ Two ways to choose windows (paper A.2):
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import weakref
@@ -245,6 +246,10 @@ class WindowDataset(torch.utils.data.Dataset):
         straight into one batch buffer per field: each item's tensors are rows of those buffers,
         which `collate_windows` hands on without another copy."""
         located = [self.locate(int(index)) for index in indices]
+        with _one_thread():
+            return self._fill(located)
+
+    def _fill(self, located: list[tuple[str, int, int]]) -> list[dict]:
         batch = self._batch_buffers(len(located))
         rows = {key: value.numpy() for key, value in batch.items()}
         items = []
@@ -309,6 +314,22 @@ def _rows_of(values: list) -> torch.Tensor | None:
                 or value.data_ptr() != base.data_ptr() + row * row_bytes):
             return None
     return base
+
+
+@contextlib.contextmanager
+def _one_thread():
+    """The window matmul is memory-bound: in the main process (num_workers=0) a second intra-op
+    thread doubled its CPU time and, on a busy machine, tripled its wall time. DataLoader workers
+    already run with one thread."""
+    threads = torch.get_num_threads()
+    if threads == 1:
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 def _empty_float32(shape: tuple[int, ...]) -> torch.Tensor:

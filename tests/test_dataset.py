@@ -277,6 +277,20 @@ def test_batched_items_equal_single_items_and_collate_without_copying(folder):
     assert torch.equal(foreign, own) and foreign.data_ptr() != own.data_ptr()
 
 
+def test_batches_leave_the_intra_op_thread_count_as_it_was(folder):
+    root, seqs = folder
+    ds = WindowDataset(root, "train", window=W, length=4, seed=1)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)  # the loader runs its windows on one thread, then restores this
+    try:
+        items = ds.__getitems__([0, 1, 2, 3])
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(threads)
+    for item in items:
+        check_item(item, seqs)
+
+
 def test_normalize_window_is_the_item_transform(folder):
     root, seqs = folder
     ds = WindowDataset(root, "train", window=W, length=4, seed=1)
