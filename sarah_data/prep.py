@@ -6,9 +6,10 @@
 Work files (`shards/.work/<sequence>.h5`, a compressed one-sequence shard written by the task,
 and a `.json` marker written after it) make a killed run resumable: a rerun keeps every sequence
 whose marker matches its inputs and redoes the rest. Shards are assembled from work files in
-sorted order by copying their compressed chunks (nothing is decoded or compressed again in this
-process), so `-j 1`, `-j 8` and a resumed run write identical bytes. The train statistics are
-merged from the moments each task stored. The work folder is removed once the manifest is written.
+corpus order while the tasks run (assemble.py), by copying their compressed chunks: nothing is
+decoded or compressed again in this process, and `-j 1`, `-j 8` and a resumed run write identical
+bytes. The train statistics are merged from the moments each task stored. The work folder is
+removed once the manifest is written.
 """
 
 from __future__ import annotations
@@ -22,7 +23,6 @@ from concurrent.futures import Executor, as_completed
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-import h5py
 from tqdm import tqdm
 
 from . import __version__
@@ -30,7 +30,8 @@ from .config import PrepConfig
 from .constants import FPS
 from .embody3d import PairRecord, read_corpus
 from .executors import make_executor
-from .process import MOMENTS_GROUP, TaskResult, fingerprint, jsonable, run_task
+from .assemble import Assembler
+from .process import TaskResult, fingerprint, jsonable, run_task
 from .shards import atomic_write_bytes, file_sha256
 from .splits import SPLITS, session_frames_of, split_sessions
 
@@ -119,8 +120,14 @@ def prepare(inputs: list[Path] | Path, out_dir: Path, config: PrepConfig = PrepC
     work_dir.mkdir(exist_ok=True)
     _remove_temporaries(out_dir)
 
-    results = _run_tasks(corpus.pairs, split_of, model_path, model_sha, config, work_dir, jobs,
-                         executor, ray_address, progress)
+    assembler = Assembler(out_dir, work_dir, corpus.pairs, split_of, config)
+    try:
+        results = _run_tasks(corpus.pairs, split_of, model_path, model_sha, config, work_dir, jobs,
+                             executor, ray_address, progress, assembler.update)
+        shards, entries = assembler.close()
+    except BaseException:
+        assembler.abort()
+        raise
     done: dict[str, list[PairRecord]] = {name: [] for name in SPLITS}
     sources: dict[str, list[dict]] = {}
     for pair in corpus.pairs:
@@ -134,8 +141,6 @@ def prepare(inputs: list[Path] | Path, out_dir: Path, config: PrepConfig = PrepC
             _skip(result, log, {"sequence": pair.sequence, "reason": task.reason, "kind": task.status,
                                 **({"traceback": task.detail} if task.detail else {})})
 
-    _remove_old_shards(out_dir)
-    shards, entries, moments = _assemble(out_dir, work_dir, done, config)
     result.shards = [asdict(info) for info in shards]
     result.written = [p.sequence for name in SPLITS for p in done[name]]
     result.hours = {name: sum(p.length for p in done[name]) / FPS / 3600 for name in SPLITS}
@@ -145,8 +150,9 @@ def prepare(inputs: list[Path] | Path, out_dir: Path, config: PrepConfig = PrepC
     write_manifest(out_dir / "manifest.json", Manifest(__version__, run_config, splits, shards, sequences))
     if result.written:
         # the same numbers compute_stats(out_dir) gets from the shards, without reading them
+        moments = assembler.moments
         write_stats(out_dir, merge_moments([moments[name] for name in sorted(moments)],
-                                           sorted(_attrs_of(work_dir, done).extractors)), len(moments))
+                                           sorted(assembler.attrs.extractors)), len(moments))
     report = {"written": len(result.written), "skipped": result.skipped}
     atomic_write_bytes(out_dir / "report.json", (json.dumps(report, indent=2, sort_keys=True) + "\n").encode())
     shutil.rmtree(work_dir, ignore_errors=True)
@@ -154,39 +160,10 @@ def prepare(inputs: list[Path] | Path, out_dir: Path, config: PrepConfig = PrepC
     return result
 
 
-def _attrs_of(work_dir: Path, done: dict[str, list[PairRecord]]):
-    """The shards' root attributes, as the tasks wrote them into their work files."""
-    from .shards import ShardAttrs
-
-    first = next(pair for name in SPLITS for pair in done[name])
-    path = work_dir / f"{first.sequence}.h5"
-    with h5py.File(path, "r") as handle:
-        return ShardAttrs.read(handle.attrs, path)
-
-
-def _assemble(out_dir: Path, work_dir: Path, done: dict[str, list[PairRecord]], config: PrepConfig):
-    """Copy every work file's sequence into the split's shards; collect the train moments."""
-    from .shards import ShardWriter
-    from .stats import STATS_SPLIT, read_moments
-
-    shards, entries, moments = [], {}, {}
-    if not any(done.values()):
-        return shards, entries, moments
-    attrs = _attrs_of(work_dir, done)
-    for name in SPLITS:
-        with ShardWriter(out_dir, name, attrs, max_bytes=config.max_shard_bytes) as writer:
-            for pair in done[name]:
-                with h5py.File(work_dir / f"{pair.sequence}.h5", "r") as handle:
-                    writer.add_copy(handle[pair.sequence])
-                    if name == STATS_SPLIT:
-                        moments[pair.sequence] = read_moments(handle[MOMENTS_GROUP])
-            shards += writer.close()
-            entries.update(writer.entries)
-    return shards, entries, moments
-
-
 def _run_tasks(pairs, split_of, model_path, model_sha, config, work_dir, jobs, executor, ray_address,
-               progress) -> dict[str, TaskResult]:
+               progress, on_result) -> dict[str, TaskResult]:
+    """Every pair's result (reused from a matching work file, or computed); `on_result(results)`
+    after each one arrives."""
     results: dict[str, TaskResult] = {}
     todo = []
     for pair in pairs:
@@ -195,6 +172,7 @@ def _run_tasks(pairs, split_of, model_path, model_sha, config, work_dir, jobs, e
             results[pair.sequence] = reused
         else:
             todo.append(pair)
+    on_result(results)
     own_executor = not isinstance(executor, Executor)
     pool = make_executor(executor, jobs, ray_address) if own_executor else executor
     total = sum(p.length for p in pairs) / FPS
@@ -207,6 +185,7 @@ def _run_tasks(pairs, split_of, model_path, model_sha, config, work_dir, jobs, e
         for future in as_completed(futures):
             pair = futures[future]
             results[pair.sequence] = future.result()
+            on_result(results)
             bar.update(round(pair.length / FPS))
     finally:
         bar.close()
@@ -242,9 +221,3 @@ def _skip(result: PrepResult, log, entry: dict) -> None:
 def _remove_temporaries(out_dir: Path) -> None:
     for path in list(out_dir.glob(".*.tmp-*")) + list((out_dir / ".work").glob(".*.tmp-*")):
         path.unlink(missing_ok=True)
-
-
-def _remove_old_shards(out_dir: Path) -> None:
-    for name in SPLITS:
-        for path in out_dir.glob(f"{name}-*.h5"):
-            path.unlink()
