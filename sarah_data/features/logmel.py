@@ -87,24 +87,44 @@ def _causal_resampling_taps(orig: int, new: int) -> torch.Tensor:
     return taps.to(torch.float32)
 
 
+_RESAMPLE_BLOCK = 32_768  # outputs per block on the CPU: its arrays stay in the L2 cache
+
+
 def _causal_resample(x: torch.Tensor, ratio: int, taps: torch.Tensor) -> torch.Tensor:
     """Downsample by ``ratio``: output j reads x[: ratio * j + 1] only.
 
     Summed tap by tap in a fixed order with separately rounded products and sums (no conv kernel,
     no fused multiply-add), so each output is bitwise the same however long the input is: this is
-    what makes streaming features identical to offline ones.
+    what makes streaming features identical to offline ones. On the CPU the same sums run block
+    by block in numpy (IEEE float32 like torch's, so the same bits; ~2x faster, cache-resident).
     """
     count = (len(x) - 1) // ratio + 1 if len(x) else 0
     # Left padding to a whole number of `ratio` blocks; each phase then is one contiguous row.
     left = -(-(len(taps) - 1) // ratio) * ratio
     padded = torch.nn.functional.pad(x, (left, ratio - len(x) % ratio if len(x) % ratio else 0))
     phases = padded.view(-1, ratio).T.contiguous()  # phases[p, q] = padded[ratio * q + p]
+    # x[ratio j - m] = padded[ratio (j + block) + phase]
+    plan = [(*divmod(left - m, ratio), tap) for m, tap in enumerate(taps.tolist())]
+    if x.device.type == "cpu":
+        return torch.from_numpy(_resample_blocks(phases.numpy(), count, plan))
     y = torch.zeros(count, dtype=x.dtype, device=x.device)
     product = torch.empty_like(y)
-    for m, tap in enumerate(taps.tolist()):
-        block, phase = divmod(left - m, ratio)  # x[ratio j - m] = padded[ratio (j + block) + phase]
+    for block, phase, tap in plan:
         torch.mul(phases[phase, block: block + count], tap, out=product)
         y += product
+    return y
+
+
+def _resample_blocks(phases: np.ndarray, count: int, plan: list[tuple[int, int, float]]) -> np.ndarray:
+    y = np.zeros(count, dtype=phases.dtype)
+    product = np.empty(min(count, _RESAMPLE_BLOCK), dtype=phases.dtype)
+    plan = [(block, phase, phases.dtype.type(tap)) for block, phase, tap in plan]
+    for start in range(0, count, _RESAMPLE_BLOCK):
+        stop = min(start + _RESAMPLE_BLOCK, count)
+        out, prod = y[start:stop], product[: stop - start]
+        for block, phase, tap in plan:
+            np.multiply(phases[phase, block + start: block + stop], tap, out=prod)
+            np.add(out, prod, out=out)
     return y
 
 
