@@ -47,10 +47,11 @@ class Moments:
         self.count, self.mean, self.m2 = count, mean, m2
 
     def add(self, x: np.ndarray) -> None:
-        x = np.asarray(x, np.float64).reshape(len(x), -1)
+        x = np.array(x, np.float64).reshape(len(x), -1)  # a copy: deviations are taken in place
         if len(x):
             batch_mean = x.mean(axis=0)
-            self.merge(Moments(len(x), batch_mean, ((x - batch_mean) ** 2).sum(axis=0)))
+            x -= batch_mean
+            self.merge(Moments(len(x), batch_mean, np.einsum("ij,ij->j", x, x)))
 
     def merge(self, other: "Moments") -> None:
         """Chan's pairwise update: as if `other`'s frames had been added here."""
