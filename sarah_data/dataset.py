@@ -243,16 +243,49 @@ class WindowDataset(torch.utils.data.Dataset):
 
     def __getitems__(self, indices: list[int]) -> list[dict]:
         """The items of `indices` (a DataLoader calls this with a batch's indices), written
-        straight into one batch buffer per field: each item's tensors are rows of those buffers,
-        which `collate_windows` hands on without another copy."""
-        located = [self.locate(int(index)) for index in indices]
-        with _one_thread():
-            return self._fill(located)
+        straight into one batch buffer per field by `fill`: each item's tensors are rows of those
+        buffers, which `collate_windows` hands on without another copy."""
+        batch = self._batch_buffers(len(indices))
+        names = self.fill(indices, batch)
+        return [{**{key: value[row] for key, value in batch.items()},
+                 **{key: values[row] for key, values in names.items()}}
+                for row in range(len(indices))]
 
-    def _fill(self, located: list[tuple[str, int, int]]) -> list[dict]:
-        batch = self._batch_buffers(len(located))
+    def batch_buffers(self, size: int, shared: bool = False) -> dict[str, torch.Tensor]:
+        """Empty float32 tensors, one per tensor field, for a batch of `size` windows (what
+        `fill` writes into); `shared`: in shared memory, for worker processes to fill."""
+        frames = self.window
+        shapes = {"motion": (frames, self.motion_dim), "user_head": (frames, 2),
+                  "gaze": (frames,), "agent_speaking": (frames,), "user_speaking": (frames,),
+                  "transform": (4,)}
+        if self.extractor is not None:
+            shapes.update(agent_audio=(frames, self.audio_dim), user_audio=(frames, self.audio_dim))
+        return {key: _empty_float32((size,) + shape, shared) for key, shape in shapes.items()}
+
+    def fill(self, indices: list[int], out: dict[str, torch.Tensor]) -> dict[str, list]:
+        """Write the windows of `indices` into rows 0..len(indices)-1 of the tensors `out` (as
+        made by `batch_buffers`, at least that many rows) and return the other fields:
+        {"sequence": [...], "agent": [...], "start": [...]}, one entry per index.
+
+        The one code path of every batch: `__getitems__` fills new buffers with it, and
+        `sarah_data.loader.WindowLoader` refills the same shared buffers, in its workers."""
+        located = [self.locate(int(index)) for index in indices]
+        for key, value in out.items():
+            if value.shape[0] < len(located):
+                raise ValueError(f"{key} has {value.shape[0]} rows for {len(located)} windows")
+        with _one_thread():
+            return self._fill(located, out)
+
+    def load(self) -> None:
+        """Read the split into memory now when it fits (otherwise the first window does): a
+        process forked after this shares the pages instead of reading the split again."""
+        if self.in_memory and self.pairs and not self._cache:
+            self._arrays(self.pairs[0][0])
+
+    def _fill(self, located: list[tuple[str, int, int]], batch: dict[str, torch.Tensor]
+              ) -> dict[str, list]:
         rows = {key: value.numpy() for key, value in batch.items()}
-        items = []
+        names: dict[str, list] = {"sequence": [], "agent": [], "start": []}
         for row, (name, agent, start) in enumerate(located):
             persons = self.shards.entry(name).persons  # verify checks they match the file's
             arrays = self._arrays(name)
@@ -270,19 +303,15 @@ class WindowDataset(torch.utils.data.Dataset):
                 key = f"audio/{self.extractor}"
                 rows["agent_audio"][row] = a[key][frames]
                 rows["user_audio"][row] = u[key][frames]
-            item = {key: value[row] for key, value in batch.items()}
-            item.update(sequence=name, agent=persons[agent], start=start)
-            items.append(item)
-        return items
+            names["sequence"].append(name)
+            names["agent"].append(persons[agent])
+            names["start"].append(start)
+        return names
 
     def _batch_buffers(self, size: int) -> dict[str, torch.Tensor]:
-        frames = self.window
-        shapes = {"motion": (frames, self.motion_dim), "user_head": (frames, 2),
-                  "gaze": (frames,), "agent_speaking": (frames,), "user_speaking": (frames,),
-                  "transform": (4,)}
-        if self.extractor is not None:
-            shapes.update(agent_audio=(frames, self.audio_dim), user_audio=(frames, self.audio_dim))
-        buffers = {key: _empty_float32((size,) + shape) for key, shape in shapes.items()}
+        """`batch_buffers` registered for `collate_windows` (in shared memory inside a
+        DataLoader worker, which sends the batch to the main process)."""
+        buffers = self.batch_buffers(size, shared=torch.utils.data.get_worker_info() is not None)
         _BATCH_BUFFERS.update((id(buffer), buffer) for buffer in buffers.values())
         return buffers
 
@@ -332,10 +361,10 @@ def _one_thread():
         torch.set_num_threads(threads)
 
 
-def _empty_float32(shape: tuple[int, ...]) -> torch.Tensor:
-    """In a DataLoader worker the buffer lives in shared memory, as `default_collate` does it,
-    so that sending the batch to the main process does not copy it once more."""
-    if torch.utils.data.get_worker_info() is None:
+def _empty_float32(shape: tuple[int, ...], shared: bool = False) -> torch.Tensor:
+    """An empty float32 tensor; `shared`: in shared memory (as `default_collate` makes a batch
+    in a DataLoader worker, so that sending it to the main process does not copy it again)."""
+    if not shared:
         return torch.empty(shape)
     storage = torch.UntypedStorage._new_shared(math.prod(shape) * 4)
     return torch.empty(0).set_(storage, 0, shape)  # not a view: its rows' `_base` is this tensor
