@@ -232,7 +232,14 @@ class WindowLoader:
                 yield self._batch(self._slots[number % self.slots], rows, value)
                 self._check(generation, ())
                 send_next()  # into the slot just handed back
-        except (Exception, GeneratorExit):
+        except GeneratorExit:  # stopped early, or garbage: no slot may stay half-filled
+            if not self._closed:
+                try:
+                    self._drain(generation)
+                except LoaderError:  # a dead worker (closed the loader): nothing to wait for
+                    pass
+            raise
+        except Exception:
             if not self._closed:
                 self._drain(generation)
             raise
