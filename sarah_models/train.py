@@ -144,8 +144,11 @@ class EpochBatches:
 
     Epoch e: ``dataset.set_epoch(e)`` when the dataset has it (WindowDataset draws new random
     windows per epoch), then ``DistributedSampler(seed).set_epoch(e)`` (this rank's shuffled
-    slice) cut into full batches, loaded by a DataLoader made for that epoch. ``start_batch``
-    skips batches already consumed, by index only, without reading any data."""
+    slice) cut into full batches. A WindowDataset's batches come from one
+    ``sarah_data.loader.WindowLoader`` (``num_workers`` processes filling reused batch memory):
+    each batch is valid until the next is requested, and ``train_loop`` consumes it before
+    (``normalize_batch`` copies it). Other datasets go through a DataLoader made per epoch.
+    ``start_batch`` skips batches already consumed, by index only, without reading any data."""
 
     def __init__(self, dataset: Dataset, config: TrainConfig, info: DistInfo,
                  start_batch: int = 0, seed_offset: int = 0) -> None:
@@ -168,6 +171,14 @@ class EpochBatches:
 
     def __iter__(self) -> Iterator[dict]:
         epoch, skip = divmod(self.start_batch, self.per_epoch)
+        if hasattr(self.dataset, "fill"):  # WindowDataset: batches filled in place, in reused slots
+            from sarah_data.loader import WindowLoader
+
+            with WindowLoader(self.dataset, self.config.batch_size, self.config.num_workers) as loader:
+                while True:
+                    self.dataset.set_epoch(epoch)
+                    yield from loader.iter_batches(self.epoch_batches(epoch)[skip:])
+                    epoch, skip = epoch + 1, 0
         while True:
             if hasattr(self.dataset, "set_epoch"):
                 self.dataset.set_epoch(epoch)
