@@ -493,38 +493,49 @@ def bench_prep(raw: Path, out: Path, config, jobs: int, threads: int) -> dict[st
 
 
 def bench_loader(shards: Path, windows: int, batch: int, workers: int, seed: int = 0
-                 ) -> dict[str, float]:
-    """400-frame training windows per second through a DataLoader, batched as training does it
-    (`collate_windows`); the first batch (worker start-up) is timed separately. `cpu_ms_per_window`
-    is the CPU time of this process and its workers over the whole loop, a figure that depends far
-    less on other load than the rates do."""
+                 ) -> dict[str, Any]:
+    """400-frame training windows per second through the loader training uses, a WindowLoader
+    (`workers` processes filling reused shared-memory batches), with its figures for torch's
+    DataLoader (`collate_windows`, fresh memory per batch) as the reference under `dataloader`.
+    The first batch (worker start-up) is timed separately. `cpu_ms_per_window` is the CPU time
+    of this process and its workers over the whole loop, start-up included, a figure that
+    depends far less on other load than the rates do."""
     import resource
 
     from sarah_data.dataset import WindowDataset, collate_windows
+    from sarah_data.loader import WindowLoader
 
-    def cpu() -> float:  # an exhausted loader has joined its workers: they count as children
+    def cpu() -> float:  # a closed loader has joined its workers: they count as children
         usages = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)]
         return sum(usage.ru_utime + usage.ru_stime for usage in usages)
 
+    def measure(make: Callable[[], Any]) -> dict[str, float]:
+        cpu_before = cpu()
+        started = time.perf_counter()
+        loader = make()
+        first, count, batch_items = None, 0, None
+        for batch_items in loader:
+            if first is None:
+                first = time.perf_counter()
+            else:
+                count += batch_items["motion"].shape[0]
+        del batch_items  # a WindowLoader's batch is a view of its slots
+        if isinstance(loader, WindowLoader):
+            loader.close()
+        total = time.perf_counter() - started
+        steady = time.perf_counter() - first if first is not None else float("nan")
+        return {"workers": workers, "windows": windows, "startup_s": (first or started) - started,
+                "windows_per_s": count / steady if count else float("nan"),
+                "windows_per_s_with_startup": windows / total,
+                "cpu_ms_per_window": (cpu() - cpu_before) / windows * 1e3}
+
     dataset = WindowDataset(shards, "train", extractor="logmel", window=400, seed=seed,
                             length=windows)
-    dataset[0]  # as training does before its loaders: the split is read once, workers share it
-    loader = torch.utils.data.DataLoader(dataset, batch_size=batch, num_workers=workers,
-                                         shuffle=False, collate_fn=collate_windows)
-    cpu_before = cpu()
-    started = time.perf_counter()
-    first, count = None, 0
-    for batch_items in loader:
-        if first is None:
-            first = time.perf_counter()
-        else:
-            count += batch_items["motion"].shape[0]
-    total = time.perf_counter() - started
-    steady = time.perf_counter() - first if first is not None else float("nan")
-    return {"workers": workers, "windows": windows, "startup_s": (first or started) - started,
-            "windows_per_s": count / steady if count else float("nan"),
-            "windows_per_s_with_startup": windows / total,
-            "cpu_ms_per_window": (cpu() - cpu_before) / windows * 1e3}
+    dataset.load()  # as training does before its loaders: the split is read once, workers share it
+    results: dict[str, Any] = measure(lambda: WindowLoader(dataset, batch, workers))
+    results["dataloader"] = measure(lambda: torch.utils.data.DataLoader(
+        dataset, batch_size=batch, num_workers=workers, shuffle=False, collate_fn=collate_windows))
+    return results
 
 
 # --------------------------------------------------------------------------- the whole run
@@ -666,11 +677,14 @@ def format_report(results: dict[str, Any]) -> str:
                          f"{_f(row.get('naive_cpu_ms_per_dyad_s'), 2)}")
     loader = results.get("loader")
     if loader:
-        lines += ["", "loader (400-frame windows per second)   steady   with start-up"]
-        for key in ("workers_0", "workers_2"):
-            row = loader[key]
-            lines.append(f"  {key.replace('_', ' '):<38}{_f(row['windows_per_s']):>8}  "
-                         f"{_f(row['windows_per_s_with_startup']):>8}")
+        lines += ["", "loader (400-frame windows per second)   steady   with start-up   CPU ms/window"]
+        rows = [(f"WindowLoader, {key.replace('_', ' ')}", loader[key]) for key in ("workers_0", "workers_2")]
+        rows += [(f"DataLoader, {key.replace('_', ' ')} (reference)", loader[key]["dataloader"])
+                 for key in ("workers_0", "workers_2") if "dataloader" in loader[key]]
+        for label, row in rows:
+            lines.append(f"  {label:<38}{_f(row['windows_per_s']):>8}  "
+                         f"{_f(row['windows_per_s_with_startup']):>8}   "
+                         f"{_f(row.get('cpu_ms_per_window'), 2):>13}")
         lines.append(f"  ratio 2 workers / 0 workers: {_f(loader['ratio'], 2)}")
     offline = results.get("offline", {})
     if offline:
