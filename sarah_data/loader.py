@@ -91,7 +91,7 @@ class WindowLoader:
         self._slots = [dataset.batch_buffers(self.batch_size, shared=shared)
                        for _ in range(self.slots)]
         if shared:
-            _touch(self._slots)  # allocated once here, before the workers map them
+            _touch(self._slots, write=True)  # allocated once here, before the workers map them
         self._closed = False
         self._generation = 0  # the running iteration; an older one may not continue
         self._pending: dict[tuple[int, int], int] = {}  # (generation, batch) -> worker
@@ -331,7 +331,7 @@ def _worker(dataset: Any, slots: list[dict[str, torch.Tensor]],
     """Fill slots until told to stop (None) or the parent is gone; errors go back as text."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
     torch.set_num_threads(1)
-    _touch(slots)  # no job is out yet: map every page now, not during the first batches
+    _touch(slots)  # map every page now, not during the first batches
     while True:
         while not conn.poll(_POLL_S):
             if os.getppid() != parent:
@@ -355,9 +355,15 @@ def _worker(dataset: Any, slots: list[dict[str, torch.Tensor]],
             return
 
 
-def _touch(slots: list[dict[str, torch.Tensor]]) -> None:
-    """Write one float per 4 KiB page of every slot: the page faults of fresh memory (about
-    2 us a page here, 2-3 ms a window) are paid once per process, at start-up."""
+def _touch(slots: list[dict[str, torch.Tensor]], write: bool = False) -> None:
+    """Touch one float per 4 KiB page of every slot, so that the page faults of fresh memory
+    (about 2 us a page here, 2-3 ms a window) are paid once per process, at start-up. Only the
+    main process writes (zeros, before any job): a worker may start while another one is
+    already filling a slot, so workers read (which maps shared memory writable as well)."""
     for slot in slots:
         for value in slot.values():
-            value.view(-1)[::1024].zero_()
+            pages = value.view(-1)[::1024]
+            if write:
+                pages.zero_()
+            else:
+                pages.sum()
