@@ -73,6 +73,7 @@ class WindowLoader:
         self.dataset = dataset
         self.workers = int(workers)
         self.timeout = timeout
+        self.drop_last = drop_last  # (of batches cut here from a batch size)
         self._closed = True  # until the slots exist: close() and __del__ have nothing to do
         self._procs: list = []
         self._conns: list = []
@@ -80,7 +81,6 @@ class WindowLoader:
             if batches < 1:
                 raise ValueError(f"batch size must be positive, got {batches}")
             self.batch_size, self._batches = int(batches), None
-            self.drop_last = drop_last
         else:
             self._batches = [[int(i) for i in batch] for batch in batches]
             self.batch_size = max((len(batch) for batch in self._batches), default=0)

@@ -146,8 +146,9 @@ class EpochBatches:
     windows per epoch), then ``DistributedSampler(seed).set_epoch(e)`` (this rank's shuffled
     slice) cut into full batches. A WindowDataset's batches come from one
     ``sarah_data.loader.WindowLoader`` (``num_workers`` processes filling reused batch memory):
-    each batch is valid until the next is requested, and ``train_loop`` consumes it before
-    (``normalize_batch`` copies it). Other datasets go through a DataLoader made per epoch.
+    each batch is valid until the next is requested, and ``train_loop`` finishes its step on it
+    before (``normalize_batch`` makes new tensors of it). Other datasets go through a DataLoader
+    made per epoch.
     ``start_batch`` skips batches already consumed, by index only, without reading any data."""
 
     def __init__(self, dataset: Dataset, config: TrainConfig, info: DistInfo,
