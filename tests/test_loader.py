@@ -242,3 +242,41 @@ def test_training_batches_come_from_the_loader(root):
                 dataset.set_epoch(epoch)  # (what the loader's workers were told)
                 assert_same_batch(batch, expected(dataset, indices))
             iterator.close()  # stops the loader's workers
+
+
+def test_training_steps_are_done_with_a_batch_before_the_next_is_requested(root):
+    """With one slot and no worker, requesting a batch overwrites the previous one at once: a
+    training loop that still used a batch after asking for the next would lose other values
+    than one trained on copies."""
+    from sarah_models.checkpoint import build_models
+    from sarah_models.normalizer import Normalizer
+    from sarah_models.train import (DistInfo, EpochBatches, FlowObjective, VAEObjective,
+                                    make_optimizer, train_loop)
+    from test_train import tiny_config
+
+    dataset = WindowDataset(root, "train", window=W, length=12, seed=0)
+    config = tiny_config(4)
+    config = replace(config, train=replace(config.train, window=W, num_workers=0))
+    dims = {"motion": dataset.motion_dim, "audio": dataset.audio_dim}
+    stats = {"motion": (torch.zeros(dims["motion"]), torch.ones(dims["motion"])),
+             "user_head": (torch.zeros(2), torch.ones(2)),
+             "audio": (torch.zeros(dims["audio"]), torch.ones(dims["audio"])),
+             "latent": (torch.zeros(config.vae.latent_dim), torch.ones(config.vae.latent_dim))}
+    info = DistInfo(0, 1, 0, torch.device("cpu"))
+    runs = {}
+    for copies in (False, True):
+        losses = []
+        for stage in ("vae", "flow"):
+            torch.manual_seed(0)
+            vae, flow = build_models(config, dims)
+            objective = (VAEObjective(vae, Normalizer(stats)) if stage == "vae"
+                         else FlowObjective(flow, vae, Normalizer(stats)))
+            batches = EpochBatches(dataset, config.train, info)
+            if copies:
+                batches = ({k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in b.items()}
+                           for b in batches)
+            records = train_loop(objective, batches, make_optimizer(objective.trainable, config.train),
+                                 config.train, total_steps=4)
+            losses += [r["loss"] for r in records]
+        runs[copies] = losses
+    assert len(runs[False]) == 8 and runs[False] == runs[True]
