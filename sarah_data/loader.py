@@ -275,10 +275,15 @@ class WindowLoader:
             self._dead(worker)
 
     def _wait(self, key: tuple[int, int]) -> tuple[bool, Any]:
-        """The result of batch `key`, receiving others meanwhile; raises LoaderError (after
-        closing the loader) when a worker dies or `timeout` passes without any result."""
+        """The result of batch `key`, receiving others meanwhile."""
+        self._wait_for(lambda: key in self._done)
+        return self._done.pop(key)
+
+    def _wait_for(self, done) -> None:
+        """Receive results until `done()`; raises LoaderError (after closing the loader) when a
+        worker dies or `timeout` passes without any result."""
         last = time.monotonic()
-        while key not in self._done:
+        while not done():
             if self._receive():
                 last = time.monotonic()
             elif self.timeout is not None and time.monotonic() - last > self.timeout:
@@ -286,7 +291,6 @@ class WindowLoader:
                 self.close()
                 raise LoaderError(f"no batch from the WindowLoader workers {pids} within "
                                   f"{self.timeout:g} s")
-        return self._done.pop(key)
 
     def _receive(self) -> bool:
         """Wait up to _POLL_S for messages; True when one arrived. A worker's exit (it stops
@@ -320,8 +324,8 @@ class WindowLoader:
 
     def _drain(self, generation: int | None = None) -> None:
         """Wait for every batch still being filled (of `generation`, default: any)."""
-        while any(generation is None or key[0] == generation for key in self._pending):
-            self._receive()
+        self._wait_for(lambda: not any(generation is None or key[0] == generation
+                                       for key in self._pending))
         for key in [key for key in self._done if generation is None or key[0] == generation]:
             del self._done[key]
 

@@ -3,6 +3,7 @@
 import gc
 import os
 import signal
+import time
 from contextlib import contextmanager
 from dataclasses import replace
 
@@ -187,6 +188,24 @@ def test_a_killed_worker_is_an_error_not_a_hang(dataset):
         os.kill(loader.pids[1], signal.SIGKILL)
         with pytest.raises(LoaderError, match="worker 1"):
             list(loader)
+
+
+class StuckDataset(WindowDataset):
+    """A dataset whose batch with index 13 never finishes (a deadlocked worker)."""
+
+    def fill(self, indices, out):
+        if 13 in indices:
+            time.sleep(60)
+        return super().fill(indices, out)
+
+
+def test_a_stuck_worker_times_out(root):
+    stuck = StuckDataset(root, "train", window=W, length=LENGTH, seed=3)
+    with deadline(20), WindowLoader(stuck, [[0], [13], [1]], workers=2, timeout=0.5) as loader:
+        pids = loader.pids
+        with pytest.raises(LoaderError, match="within 0.5 s"):
+            list(loader)
+        assert loader.pids == [] and not any(alive(pid) for pid in pids)
 
 
 def test_close_leaves_no_process_and_no_shared_memory(dataset):
