@@ -120,6 +120,8 @@ class WindowDataset(torch.utils.data.Dataset):
 
     A DataLoader fetches a batch with `__getitems__`, which writes the windows into one tensor
     per field; give it `collate_fn=collate_windows` to receive those tensors without a copy.
+    Training uses `sarah_data.loader.WindowLoader` instead, whose workers refill a few batches
+    allocated once with `fill`, the code `__getitems__` runs.
     """
 
     def __init__(self, shards_dir: Path | str, split: str, extractor: str | None = "logmel",
