@@ -81,7 +81,7 @@ class BenchConfig:
     # the body model) weighs about as little as in a real corpus. None: the loader's corpus.
     prep_corpus: tuple[int, int, float] | None = (6, 2, 240.0)
     loader: bool = True
-    loader_windows: int = 256
+    loader_windows: int = 1024  # 64 batches: start-up (fork, slot mapping) paid once, as in training
     loader_batch: int = 16
     hubert: bool = True
     hubert_prep_seconds: float = 6.0
