@@ -245,3 +245,21 @@ def test_bad_input_corpus_every_case(tmp_path, capsys):
     assert set(written) == set(with_audio) - bad
     assert verify_shards(out) == []
     assert not list(out.rglob(".*.tmp-*")) and not (out / ".work").exists()
+
+
+def test_local_pool_shares_work_between_this_process_and_a_worker():
+    import math
+
+    from sarah_data.executors import LocalPool, make_executor
+
+    pool = make_executor("process", 2)
+    assert isinstance(pool, LocalPool)
+    try:
+        busy = pool.submit(time.sleep, 2)  # takes this process's slot
+        assert pool.submit(os.getpid).result(timeout=120) != os.getpid()  # so this goes to a worker
+        busy.result(timeout=120)
+        assert pool.submit(os.getpid).result(timeout=120) == os.getpid()  # free again: here first
+        assert isinstance(pool.submit(math.sqrt, -1).exception(timeout=120), ValueError)
+        assert pool.submit(pow, 2, 10).result(timeout=120) == 1024
+    finally:
+        pool.shutdown()
