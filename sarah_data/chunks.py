@@ -14,12 +14,12 @@ filters' output itself and chooses inside the deflate format:
     fletcher32   HDF5's checksum of the encoded bytes, appended little-endian
 
 The stream is plain zlib: HDF5's inflate reads it like any other (and copies stored blocks, so
-reading is faster too). Output depends only on the data and the zlib version. On fixture data,
-CPU per dyad-second and size against the uncompressed arrays:
+reading is faster too). Output depends only on the data and the zlib version. On the fixture
+corpus of sarah-bench, CPU per dyad-second and shard size against the uncompressed arrays:
 
-    HDF5's pipeline, level 4          ~15 ms   0.65
+    HDF5's pipeline, level 4          ~15 ms   0.60
     2 planes stored, level 1           4.5 ms  0.67
-    3 planes stored, level 1 (this)    1.6 ms  0.77
+    3 planes stored, level 1 (this)    1.6 ms  0.74
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ import numpy as np
 # ~25 % more CPU here for files ~2 % smaller.
 LEVEL = 1
 # A float's low-order byte planes stored rather than deflated (of 4 for float32). 3 keeps prep
-# above 100x real time on two cores; 2 makes shards ~12 % smaller for 3x the compression CPU.
+# above 100x real time on two cores; 2 makes shards ~10 % smaller for 3x the compression CPU.
 STORED_FLOAT_PLANES = 3
 _ZLIB_HEADER = bytes((0x78, 0x01))  # deflate, 32 KiB window, "fastest" level class (level 1)
 _STORED_MAX = 0xFFFF  # bytes per stored deflate block
