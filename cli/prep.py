@@ -28,7 +28,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--body-model", default=None,
                         help="SMPL-X .npz (or the procedural one); default: the one file under "
                              "<input>/body_models/, else $SARAH_BODY_MODEL")
-    parser.add_argument("-j", "--jobs", type=int, default=os.cpu_count() or 1, help="parallel worker processes")
+    parser.add_argument("-j", "--jobs", type=int, default=os.cpu_count() or 1,
+                        help="parallel tasks: this process plus N - 1 spawned workers")
     parser.add_argument("--executor", choices=("process", "ray"), default="process",
                         help="where per-sequence work runs: local processes, or Ray")
     parser.add_argument("--ray-address", default=None, help="Ray cluster address (default: start a local instance)")
