@@ -106,7 +106,7 @@ class BenchConfig:
     @classmethod
     def quick(cls, **overrides: Any) -> "BenchConfig":
         base = cls(sizes=("tiny",), stream_frames=32, naive_frames=16, offline_frames=64,
-                   fewer_steps=None,
+                   fewer_steps=1,
                    deviation_frames=16, prep_sessions=1, prep_sequences_per_session=2,
                    prep_seconds=14.0, prep_corpus=None, loader_windows=32, loader_batch=8,
                    hubert=False)
@@ -422,6 +422,10 @@ def bench_model_size(size: str, cfg: BenchConfig, log: Callable[[str], None]) ->
             f"({2 * cfg.fewer_steps} NFE; changes the output, not an exact optimization)")
         streaming["fewer_steps"] = {"steps": cfg.fewer_steps, **bench_streaming(
             fast, cfg.stream_frames, inputs, extractor, fewer, max_seconds=cap / 2)}
+        log(f"[{size}] deviation: {2 * cfg.fewer_steps} NFE {cfg.mode} vs the paper's 8 NFE fp32")
+        streaming["fewer_steps"]["deviation"] = stream_deviation(
+            plain, fast, frames=cfg.deviation_frames, seed=cfg.seed,
+            optimized_config=fewer).as_dict()
     log(f"[{size}] tolerance: {cfg.mode} vs plain fp32 over {cfg.deviation_frames} frames")
     streaming["deviation"] = stream_deviation(plain, fast, frames=cfg.deviation_frames,
                                               seed=cfg.seed).as_dict()
@@ -657,6 +661,12 @@ def check_goals(results: dict[str, Any]) -> list[dict[str, Any]]:
 # --------------------------------------------------------------------------- report
 
 
+def _deviation_text(label: str, dev: dict[str, float], reference: str = "fp32") -> str:
+    return (f"{label} vs {reference} over {dev['frames']} frames: max joint {dev['max_joint_mm']:.3f} mm, "
+            f"mean {dev['mean_joint_mm']:.3f} mm (motion scale {dev['motion_scale_mm']:.1f} mm), "
+            f"head-angle delta {dev['head_angle_delta']:.4f}")
+
+
 def _f(value: float | None, digits: int = 1) -> str:
     return "-" if value is None or value != value else f"{value:,.{digits}f}"
 
@@ -713,12 +723,14 @@ def format_report(results: dict[str, Any]) -> str:
                                         for k in ("audio", "flow", "decode", "other"))
                 lines.append(f"  {label:<16}{_f(r['fps']):>8}  {_f(r['latency_ms']['p50']):>8}  "
                              f"{_f(r['latency_ms']['p99']):>8}   {stage_text}")
-            dev = row["deviation"]
-            lines.append(f"  {size} ratio fast/naive {_f(row['ratio'], 2)}; {results['config']['mode']} "
-                         f"vs fp32 over {dev['frames']} frames: max joint {dev['max_joint_mm']:.3f} mm, "
-                         f"mean {dev['mean_joint_mm']:.3f} mm (motion scale "
-                         f"{dev['motion_scale_mm']:.1f} mm), head-angle delta "
-                         f"{dev['head_angle_delta']:.4f}")
+            lines.append(f"  {size} ratio fast/naive {_f(row['ratio'], 2)}; "
+                         f"{_deviation_text(results['config']['mode'], row['deviation'])}")
+            if "deviation" in row.get("fewer_steps", {}):
+                nfe = 2 * row["fewer_steps"]["steps"]
+                text = _deviation_text(f"{nfe} NFE {results['config']['mode']}",
+                                       row["fewer_steps"]["deviation"], "8 NFE fp32")
+                lines.append(f"  {size} {text}"
+                             f" (fewer steps change the output: quality in docs/results.md)")
     hubert = results.get("hubert_streaming")
     if hubert:
         lines += ["", "HuBERT-Large causal streaming: one pass per 4-frame chunk (133 ms of audio)",

@@ -400,10 +400,13 @@ def joint_positions(motion: np.ndarray) -> np.ndarray:
 
 def stream_deviation(reference, optimized, frames: int = 64, seed: int = 0,
                      config: StreamConfig = StreamConfig(),
-                     inputs: tuple[np.ndarray, ...] | None = None) -> Deviation:
+                     inputs: tuple[np.ndarray, ...] | None = None,
+                     optimized_config: StreamConfig | None = None) -> Deviation:
     """Stream the same inputs (same seed) through both models; compare their joints and the
     cheap metrics (wrist speed, head angle). Both are ``(vae, flow, normalizer)`` or
-    LoadedModels; the normalizer of ``reference`` is used for both when ``optimized`` has none."""
+    LoadedModels; the normalizer of ``reference`` is used for both when ``optimized`` has none.
+    ``optimized_config`` (default ``config``) streams the optimized side with other settings,
+    e.g. fewer solver steps."""
     from .metrics import head_angle, wrist_speed
 
     ref_vae, ref_flow, ref_norm = _unpack(reference)
@@ -411,7 +414,8 @@ def stream_deviation(reference, optimized, frames: int = 64, seed: int = 0,
     if inputs is None:
         inputs = stream_inputs(frames, ref_flow.audio_dim, seed)
     ref = generate_stream((ref_vae, ref_flow, ref_norm), inputs, config)
-    opt = generate_stream((opt_vae, opt_flow, opt_norm or ref_norm), inputs, config)
+    opt = generate_stream((opt_vae, opt_flow, opt_norm or ref_norm), inputs,
+                          optimized_config or config)
     p_ref, p_opt = joint_positions(ref), joint_positions(opt)
     dist = np.linalg.norm(p_opt.astype(np.float64) - p_ref, axis=-1) * 1000.0
     scale = np.sqrt(np.mean(np.sum((p_ref - p_ref.mean(axis=0)) ** 2, axis=-1))) * 1000.0

@@ -168,6 +168,9 @@ def test_bench_quick_runs_end_to_end(tmp_path):
     assert tiny_stream["fps"] > 0 and tiny_stream["naive"]["fps"] > 0
     assert set(tiny_stream["stages_ms"]) == {"audio", "flow", "decode", "other"}
     assert tiny_stream["deviation"]["max_joint_mm"] <= TOLERANCE_MM
+    fewer = tiny_stream["fewer_steps"]
+    assert fewer["steps"] == 1 and fewer["fps"] > 0
+    assert fewer["deviation"]["max_joint_mm"] > 0  # fewer steps are not exact: measured, not hidden
     assert results["prep"]["logmel"]["rtf"] > 0 and results["loader"]["workers_2"]["windows"] > 0
     goals = {g["goal"]: g for g in results["goals"]}
     assert goals["prep.logmel.rtf"]["met"] is not None
