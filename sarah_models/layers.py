@@ -51,7 +51,7 @@ class RopeAngles(nn.Module):
 
 
 class RotaryEmbedding(nn.Module):
-    """Rotary position embedding (rotate-half form) applied to (B, H, L, Dh) tensors."""
+    """Rotary position embedding (rotate-half form) applied to (..., B, H, L, Dh) tensors."""
 
     def __init__(self, head_dim: int, base: float = 10_000.0) -> None:
         super().__init__()
@@ -64,6 +64,7 @@ class RotaryEmbedding(nn.Module):
         cos, sin = self.angles(positions.to(x.device)).to(x.dtype)
         if cos.dim() == 3:  # per-sample positions (B, L, half) -> (B, 1, L, half)
             cos, sin = cos[:, None], sin[:, None]
+        # x may carry leading dims (e.g. q and k stacked): cos/sin broadcast from the right
         half = self.head_dim // 2
         x1, x2 = x[..., :half], x[..., half:]
         return torch.cat((x1 * cos - x2 * sin, x1 * sin + x2 * cos), dim=-1)
@@ -114,8 +115,10 @@ class Attention(nn.Module):
                 commit: bool = True) -> Tensor:
         """x (B, L, dim); positions (L,) or (B, L); mask (L, L_cache + L) bool, True = attend."""
         b, n, d = x.shape
-        q, k, v = self.qkv(x).view(b, n, 3, self.heads, d // self.heads).permute(2, 0, 3, 1, 4)
-        q, k = self.rope(q, positions), self.rope(k, positions)
+        qkv = self.qkv(x).view(b, n, 3, self.heads, d // self.heads).permute(2, 0, 3, 1, 4)
+        # q and k rotated in one pass: at inference the tensors are tiny and op count is the cost
+        q, k = self.rope(qkv[:2], positions)
+        v = qkv[2]
         if cache is not None:
             k, v = cache.extend(k, v, commit=commit)
         if mask.dtype != torch.bool:
