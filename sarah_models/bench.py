@@ -248,6 +248,28 @@ class NaiveStreamer:
 # --------------------------------------------------------------------------- timing helpers
 
 
+class _ChunkClock:
+    """Per-chunk latency split into audio features / flow solver / VAE decode / the rest, and the
+    summary both streaming benchmarks report."""
+
+    def __init__(self) -> None:
+        self.latencies: list[float] = []
+        self.stages: dict[str, list[float]] = {"audio": [], "flow": [], "decode": [], "other": []}
+
+    def add(self, tick: float, heard: float, done: float, flow: float, decode: float) -> None:
+        """One chunk: started at ``tick``, audio features ready at ``heard``, done at ``done``."""
+        self.latencies.append(done - tick)
+        for stage, value in (("audio", heard - tick), ("flow", flow), ("decode", decode),
+                             ("other", done - heard - flow - decode)):
+            self.stages[stage].append(value)
+
+    def summary(self, stride: int, total_s: float) -> dict[str, Any]:
+        streamed = len(self.latencies) * stride
+        return {"frames": streamed, "fps": streamed / total_s,
+                "latency_ms": _percentiles(self.latencies),
+                "stages_ms": {k: _percentiles(v) for k, v in self.stages.items()}}
+
+
 def _percentiles(values_s: list[float]) -> dict[str, float]:
     ms = np.asarray(values_s, dtype=np.float64) * 1000.0
     if ms.size == 0:
@@ -332,7 +354,7 @@ def bench_streaming(models, frames: int, inputs: dict[str, np.ndarray], extracto
             generator.reset()
             streams = (extractor.stream(), extractor.stream())
             count = 3 * s if phase == "warm-up" else frames
-            latencies, stages = [], {"audio": [], "flow": [], "decode": [], "other": []}
+            clock = _ChunkClock()
             hooks.take()
             started = time.perf_counter()
             for i in range(0, count, s):
@@ -343,20 +365,13 @@ def bench_streaming(models, frames: int, inputs: dict[str, np.ndarray], extracto
                 heard = time.perf_counter()
                 generator.step(inputs["user_head"][i:i + s], a, b)
                 done = time.perf_counter()
-                inside = hooks.take()
-                latencies.append(done - tick)
-                stages["audio"].append(heard - tick)
-                stages["flow"].append(inside["flow"])
-                stages["decode"].append(inside["decode"])
-                stages["other"].append(done - heard - inside["flow"] - inside["decode"])
+                clock.add(tick, heard, done, **hooks.take())
                 if done - started > max_seconds:
                     break
             total = time.perf_counter() - started
     finally:
         hooks.remove()
-    streamed = len(latencies) * s
-    return {"frames": streamed, "fps": streamed / total, "latency_ms": _percentiles(latencies),
-            "stages_ms": {k: _percentiles(v) for k, v in stages.items()}}
+    return clock.summary(s, total)
 
 
 def bench_naive_streaming(models, frames: int, inputs: dict[str, np.ndarray], extractor,
@@ -366,7 +381,7 @@ def bench_naive_streaming(models, frames: int, inputs: dict[str, np.ndarray], ex
     frames of audio (offline extraction of the context, no streaming state)."""
     naive = NaiveStreamer(*models, config=config)
     s = naive.stride
-    latencies, stages = [], {"audio": [], "flow": [], "decode": [], "other": []}
+    clock = _ChunkClock()
     started = time.perf_counter()
     for i in range(0, frames, s):
         tick = time.perf_counter()
@@ -378,17 +393,10 @@ def bench_naive_streaming(models, frames: int, inputs: dict[str, np.ndarray], ex
         timings: dict[str, float] = {}
         naive.step(inputs["user_head"][i:i + s], a, b, timings)
         done = time.perf_counter()
-        latencies.append(done - tick)
-        stages["audio"].append(heard - tick)
-        stages["flow"].append(timings["flow"])
-        stages["decode"].append(timings["decode"])
-        stages["other"].append(done - heard - timings["flow"] - timings["decode"])
+        clock.add(tick, heard, done, flow=timings["flow"], decode=timings["decode"])
         if done - started > max_seconds:
             break
-    total = time.perf_counter() - started
-    streamed = len(latencies) * s
-    return {"frames": streamed, "fps": streamed / total, "latency_ms": _percentiles(latencies),
-            "stages_ms": {k: _percentiles(v) for k, v in stages.items()}}
+    return clock.summary(s, time.perf_counter() - started)
 
 
 def bench_model_size(size: str, cfg: BenchConfig, log: Callable[[str], None]) -> dict[str, Any]:
