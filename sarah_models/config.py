@@ -102,7 +102,7 @@ class TrainConfig:
     latent_stats_batches: int = 64  # batches used to standardize latents before the flow stage
     log_every: int = 50
     checkpoint_every: int = 5_000
-    num_workers: int = 2
+    num_workers: int = 2  # WindowLoader worker processes filling reused batch slots (0: this process)
     seed: int = 0
     split: str = "train"
     audio_features: str = "hubert-large"  # extractor name in the shards (paper: HuBERT-Large)
