@@ -1,10 +1,11 @@
 """Inference speed-ups for generation on a CPU, each checked against the plain fp32 models.
 
-Where the time goes (paper size, streaming, 2 CPU cores): ~95 % in ``nn.Linear`` of the flow
-model, and those are bound by reading the weights, not by arithmetic -- a chunk runs 8 network
+Where the time goes (paper size, streaming, 2 CPU cores): in plain fp32 ~95 % is ``nn.Linear``
+of the flow model, bound by reading the weights, not by arithmetic -- a chunk runs 8 network
 evaluations over only 3 tokens x 2 guidance branches, so every evaluation streams all ~75 M
-flow weights from memory. The optimizations therefore cut the bytes of weight read per
-evaluation:
+flow weights from memory. The first optimizations therefore cut the bytes of weight read per
+evaluation; once those are int8, the many small operations around them are the other half of
+the time, and ``fused`` cuts their number:
 
 * ``time cache`` (all modes but "none", exact): the AdaLN-Zero modulation of every block and of
   the output layer, and the flow-time MLP, depend on the flow time tau only. The solver visits a

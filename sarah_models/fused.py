@@ -16,18 +16,26 @@ condition tokens, no KV cache, the default causal mask and positions):
 * RoPE of q and k in one pass from tables: ``x * [cos, cos] + roll(x, Dh/2) * [-sin, sin]`` is
   rotate-half RoPE.
 * The square causal mask as ``is_causal=True``.
+* Linears called as their kernels (``linear_kernel``): a quantized dynamic Linear's module call
+  adds ~10 us of Python to a ~15 us kernel call, 16 times per evaluation. The kernels are taken
+  when the forward is installed, so install it after quantizing (``fast.optimize_for_inference``
+  does).
 
 Any other call (training, autograd, KV caches, explicit masks or positions, per-row tau) goes to
 the model's own forward.
 
 VAE decoder (``fuse_decoder``): the rotary angles of its ever-growing positions come from a
-table (``RopeTable``) extended in blocks, computed exactly as ``RopeAngles`` computes them.
+table (``RopeTable``) extended in blocks, computed exactly as ``RopeAngles`` computes them
+(bit-identical, used in every optimized mode). With ``steps=True`` the streaming step itself is
+``FusedDecoderStep``: the angles are looked up once for all 9 layers instead of per layer and
+q and k rotated in one pass (not bit-identical: int8 and bf16 modes only).
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import dataclass
+from typing import Callable, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -69,11 +77,44 @@ def apply_rope(x: Tensor, cos: Tensor, sin: Tensor) -> Tensor:
     return torch.addcmul(x * cos, x.roll(x.shape[-1] // 2, -1), sin)
 
 
+def linear_kernel(module: nn.Module) -> Callable[[Tensor], Tensor]:
+    """The function a Linear-like module computes, without the module call: the int8 kernel
+    for a dynamic quantized Linear, ``F.linear`` for an ``nn.Linear``, the module otherwise."""
+    from torch.ao.nn.quantized.dynamic import Linear as DynamicQuantizedLinear
+
+    if isinstance(module, DynamicQuantizedLinear) and module._packed_params.dtype == torch.qint8:
+        packed, op = module._packed_params._packed_params, torch.ops.quantized.linear_dynamic
+        # the module's own call for its version (>= 4): reduce_range=True
+        return lambda x: op(x, packed, True)
+    if type(module) is nn.Linear:
+        weight, bias = module.weight, module.bias
+        return lambda x: F.linear(x, weight, bias)
+    return module
+
+
+class BlockKernels(NamedTuple):
+    qkv: Callable[[Tensor], Tensor]
+    out: Callable[[Tensor], Tensor]
+    fc1: Callable[[Tensor], Tensor]
+    fc2: Callable[[Tensor], Tensor]
+    gelu: str  # the MLP's GELU approximation
+
+    @classmethod
+    def of(cls, block: nn.Module) -> "BlockKernels":
+        mlp = block.mlp
+        return cls(*(linear_kernel(m) for m in (block.attn.qkv, block.attn.out, mlp[0], mlp[2])),
+                   mlp[1].approximate)
+
+    def mlp(self, h: Tensor) -> Tensor:
+        return self.fc2(F.gelu(self.fc1(h), approximate=self.gelu))
+
+
 class FusedFlowForward:
     """Installed as ``flow.forward`` by ``fuse_flow``; see the module docstring."""
 
     def __init__(self, flow: FlowModel, max_entries: int = 64) -> None:
         self.flow = flow
+        self.kernels = [BlockKernels.of(block) for block in flow.blocks]
         self.module_forward = type(flow).forward.__get__(flow)
         self.max_entries = max_entries
         self._terms: OrderedDict[tuple, TimeTerms] = OrderedDict()
@@ -92,8 +133,8 @@ class FusedFlowForward:
         terms = self.time_terms(tau, cond_tokens.dtype)
         cos, sin = self.rope(z_tau.shape[1], z_tau.device, cond_tokens.dtype)
         x = flow.latent_in(z_tau.to(cond_tokens.dtype)) + cond_tokens
-        for block, mod in zip(flow.blocks, terms.blocks):
-            x = fused_block(block, x, mod, cos, sin)
+        for block, kernels, mod in zip(flow.blocks, self.kernels, terms.blocks):
+            x = fused_block(block, kernels, x, mod, cos, sin)
         out = flow.out
         return out.proj(F.layer_norm(x, x.shape[-1:], terms.out_weight, terms.out_bias,
                                      out.norm.eps))
@@ -132,20 +173,19 @@ class FusedFlowForward:
         return terms
 
 
-def fused_block(block: AdaLNZeroBlock, x: Tensor, mod: BlockModulation, cos: Tensor,
-                sin: Tensor) -> Tensor:
+def fused_block(block: AdaLNZeroBlock, kernels: BlockKernels, x: Tensor, mod: BlockModulation,
+                cos: Tensor, sin: Tensor) -> Tensor:
     """``AdaLNZeroBlock.forward`` for rows sharing tau, no cache, square causal mask."""
     b, n, d = x.shape
-    attn = block.attn
-    heads = attn.heads
+    heads = block.attn.heads
     h = F.layer_norm(x, (d,), mod.attn_weight, mod.attn_bias, block.norm1.eps)
-    qkv = attn.qkv(h).view(b, n, 3, heads, d // heads)
+    qkv = kernels.qkv(h).view(b, n, 3, heads, d // heads)
     qk = apply_rope(qkv[:, :, :2], cos, sin).transpose(1, 3)  # (B, H, 2, L, Dh)
     v = qkv[:, :, 2].transpose(1, 2)
     a = F.scaled_dot_product_attention(qk[:, :, 0], qk[:, :, 1], v, is_causal=True)
-    x = torch.addcmul(x, mod.attn_gate, attn.out(a.transpose(1, 2).reshape(b, n, d)))
+    x = torch.addcmul(x, mod.attn_gate, kernels.out(a.transpose(1, 2).reshape(b, n, d)))
     h = F.layer_norm(x, (d,), mod.mlp_weight, mod.mlp_bias, block.norm2.eps)
-    return torch.addcmul(x, mod.mlp_gate, block.mlp(h))
+    return torch.addcmul(x, mod.mlp_gate, kernels.mlp(h))
 
 
 def fuse_flow(flow: FlowModel) -> FlowModel:
@@ -196,6 +236,7 @@ class FusedDecoderStep:
     def __init__(self, vae: CausalVAE) -> None:
         self.vae = vae
         self.table = RopeTable(vae.decoder[0].attn.rope.angles)
+        self.kernels = [BlockKernels.of(block) for block in vae.decoder]
 
     def __call__(self, z_k: Tensor, cache) -> Tensor:
         vae = self.vae
@@ -207,17 +248,16 @@ class FusedDecoderStep:
         mask = causal_mask(n, len(cache.layers[0]) + n, device=x.device)
         cos, sin = rope_tables_at(self.table, positions)
         cos, sin = cos[:, None, None].to(x.dtype), sin[:, None, None].to(x.dtype)
-        for block, layer_cache in zip(vae.decoder, cache.layers):
-            attn = block.attn
-            heads = attn.heads
+        for block, kernels, layer_cache in zip(vae.decoder, self.kernels, cache.layers):
+            heads = block.attn.heads
             h = F.layer_norm(x, (d,), block.norm1.weight, block.norm1.bias, block.norm1.eps)
-            qkv = attn.qkv(h).view(b, n, 3, heads, d // heads)
+            qkv = kernels.qkv(h).view(b, n, 3, heads, d // heads)
             qk = apply_rope(qkv[:, :, :2], cos, sin).transpose(1, 3)  # (B, H, 2, L, Dh)
             k, v = layer_cache.extend(qk[:, :, 1], qkv[:, :, 2].transpose(1, 2))
             a = F.scaled_dot_product_attention(qk[:, :, 0], k, v, attn_mask=mask)
-            x = x + attn.out(a.transpose(1, 2).reshape(b, n, d))
-            x = x + block.mlp(F.layer_norm(x, (d,), block.norm2.weight, block.norm2.bias,
-                                           block.norm2.eps))
+            x = x + kernels.out(a.transpose(1, 2).reshape(b, n, d))
+            x = x + kernels.mlp(F.layer_norm(x, (d,), block.norm2.weight, block.norm2.bias,
+                                             block.norm2.eps))
         cache.position += n
         cache.blocks += 1
         return vae._decoder_frames(x)
