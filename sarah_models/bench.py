@@ -766,7 +766,8 @@ def history_row(results: dict[str, Any]) -> str:
 
     return (f"| {env['date'][:10]} | {env['cpu']} | {env['threads']} | {env['torch']} | "
             f"{results['config']['mode']} | {get('streaming.paper.fps')} | "
-            f"{get('streaming.paper.latency_ms.p99')} | {get('offline.paper.fps')} | "
+            f"{get('streaming.paper.latency_ms.p99')} | "
+            f"{get('streaming.paper.fewer_steps.latency_ms.p99')} | {get('offline.paper.fps')} | "
             f"{get('streaming.tiny.fps')} | {get('prep.logmel.rtf')} | "
             f"{get('loader.workers_2.windows_per_s')} | {env['load_before'][0]:.1f} |")
 
