@@ -27,8 +27,9 @@ the time, and ``fused`` cuts their number:
 * ``fused`` (int8 and bf16 modes): the flow's solver evaluations run ``fused.FusedFlowForward``,
   the same maths in about a third of the tensor operations (AdaLN modulation folded into the
   LayerNorm affine, gates as ``addcmul``, RoPE from tables); rounding differs from the module
-  forward at the 1e-6 level, so the exact ``fp32`` mode does not use it. In every mode but
-  "none" the VAE decoder's rotary angles come from a table (``fused.RopeTable``, bit-identical).
+  forward at the 1e-6 level, so the exact ``fp32`` mode does not use it; the same modes stream
+  the VAE decoder through ``fused.FusedDecoderStep``. In every mode but "none" the decoder's
+  rotary angles come from a table (``fused.RopeTable``, bit-identical).
 * ``threads``: ``torch.set_num_threads`` (process-wide).
 * ``compile``: ``torch.compile`` of the flow's transformer blocks (optional). Measured on the
   2-core CPU: about a minute to compile and no gain over eager mode, so it is off by default.
@@ -73,9 +74,9 @@ MODES = ("none", "fp32", "bf16", "int8")
 MODE_HELP = {
     "none": "the plain models (only the thread count is set)",
     "fp32": "fp32 with the flow-time path memoized for the solver grid (exact)",
-    "bf16": "fp32 time cache + bfloat16 Linear layers + fused flow forward",
+    "bf16": "fp32 time cache + bfloat16 Linear layers + fused forwards",
     "int8": "fp32 time cache + dynamic int8 Linear layers (per-channel weight scales) + fused "
-            "flow forward",
+            "forwards",
 }
 
 

@@ -73,7 +73,7 @@ def rope_tables_at(angles: nn.Module, positions: Tensor) -> tuple[Tensor, Tensor
 
 
 def apply_rope(x: Tensor, cos: Tensor, sin: Tensor) -> Tensor:
-    """Rotate-half RoPE of x (..., Dh) with tables from ``rope_tables`` broadcast against it."""
+    """Rotate-half RoPE of x (..., Dh) with tables from ``rope_tables_at`` broadcast against it."""
     return torch.addcmul(x * cos, x.roll(x.shape[-1] // 2, -1), sin)
 
 
