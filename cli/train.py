@@ -31,6 +31,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, required=True, help="run folder, e.g. runs/NAME")
     parser.add_argument("--resume", action="store_true",
                         help="continue from OUT/<stage>.pt (exactly: same data order and noise)")
+    parser.add_argument("--init-from", type=Path, default=None, metavar="CKPT",
+                        help="fine-tune: start each trained stage from the weights of CKPT (a "
+                             "checkpoint, or a run folder with vae.pt / flow.pt) with a fresh "
+                             "step count, optimizer and LR schedule; loss weights (e.g. --set "
+                             "vae.velocity_weight=100) and train.lr_schedule may differ, sizes "
+                             "may not")
     parser.add_argument("--device", default=None,
                         help="cpu, cuda or cuda:N; None = cuda when available (cuda:LOCAL_RANK "
                              "under torchrun), else cpu")
@@ -75,7 +81,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for stage in stages:
             path = train(stage, config, args.shards, args.out, resume=args.resume,
-                         device=args.device, progress=not args.no_progress)
+                         device=args.device, init_from=args.init_from,
+                         progress=not args.no_progress)
             print(f"{stage}: checkpoint {path}")
     except (DataProblem, ValueError, FileNotFoundError, FileExistsError, KeyError, OSError) as exc:
         print(f"sarah-train: error: {exc}", file=sys.stderr)

@@ -85,6 +85,9 @@ class FlowConfig:
         return cls(hidden=128, heads=4, layers=2, cond_dim=64, time_dim=64)
 
 
+LR_SCHEDULES = ("constant", "linear", "cosine")
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """Optimisation and data settings (paper A.2: AdamW, 1k warmup to 1e-4, 200k + 300k steps)."""
@@ -93,6 +96,10 @@ class TrainConfig:
     batch_size: int = 16  # per process; the paper uses 16 on each of 8 GPUs
     lr: float = 1e-4
     warmup_steps: int = 1_000
+    # After warmup: "constant" (the paper), or "linear"/"cosine" decay to lr * final_lr_ratio at
+    # the stage's last step. Useful for short runs and fine-tunes (--init-from).
+    lr_schedule: str = "constant"
+    final_lr_ratio: float = 0.0
     adam_betas: tuple[float, float] = (0.9, 0.999)
     weight_decay: float = 1e-4
     grad_clip: float = 0.0  # 0 disables (the paper states none)
@@ -110,6 +117,11 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.latent not in ("mean", "sample"):
             raise ValueError(f"TrainConfig.latent must be 'mean' or 'sample', got {self.latent!r}")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"TrainConfig.lr_schedule must be one of {LR_SCHEDULES}, "
+                             f"got {self.lr_schedule!r}")
+        if not 0.0 <= self.final_lr_ratio <= 1.0:
+            raise ValueError(f"TrainConfig.final_lr_ratio must be in [0, 1], got {self.final_lr_ratio}")
 
     @classmethod
     def paper(cls) -> "TrainConfig":

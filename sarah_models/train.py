@@ -254,9 +254,17 @@ def _atomic_write_text(path: Path, text: str) -> None:
 
 # --------------------------------------------------------------------------- the loop
 
-def lr_at(step: int, config: TrainConfig) -> float:
-    """Linear warmup over ``warmup_steps`` to ``lr``, constant after (paper A.2)."""
-    return config.lr * min(1.0, (step + 1) / max(1, config.warmup_steps))
+def lr_at(step: int, config: TrainConfig, total_steps: int | None = None) -> float:
+    """Linear warmup over ``warmup_steps`` to ``lr`` (paper A.2), then ``config.lr_schedule``:
+    constant (the paper), or a linear or cosine decay reaching ``lr * final_lr_ratio`` at
+    ``total_steps`` (the last step index is total_steps - 1)."""
+    warm = min(1.0, (step + 1) / max(1, config.warmup_steps))
+    if config.lr_schedule == "constant" or total_steps is None or step < config.warmup_steps:
+        return config.lr * warm
+    span = max(1, total_steps - 1 - config.warmup_steps)
+    progress = min(1.0, (step - config.warmup_steps) / span)
+    shape = 1.0 - progress if config.lr_schedule == "linear" else 0.5 * (1.0 + math.cos(math.pi * progress))
+    return config.lr * (config.final_lr_ratio + (1.0 - config.final_lr_ratio) * shape)
 
 
 def make_optimizer(module: nn.Module, config: TrainConfig) -> torch.optim.Optimizer:
@@ -299,7 +307,7 @@ def train_loop(objective: nn.Module, batches: Iterable[Mapping[str, Tensor]],
             batch = next(iterator)
         except StopIteration:
             raise RuntimeError(f"the batch iterable ran out at step {step} of {total_steps}") from None
-        lr = lr_at(step, config)
+        lr = lr_at(step, config, total_steps)
         for group in optimizer.param_groups:
             group["lr"] = lr
         with autocast:
@@ -391,17 +399,65 @@ def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
                          f"{wanted}; resume with the same config or use another --out")
 
 
+# Fields a fine-tune may change: they shape the loss, not the weights.
+LOSS_FIELDS = {"vae": ("beta", "velocity_weight"), "flow": ("drop_prob", "min_denominator")}
+
+
+def load_init_source(path: str | Path, stage: str) -> dict[str, Any]:
+    """The checkpoint ``--init-from`` names for ``stage``: a file, or ``<folder>/<stage>.pt``."""
+    path = Path(path)
+    file = path / f"{stage}.pt" if path.is_dir() else path
+    data = load_checkpoint(file)
+    if stage not in data:
+        raise ValueError(f"{file}: a {data['stage']} checkpoint holds no {stage} weights to "
+                         f"initialise the {stage} stage from")
+    return {**data, "path": file}
+
+
+def _check_compatible(source: Mapping[str, Any], stage: str, config: RunConfig,
+                      dims: Mapping[str, int], features: str) -> None:
+    """Refuse an --init-from source whose weights cannot be this stage's, naming the difference."""
+    file = source["path"]
+    wanted, stored = config.to_dict()[stage], source["config"][stage]
+    differ = sorted(k for k in wanted if k not in LOSS_FIELDS[stage] and wanted[k] != stored.get(k))
+    if differ:
+        pairs = ", ".join(f"{k}: {stored.get(k)} there, {wanted[k]} here" for k in differ)
+        raise ValueError(f"{file}: the {stage} architecture differs ({pairs}); --init-from needs "
+                         f"the same sizes (use the same --config and --set)")
+    if stage == "flow":
+        for key in ("latent_dim", "stride"):
+            if source["config"]["vae"][key] != config.to_dict()["vae"][key]:
+                raise ValueError(f"{file}: its VAE has {key} {source['config']['vae'][key]}, "
+                                 f"this run's has {config.to_dict()['vae'][key]}")
+    if dict(source["dims"]) != dict(dims):
+        raise ValueError(f"{file}: feature widths {dict(source['dims'])} differ from this "
+                         f"data's {dict(dims)}")
+    if source["features"] != features:
+        raise ValueError(f"{file}: trained on audio features {source['features']!r}, this run "
+                         f"uses {features!r}")
+
+
 def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir: str | Path,
           resume: bool = False, device: str | torch.device | None = None, *,
+          init_from: str | Path | None = None,
           dataset: Dataset | None = None, stats: Mapping[str, Any] | None = None,
           progress: bool = True, echo: Callable[[str], None] = print) -> Path:
     """Train one stage into ``out_dir`` and return its checkpoint path.
 
     ``dataset``/``stats`` default to the shards' WindowDataset and stats.h5. The flow stage
     needs ``out_dir/vae.pt`` and takes the VAE's config, widths and data statistics from it.
-    Without ``resume`` an existing checkpoint of the stage is an error, never overwritten."""
+    Without ``resume`` an existing checkpoint of the stage is an error, never overwritten.
+
+    ``init_from`` (a checkpoint, or a run folder holding ``<stage>.pt``) fine-tunes: the stage's
+    weights start from it, while step count, optimizer and LR schedule start afresh, so loss
+    weights, dropout and schedule may differ from the source run (the architecture may not).
+    A VAE keeps the source's data statistics; a flow refits its latent statistics on this run's
+    VAE. The checkpoint records the source as ``init_from``."""
     if stage not in STAGES:
         raise ValueError(f"unknown stage {stage!r}; choose from {STAGES}")
+    if init_from is not None and resume:
+        raise ValueError("--init-from starts a new run from another run's weights; --resume "
+                         "continues this run: use one of them")
     info = setup_distributed(device)
     out_dir = Path(out_dir)
     tcfg = config.train
@@ -419,6 +475,7 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
             raise FileExistsError(f"{ckpt_path} exists: pass resume=True (--resume) to continue, "
                                   f"or choose another output folder")
         previous = load_checkpoint(ckpt_path)
+    source = None if init_from is None else load_init_source(init_from, stage)
 
     # Initial weights are a function of the seed (resumed runs load theirs over them).
     torch.manual_seed(tcfg.seed + STAGES.index(stage))
@@ -427,11 +484,16 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
         if previous is not None:
             _check_same("vae", config.to_dict()["vae"], previous["config"]["vae"], ckpt_path)
             normalizer = Normalizer.from_state_dict(previous["normalizer"])
+        elif source is not None:
+            _check_compatible(source, "vae", config, dims, tcfg.audio_features)
+            normalizer = Normalizer.from_state_dict(source["normalizer"])
         else:
             normalizer = Normalizer(stats)
         vae, _ = build_models(config, dims)
         if previous is not None:
             vae.load_state_dict(previous["vae"])
+        elif source is not None:
+            vae.load_state_dict(source["vae"])
         run_config, objective = config, VAEObjective(vae, normalizer)
     else:
         if not (out_dir / "vae.pt").is_file():
@@ -460,6 +522,9 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
             flow.load_state_dict(previous["flow"])
             normalizer = Normalizer.from_state_dict(previous["normalizer"])
         else:
+            if source is not None:
+                _check_compatible(source, "flow", run_config, dims, tcfg.audio_features)
+                flow.load_state_dict(source["flow"])
             normalizer = Normalizer.from_state_dict(vae_ckpt["normalizer"])
         objective = FlowObjective(flow, vae, normalizer, tcfg.latent)
 
@@ -484,8 +549,12 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
     if start >= total:
         echo(f"{stage}: already trained to step {start} (>= {total}); nothing to do")
         return ckpt_path
+    origin = previous.get("init_from") if previous is not None else None
+    if source is not None:
+        origin = {"path": str(source["path"]), "step": int(source["step"])}
     echo(f"{stage}: steps {start} -> {total} on {info.device} (world size {info.world_size}), "
-         f"{sum(p.numel() for p in objective.trainable.parameters()) / 1e6:.2f}M parameters")
+         f"{sum(p.numel() for p in objective.trainable.parameters()) / 1e6:.2f}M parameters"
+         + (f", initialised from {origin['path']} (step {origin['step']})" if origin else ""))
 
     model = objective
     if info.world_size > 1:
@@ -503,6 +572,8 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
                    "optimizer": optimizer.state_dict(), "rng": capture_rng_state()}
         if stage == "flow":
             payload["flow"] = objective.flow.state_dict()
+        if origin is not None:
+            payload["init_from"] = origin
         save_checkpoint(ckpt_path, payload)
 
     loader = EpochBatches(dataset, tcfg, info, start_batch=start)

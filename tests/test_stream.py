@@ -13,7 +13,7 @@ from sarah_data.frames import rotation_about_y, window_transform
 from sarah_models.bench import random_models
 from sarah_models.config import RunConfig
 from sarah_models.stream import (StreamConfig, StreamingGenerator, StreamingSession, drop_masks,
-                                 generate_offline, solve)
+                                 generate_offline, imputer, integrate, solve)
 
 SHELL = 4
 S = 4  # stride of the tiny VAE
@@ -148,6 +148,36 @@ def test_streaming_equals_offline_where_the_maths_says_so(models):
     streamed, offline = stream(models, inputs, full), generate_offline(*models, head, a, b, full)
     np.testing.assert_allclose(streamed[:S], offline[:S], atol=1e-5)
     assert np.abs(streamed[S:] - offline[S:]).max() > 1e-4
+
+
+@pytest.mark.parametrize("solver, order", [("midpoint", 2), ("euler", 1)])
+def test_solver_converges_at_its_order(solver, order):
+    """On dz/dtau = (cos 3 tau - 1.5) z (exact: z0 exp(sin(3)/3 - 1.5)), halving the step
+    divides the error by 2^order: fewer steps approximate the same solution, they do not
+    draw another one."""
+    z0 = torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+    exact = z0 * np.exp(np.sin(3.0) / 3.0 - 1.5)
+
+    def error(steps: int) -> float:
+        z = integrate(lambda z, tau: (np.cos(3.0 * tau) - 1.5) * z, z0, imputer(z0, None),
+                      StreamConfig(steps=steps, solver=solver))
+        return float((z - exact).abs().max())
+
+    errors = [error(n) for n in (16, 32, 64, 128)]
+    for coarse, fine in zip(errors, errors[1:]):
+        assert coarse / fine == pytest.approx(2.0 ** order, rel=0.2)
+
+
+def test_fewer_steps_approach_the_many_step_stream(models):
+    """The same seed gives every token the same noise whatever the step count, so streams with
+    more steps converge to one motion (random weights: a rough field, slow but steady)."""
+    inputs = make_inputs(32)
+    reference = stream(models, inputs, StreamConfig(steps=8))
+    deviation = [np.abs(stream(models, inputs, StreamConfig(steps=n)) - reference).max()
+                 for n in (1, 2, 4)]
+    assert deviation[0] > deviation[1] > deviation[2] > 0
+    other_seed = np.abs(stream(models, inputs, StreamConfig(steps=4, seed=1)) - reference).max()
+    assert other_seed > 2 * deviation[2]
 
 
 def test_history_window_slides(models):

@@ -77,6 +77,23 @@ def test_warmup_schedule():
     assert lr_at(999, cfg) == lr_at(50_000, cfg) == 1e-4
 
 
+@pytest.mark.parametrize("schedule", ["linear", "cosine"])
+def test_decay_schedules_reach_the_final_ratio_at_the_last_step(schedule):
+    cfg = TrainConfig(lr=1e-3, warmup_steps=10, lr_schedule=schedule, final_lr_ratio=0.1)
+    total = 110
+    rates = [lr_at(step, cfg, total) for step in range(total)]
+    assert rates[:10] == [lr_at(step, replace(cfg, lr_schedule="constant"), total) for step in range(10)]
+    assert rates[10] == pytest.approx(1e-3) and rates[-1] == pytest.approx(1e-4)
+    assert all(a >= b for a, b in zip(rates[10:], rates[11:]))  # never rises after warmup
+    midpoint = 0.5 * (1e-3 + 1e-4)  # both shapes pass the midpoint half way through the decay
+    assert lr_at(60, cfg, total) == pytest.approx(midpoint, rel=0.02)
+    assert lr_at(10_000, cfg, total) == pytest.approx(1e-4)
+    with pytest.raises(ValueError, match="lr_schedule"):
+        TrainConfig(lr_schedule="step")
+    with pytest.raises(ValueError, match="final_lr_ratio"):
+        TrainConfig(final_lr_ratio=2.0)
+
+
 def test_config_round_trip_and_overrides():
     cfg = RunConfig.preset("paper")
     assert cfg.vae == VAEConfig() and cfg.flow == FlowConfig() and cfg.train == TrainConfig()
@@ -164,6 +181,60 @@ def test_resume_repeats_the_uninterrupted_run_exactly(tmp_path):
             assert torch.equal(value, b[stage][key]), key
     # The flow really trained: its zero-initialised output layer moved.
     assert load_checkpoint(straight / "flow.pt")["flow"]["out.proj.weight"].abs().sum() > 0
+
+
+def test_init_from_fine_tunes_with_a_new_loss_and_schedule(tmp_path):
+    base, tuned = tmp_path / "base", tmp_path / "tuned"
+    run("vae", base, 4)
+    run("flow", base, 4)
+    source = load_checkpoint(base / "vae.pt")
+    config = tiny_config(3, lr_schedule="linear")
+    config = replace(config, vae=replace(config.vae, velocity_weight=100.0),
+                     flow=replace(config.flow, drop_prob=0.2))
+    common = dict(device="cpu", dataset=SyntheticWindows(), stats=STATS, progress=False,
+                  echo=lambda _: None)
+    # Step 0 of the fine-tune starts from the source's weights: its first loss is the source
+    # model's loss on that batch, far below a fresh model's.
+    fresh = tmp_path / "fresh"
+    train("vae", config, None, fresh, **common)
+    train("vae", config, None, tuned, init_from=base, **common)
+    assert losses(tuned, "vae")[0][1] < 0.8 * losses(fresh, "vae")[0][1]
+    tuned_ckpt = load_checkpoint(tuned / "vae.pt")
+    assert tuned_ckpt["step"] == 3 and tuned_ckpt["config"]["vae"]["velocity_weight"] == 100.0
+    assert tuned_ckpt["init_from"] == {"path": str(base / "vae.pt"), "step": 4}
+    for key, value in source["normalizer"].items():  # the source's data statistics are kept
+        assert torch.equal(value, tuned_ckpt["normalizer"][key]), key
+    assert not torch.equal(source["vae"]["frame_out.weight"], tuned_ckpt["vae"]["frame_out.weight"])
+    # The flow starts from the source's flow on this run's (new) VAE, with a new dropout.
+    train("flow", config, None, tuned, init_from=base / "flow.pt", **common)
+    flow_ckpt = load_checkpoint(tuned / "flow.pt")
+    assert flow_ckpt["config"]["flow"]["drop_prob"] == 0.2
+    assert flow_ckpt["init_from"]["path"] == str(base / "flow.pt")
+    for key, value in flow_ckpt["vae"].items():
+        assert torch.equal(value, tuned_ckpt["vae"][key]), key
+    # Resuming an interrupted fine-tune keeps its origin.
+    train("vae", replace(config, train=replace(config.train, vae_steps=5)), None, tuned,
+          resume=True, **common)
+    assert load_checkpoint(tuned / "vae.pt")["init_from"]["step"] == 4
+
+
+def test_init_from_refuses_what_cannot_be_loaded(tmp_path):
+    base = tmp_path / "base"
+    run("vae", base, 2)
+    common = dict(device="cpu", dataset=SyntheticWindows(), stats=STATS, progress=False,
+                  echo=lambda _: None)
+    wider = tiny_config(2)
+    wider = replace(wider, vae=replace(wider.vae, hidden=64))
+    with pytest.raises(ValueError, match=r"hidden: 32 there, 64 here"):
+        train("vae", wider, None, tmp_path / "a", init_from=base, **common)
+    with pytest.raises(ValueError, match="no flow weights"):
+        run("vae", tmp_path / "b", 2)
+        train("flow", tiny_config(2), None, tmp_path / "b", init_from=base / "vae.pt", **common)
+    with pytest.raises(ValueError, match="use one of them"):
+        train("vae", tiny_config(2), None, base, resume=True, init_from=base, **common)
+    with pytest.raises(FileNotFoundError, match="missing"):
+        train("vae", tiny_config(2), None, tmp_path / "c", init_from=tmp_path / "missing", **common)
+    assert not (tmp_path / "a" / "vae.pt").exists() and not (tmp_path / "c").exists()
 
 
 def _ddp_replica_worker(rank: int, world: int, port: int, out: str) -> None:
