@@ -51,6 +51,12 @@ class VAEConfig:
     # differences. Short CPU runs leave frame-to-frame noise that a position loss barely sees
     # (docs/models.md); this term targets it directly.
     velocity_weight: float = 0.0
+    # Not in the paper (0 = the paper): weight of the planted-foot term, the squared error of
+    # the decoded feet's horizontal step on the frames where the true foot is planted (by the
+    # foot-slide metric's own thresholds), in units of that metric's slide threshold. The
+    # standard foot-contact loss of motion generation (e.g. MDM), for a metric the position
+    # MSE cannot see: 1 mm per frame decides whether a planted foot "slides".
+    contact_weight: float = 0.0
 
     @classmethod
     def paper(cls) -> "VAEConfig":

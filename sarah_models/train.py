@@ -88,11 +88,13 @@ def cleanup_distributed() -> None:
 # --------------------------------------------------------------------------- objectives
 
 class VAEObjective(nn.Module):
-    """Standardize the motion of a batch and return the VAE loss dict."""
+    """Standardize the motion of a batch and return the VAE loss dict (plus the planted-foot
+    term when ``vae.config.contact_weight`` > 0)."""
 
     def __init__(self, vae: CausalVAE, normalizer: Normalizer) -> None:
         super().__init__()
         self.vae, self.normalizer = vae, normalizer
+        self.contact = PlantedFeet(vae.motion_dim) if vae.config.contact_weight > 0 else None
 
     @property
     def trainable(self) -> nn.Module:
@@ -101,7 +103,48 @@ class VAEObjective(nn.Module):
     def forward(self, batch: Mapping[str, Tensor], generator: torch.Generator | None = None):
         device = self.normalizer.motion_mean.device
         motion = self.normalizer.normalize_batch({"motion": batch["motion"]}, device)["motion"]
-        return self.vae(motion, generator)
+        out = self.vae(motion, generator)
+        if self.contact is None:
+            return out
+        to_metres = lambda x: self.normalizer.denormalize("motion", x.float())  # noqa: E731
+        term = self.contact(to_metres(out["x_hat"]), to_metres(motion))
+        return {**out, "loss": out["loss"] + self.vae.config.contact_weight * term, "contact": term}
+
+
+class PlantedFeet(nn.Module):
+    """Squared error of the decoded feet's horizontal step while the true foot is planted.
+
+    Planted, per foot and frame step: the true foot joint (icosahedron centroid) is below the
+    foot-slide metric's height at both ends of the step and moves less than its speed. The error
+    is in units of that speed's step (``foot_min_speed / FPS``: 1 mm at 30 fps), averaged over
+    planted steps. Inputs: motion in metres, window frame (floor at y = 0), icosahedra first."""
+
+    def __init__(self, motion_dim: int) -> None:
+        super().__init__()
+        from sarah_data.constants import FPS, JOINT, NUM_JOINTS
+
+        from .metrics import MetricsConfig
+
+        if motion_dim < NUM_JOINTS * 36:
+            raise ValueError(f"vae.contact_weight needs the icosahedron motion layout "
+                             f"({NUM_JOINTS}*12*3 channels first); this motion has {motion_dim}")
+        metric = MetricsConfig()
+        self.joints = [JOINT[name] for name in metric.foot_joints]
+        self.max_height, self.step = metric.foot_max_height, metric.foot_min_speed / FPS
+
+    def feet(self, motion: Tensor) -> Tensor:
+        b, t, _ = motion.shape
+        return torch.stack([motion[..., 36 * j:36 * (j + 1)].reshape(b, t, 12, 3).mean(2)
+                            for j in self.joints], dim=2)  # (B, T, feet, 3)
+
+    def forward(self, decoded: Tensor, true: Tensor) -> Tensor:
+        pred, gt = self.feet(decoded), self.feet(true)
+        true_step = gt[:, 1:, :, [0, 2]] - gt[:, :-1, :, [0, 2]]
+        pred_step = pred[:, 1:, :, [0, 2]] - pred[:, :-1, :, [0, 2]]
+        planted = ((torch.maximum(gt[:, 1:, :, 1], gt[:, :-1, :, 1]) < self.max_height)
+                   & (true_step.norm(dim=-1) < self.step)).float()
+        error = (pred_step - true_step).square().sum(-1) / self.step ** 2
+        return (error * planted).sum() / planted.sum().clamp_min(1.0)
 
 
 class FlowObjective(nn.Module):
@@ -196,7 +239,7 @@ class EpochBatches:
 
 # --------------------------------------------------------------------------- logging
 
-PLOTTED = ("loss", "recon", "velocity", "kl")  # positive losses, drawn on a log scale
+PLOTTED = ("loss", "recon", "velocity", "contact", "kl")  # positive losses, drawn on a log scale
 
 
 class RunLog:
@@ -400,7 +443,8 @@ def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
 
 
 # Fields a fine-tune may change: they shape the loss, not the weights.
-LOSS_FIELDS = {"vae": ("beta", "velocity_weight"), "flow": ("drop_prob", "min_denominator")}
+LOSS_FIELDS = {"vae": ("beta", "velocity_weight", "contact_weight"),
+               "flow": ("drop_prob", "min_denominator")}
 
 
 def load_init_source(path: str | Path, stage: str) -> dict[str, Any]:

@@ -34,6 +34,8 @@ Positions: RoPE over the index of each token in its interleaved sequence. The lo
 squared error per motion element plus beta times the KL per latent element (both means, so
 beta = 1e-4 keeps its paper meaning of "a small KL weight" independent of T, Dx and Dz), plus
 ``velocity_weight`` times the mean squared error of frame-to-frame differences (0 in the paper).
+The planted-foot term (``contact_weight``) needs the motion layout and metres, so the training
+objective adds it (``train.VAEObjective``).
 """
 
 from __future__ import annotations

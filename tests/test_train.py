@@ -14,7 +14,8 @@ import torch.multiprocessing as mp
 from cli.train import build_parser, main
 from sarah_models.checkpoint import capture_rng_state, load_checkpoint, load_models, restore_rng_state
 from sarah_models.config import FlowConfig, RunConfig, TrainConfig, VAEConfig
-from sarah_models.train import DistInfo, EpochBatches, lr_at, model_stats, train
+from sarah_models.train import (DistInfo, EpochBatches, PlantedFeet, VAEObjective, lr_at,
+                                model_stats, train)
 
 WINDOW, DX, DA = 16, 21, 6
 
@@ -92,6 +93,65 @@ def test_decay_schedules_reach_the_final_ratio_at_the_last_step(schedule):
         TrainConfig(lr_schedule="step")
     with pytest.raises(ValueError, match="final_lr_ratio"):
         TrainConfig(final_lr_ratio=2.0)
+
+
+def _feet_motion(left_xz, left_y, frames: int) -> torch.Tensor:
+    """(1, T, Dx) icosahedron-first motion in metres: the left foot at the given track, every
+    other joint at the origin (0.5 m up), 4 shell points."""
+    from sarah_data import icosahedron
+    from sarah_data.constants import JOINT, NUM_JOINTS
+
+    positions = np.zeros((frames, NUM_JOINTS, 3))
+    positions[..., 1] = 0.5
+    positions[:, JOINT["left_foot"], [0, 2]] = left_xz
+    positions[:, JOINT["left_foot"], 1] = left_y
+    positions[:, JOINT["right_foot"], 1] = 0.5  # lifted: never planted
+    ico = icosahedron.encode(positions, np.broadcast_to(np.eye(3), (frames, NUM_JOINTS, 3, 3)))
+    motion = np.concatenate([ico.reshape(frames, -1), np.zeros((frames, 12))], axis=1)
+    return torch.tensor(motion[None], dtype=torch.float32)
+
+
+def test_planted_feet_term_counts_only_planted_steps_in_threshold_units():
+    from sarah_data.constants import NUM_JOINTS
+
+    frames = 9
+    still = np.zeros((frames, 2))
+    true = _feet_motion(still, np.full(frames, 0.03), frames)  # planted below 5 cm throughout
+    term = PlantedFeet(true.shape[-1])
+    assert float(term(true, true)) == 0.0
+    # Decoded foot jitters 1 mm per frame along x (= 3 cm/s at 30 fps): one threshold unit.
+    jitter = np.stack([1e-3 * (np.arange(frames) % 2), np.zeros(frames)], 1)
+    assert float(term(_feet_motion(jitter, np.full(frames, 0.03), frames), true)) == pytest.approx(1.0, rel=1e-3)
+    # Steps where the true foot is lifted (> 5 cm) or really moving (> 3 cm/s) do not count;
+    # on a walk the decoded foot following the true step costs nothing.
+    lifted = _feet_motion(still, np.full(frames, 0.2), frames)
+    assert float(term(_feet_motion(jitter, np.full(frames, 0.2), frames), lifted)) == 0.0
+    walk = np.stack([0.01 * np.arange(frames), np.zeros(frames)], 1)
+    walking = _feet_motion(walk, np.full(frames, 0.03), frames)
+    assert float(term(_feet_motion(walk + jitter, np.full(frames, 0.03), frames), walking)) == 0.0
+    with pytest.raises(ValueError, match="icosahedron motion layout"):
+        PlantedFeet(NUM_JOINTS * 36 - 1)
+
+
+def test_vae_objective_adds_the_weighted_contact_term():
+    from sarah_models.normalizer import Normalizer
+
+    frames = 8
+    motion = _feet_motion(np.zeros((frames, 2)), np.full(frames, 0.03), frames)
+    dx = motion.shape[-1]
+    stats = {"motion": (np.zeros(dx), np.full(dx, 0.3))}
+    config = replace(tiny_config(1).vae, hidden=32, latent_dim=8, encoder_layers=1,
+                     decoder_layers=1, contact_weight=0.5)
+    from sarah_models.vae import CausalVAE
+
+    torch.manual_seed(0)
+    objective = VAEObjective(CausalVAE(config, dx), Normalizer(stats))
+    out = objective({"motion": motion}, torch.Generator().manual_seed(0))
+    plain = out["recon"] + config.beta * out["kl"] + config.velocity_weight * out["velocity"]
+    assert out["contact"].item() > 0
+    assert out["loss"].item() == pytest.approx((plain + 0.5 * out["contact"]).item(), rel=1e-5)
+    out["loss"].backward()  # differentiable through the de-standardization
+    assert objective.vae.frame_out.weight.grad.abs().sum() > 0
 
 
 def test_config_round_trip_and_overrides():
