@@ -57,6 +57,12 @@ class VAEConfig:
     # standard foot-contact loss of motion generation (e.g. MDM), for a metric the position
     # MSE cannot see: 1 mm per frame decides whether a planted foot "slides".
     contact_weight: float = 0.0
+    # Not in the paper (0 = the paper): Gaussian noise added to the decoder's latent input in
+    # training, as a fraction of the batch's per-channel latent std. The decoder then maps a
+    # neighbourhood of each latent to the same motion, so a flow sample that is slightly off
+    # the encoder's latents still decodes to smooth motion. With train.freeze_encoder the latent
+    # space (and so a trained flow) stays valid.
+    latent_noise: float = 0.0
 
     @classmethod
     def paper(cls) -> "VAEConfig":
@@ -109,6 +115,8 @@ class TrainConfig:
     adam_betas: tuple[float, float] = (0.9, 0.999)
     weight_decay: float = 1e-4
     grad_clip: float = 0.0  # 0 disables (the paper states none)
+    # VAE stage: train the decoder only (encoder weights, and so its latents, stay fixed).
+    freeze_encoder: bool = False
     vae_steps: int = 200_000
     flow_steps: int = 300_000
     latent: str = "mean"  # flow target from the frozen encoder: "mean" (mu) or "sample"

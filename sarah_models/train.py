@@ -443,7 +443,7 @@ def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
 
 
 # Fields a fine-tune may change: they shape the loss, not the weights.
-LOSS_FIELDS = {"vae": ("beta", "velocity_weight", "contact_weight"),
+LOSS_FIELDS = {"vae": ("beta", "velocity_weight", "contact_weight", "latent_noise"),
                "flow": ("drop_prob", "min_denominator")}
 
 
@@ -538,6 +538,9 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
             vae.load_state_dict(previous["vae"])
         elif source is not None:
             vae.load_state_dict(source["vae"])
+        if tcfg.freeze_encoder:
+            for part in vae.encoder_modules():
+                part.requires_grad_(False)
         run_config, objective = config, VAEObjective(vae, normalizer)
     else:
         if not (out_dir / "vae.pt").is_file():
@@ -598,6 +601,8 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
         origin = {"path": str(source["path"]), "step": int(source["step"])}
     echo(f"{stage}: steps {start} -> {total} on {info.device} (world size {info.world_size}), "
          f"{sum(p.numel() for p in objective.trainable.parameters()) / 1e6:.2f}M parameters"
+         + (f" ({sum(p.numel() for p in objective.trainable.parameters() if p.requires_grad) / 1e6:.2f}M "
+            f"trained, encoder frozen)" if stage == "vae" and tcfg.freeze_encoder else "")
          + (f", initialised from {origin['path']} (step {origin['step']})" if origin else ""))
 
     model = objective

@@ -34,6 +34,7 @@ Positions: RoPE over the index of each token in its interleaved sequence. The lo
 squared error per motion element plus beta times the KL per latent element (both means, so
 beta = 1e-4 keeps its paper meaning of "a small KL weight" independent of T, Dx and Dz), plus
 ``velocity_weight`` times the mean squared error of frame-to-frame differences (0 in the paper).
+``latent_noise`` > 0 adds noise to the decoder's input latents in training (0 in the paper).
 The planted-foot term (``contact_weight``) needs the motion layout and metres, so the training
 objective adds it (``train.VAEObjective``).
 """
@@ -126,6 +127,11 @@ class CausalVAE(nn.Module):
         logvar = self.logvar_out(out[:, :, s + 1]).clamp(-30.0, 20.0)
         return self.mu_out(out[:, :, s]), logvar
 
+    def encoder_modules(self) -> list[nn.Module | nn.Parameter]:
+        """Everything ``encode`` uses (frozen by ``train.freeze_encoder``)."""
+        return [self.frame_in, self.mu_token, self.sigma_token, self.encoder, self.encoder_norm,
+                self.mu_out, self.logvar_out]
+
     def _decoder_tokens(self, z: Tensor) -> Tensor:
         b, k, _ = z.shape
         s, h = self.stride, self.config.hidden
@@ -178,6 +184,10 @@ class CausalVAE(nn.Module):
         mu, logvar = self.encode(x)
         noise = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
         z = mu + noise * (0.5 * logvar).exp()
+        if self.config.latent_noise > 0:
+            spread = mu.detach().flatten(0, 1).std(0)
+            z = z + self.config.latent_noise * spread * torch.randn(
+                mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
         x_hat = self.decode(z)
         terms = self.loss_terms(x_hat, x)
         kl = self.kl(mu.float(), logvar.float())

@@ -278,6 +278,39 @@ def test_init_from_fine_tunes_with_a_new_loss_and_schedule(tmp_path):
     assert load_checkpoint(tuned / "vae.pt")["init_from"]["step"] == 4
 
 
+def test_decoder_fine_tune_with_latent_noise_keeps_the_encoder(tmp_path):
+    """train.freeze_encoder + vae.latent_noise: only the decoder moves, so the latents a flow
+    was trained on stay exactly the same."""
+    base, tuned = tmp_path / "base", tmp_path / "tuned"
+    run("vae", base, 3)
+    config = tiny_config(3, freeze_encoder=True)
+    config = replace(config, vae=replace(config.vae, latent_noise=0.3))
+    train("vae", config, None, tuned, init_from=base, device="cpu", dataset=SyntheticWindows(),
+          stats=STATS, progress=False, echo=lambda _: None)
+    before, after = load_checkpoint(base / "vae.pt")["vae"], load_checkpoint(tuned / "vae.pt")["vae"]
+    encoder = ("frame_in.", "mu_token", "sigma_token", "encoder.", "encoder_norm.", "mu_out.",
+               "logvar_out.")
+    assert sum(k.startswith(encoder) for k in before) >= 7
+    for key, value in before.items():
+        if key.startswith(encoder):
+            assert torch.equal(value, after[key]), key
+    assert not torch.equal(before["frame_out.weight"], after["frame_out.weight"])
+
+
+def test_latent_noise_perturbs_only_the_decoder_input():
+    from sarah_models.vae import CausalVAE
+
+    x = torch.randn(2, WINDOW, DX, generator=torch.Generator().manual_seed(0))
+    vae_config = tiny_config(1).vae
+    outs = {}
+    for noise in (0.0, 0.5):
+        torch.manual_seed(0)
+        vae = CausalVAE(replace(vae_config, latent_noise=noise), DX)
+        outs[noise] = vae(x, torch.Generator().manual_seed(1))
+    assert torch.equal(outs[0.0]["mu"], outs[0.5]["mu"])
+    assert not torch.allclose(outs[0.0]["x_hat"], outs[0.5]["x_hat"])
+
+
 def test_init_from_refuses_what_cannot_be_loaded(tmp_path):
     base = tmp_path / "base"
     run("vae", base, 2)
