@@ -9,7 +9,7 @@ from pathlib import Path
 
 def build_parser() -> argparse.ArgumentParser:
     from sarah_models.bench import BenchConfig
-    from sarah_models.fast import MODE_HELP, MODES
+    from sarah_models.fast import DECODER_PRECISIONS, MODE_HELP, MODES
 
     defaults = BenchConfig()
     parser = argparse.ArgumentParser(
@@ -23,6 +23,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--mode", choices=MODES, default=defaults.mode,
                         help="optimization of the fast path: "
                              + "; ".join(f"{m}: {h}" for m, h in MODE_HELP.items()))
+    parser.add_argument("--decoder", choices=DECODER_PRECISIONS, default=defaults.decoder,
+                        help="the VAE decoder's Linears in the int8 and bf16 modes: auto = bf16 "
+                             "on a CPU with native bfloat16 (AVX512-BF16, AMX), fp32 otherwise")
     parser.add_argument("--sizes", default=",".join(defaults.sizes),
                         help="model sizes to benchmark (paper, tiny)")
     parser.add_argument("--quick", action="store_true",
@@ -43,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from sarah_models.bench import BenchConfig, format_report, history_row, run_bench, write_json
 
-    overrides = {"threads": args.threads, "mode": args.mode}
+    overrides = {"threads": args.threads, "mode": args.mode, "decoder": args.decoder}
     if args.sizes != ",".join(BenchConfig().sizes) or not args.quick:
         overrides["sizes"] = tuple(s.strip() for s in args.sizes.split(",") if s.strip())
     if args.no_prep:

@@ -18,6 +18,7 @@ Two ways to choose windows (paper A.2):
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import math
 import weakref
@@ -57,11 +58,18 @@ def window_motion(points: np.ndarray, transform: WindowTransform,
 
     One float32 matmul writes the result straight into `out` (e.g. a row of a batch buffer): the
     window is the loader's biggest array, and every extra pass over it costs about a millisecond.
+    The matmul is numpy's (OpenBLAS) on one thread: for this (N, 4) x (4, 3) shape torch's MKL
+    sgemm took 3x as long on an AMD EPYC (2.4 against 0.8 ms per 400-frame window), and
+    OpenBLAS's own threads, next to torch's or in forked loader workers, made it up to 10x slower
+    (docs/performance.md).
     """
     frames = points.shape[0]
     out = torch.empty((frames, points.shape[1] * 3)) if out is None else out
-    matrix = torch.from_numpy(transform.matrix().astype(np.float32))
-    torch.mm(torch.from_numpy(points).view(-1, 4), matrix, out=out.view(-1, 3))
+    if not out.is_contiguous():
+        raise ValueError("window_motion writes into a contiguous tensor only")
+    matrix = transform.matrix().astype(np.float32)
+    with _blas_threads().limit(limits=1, user_api="blas"):
+        np.matmul(points.reshape(-1, 4), matrix, out=out.numpy().reshape(-1, 3))
     return out
 
 
@@ -349,7 +357,7 @@ def _rows_of(values: list) -> torch.Tensor | None:
 
 @contextlib.contextmanager
 def _one_thread():
-    """The window matmul is memory-bound: in the main process (num_workers=0) a second intra-op
+    """Filling a batch is memory-bound: in the main process (num_workers=0) a second intra-op
     thread doubled its CPU time and, on a busy machine, tripled its wall time. DataLoader workers
     already run with one thread."""
     threads = torch.get_num_threads()
@@ -361,6 +369,14 @@ def _one_thread():
         yield
     finally:
         torch.set_num_threads(threads)
+
+
+@functools.cache
+def _blas_threads():
+    """This process's BLAS thread pools (scanned once, ~1 ms; a limit then costs ~10 us)."""
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
 
 
 def _empty_float32(shape: tuple[int, ...], shared: bool = False) -> torch.Tensor:

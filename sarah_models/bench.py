@@ -40,7 +40,8 @@ from sarah_data.constants import AUDIO_SAMPLE_RATE, FPS, NUM_JOINTS, SAMPLES_PER
 
 from .checkpoint import build_models
 from .config import RunConfig
-from .fast import MODES, optimize_for_inference, stream_deviation, warm_time_grid
+from .fast import (DECODER_PRECISIONS, MODES, native_bf16, optimize_for_inference,
+                   resolve_decoder, stream_deviation, warm_time_grid)
 from .flow import FlowModel
 from .normalizer import Normalizer
 from .stream import (StreamConfig, StreamingGenerator, drop_masks, generate_offline, imputer, integrate,
@@ -67,6 +68,7 @@ class BenchConfig:
 
     threads: int = 2
     mode: str = "int8"  # the optimized path (fast.MODES)
+    decoder: str = "auto"  # the VAE decoder's precision in that path (fast.DECODER_PRECISIONS)
     sizes: tuple[str, ...] = ("paper", "tiny")
     stream_frames: int = 400  # streamed by the optimized generator
     naive_frames: int = 64  # streamed by the naive reference (its cost grows per chunk)
@@ -96,6 +98,7 @@ class BenchConfig:
             raise ValueError(f"threads must be >= 1, got {self.threads}")
         if self.mode not in MODES:
             raise ValueError(f"unknown mode {self.mode!r}; choose from {MODES}")
+        resolve_decoder(self.decoder, self.mode, torch.device("cpu"))  # raises on a bad pair
         unknown = [s for s in self.sizes if s not in ("paper", "tiny")]
         if unknown:
             raise ValueError(f"unknown model sizes {unknown}; choose from paper, tiny")
@@ -405,7 +408,7 @@ def bench_model_size(size: str, cfg: BenchConfig, log: Callable[[str], None]) ->
 
     extractor = get_extractor("logmel")
     plain = random_models(size, audio_dim=extractor.dim, seed=cfg.seed)
-    fast = optimize_for_inference(plain, cfg.mode)
+    fast = optimize_for_inference(plain, cfg.mode, decoder=cfg.decoder)
     frames = max(cfg.stream_frames, cfg.naive_frames, cfg.offline_frames)
     inputs = synthetic_inputs(frames, cfg.seed)
     features = extractor.extract(inputs["agent_wave"], frames)
@@ -568,6 +571,7 @@ def environment(threads: int) -> dict[str, Any]:
     return {"date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
             "cpu": cpu, "cores": os.cpu_count(), "threads": threads, "torch": torch.__version__,
             "numpy": np.__version__, "python": platform.python_version(),
+            "native_bf16": native_bf16(),
             "load_before": list(os.getloadavg())}
 
 
@@ -580,6 +584,8 @@ def run_bench(cfg: BenchConfig = BenchConfig(), workdir: Path | None = None,
     threads_before = torch.get_num_threads()
     torch.set_num_threads(cfg.threads)
     results: dict[str, Any] = {"environment": environment(cfg.threads), "config": asdict(cfg)}
+    results["config"]["decoder_precision"] = resolve_decoder(cfg.decoder, cfg.mode,
+                                                             torch.device("cpu"))
     started = time.perf_counter()
     own_dir = workdir is None
     work = Path(tempfile.mkdtemp(prefix="sarah-bench-")) if own_dir else Path(workdir)
@@ -601,7 +607,7 @@ def run_bench(cfg: BenchConfig = BenchConfig(), workdir: Path | None = None,
                 log(f"prep (logmel): -j 1 and -j {cfg.prep_jobs}")
                 results["prep"] = {"logmel": bench_prep(raw, shards, PrepConfig(), cfg.prep_jobs,
                                                         cfg.threads)}
-            if cfg.loader and not (work / "shards").exists():
+            if cfg.loader and not (work / "shards" / "manifest.json").exists():
                 from sarah_data.prep import prepare
 
                 with _threads(cfg.threads):
@@ -716,7 +722,9 @@ def format_report(results: dict[str, Any]) -> str:
                          f"{_f(row['ratio'], 2)}")
     streaming = results.get("streaming", {})
     if streaming:
-        lines += ["", "streaming (chunks of 4 frames, midpoint x 4 = 8 NFE, cfg 1.3, logmel audio)"]
+        cfg = results["config"]
+        lines += ["", "streaming (chunks of 4 frames, midpoint x 4 = 8 NFE, cfg 1.3, logmel audio; "
+                      f"fast = {cfg['mode']} flow, {cfg.get('decoder_precision', 'fp32')} decoder)"]
         header = (f"  {'':<16}{'fps':>8}  {'p50 ms':>8}  {'p99 ms':>8}   "
                   f"stage p50/p99 ms: audio | flow | decode | other")
         lines.append(header)

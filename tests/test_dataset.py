@@ -11,8 +11,9 @@ from scipy.spatial.transform import Rotation
 
 from sarah_data import icosahedron
 from sarah_data.constants import JOINT_NAMES
-from sarah_data.dataset import (WindowDataset, collate_windows, normalize_window, sliding_starts,
-                                tracked_runs, valid_starts)
+from sarah_data.dataset import (WindowDataset, collate_windows, homogeneous_points,
+                                normalize_window, sliding_starts, tracked_runs, valid_starts,
+                                window_motion)
 from sarah_data.frames import WindowTransform, window_transform
 from sarah_data.shards import (MANIFEST_NAME, STATS_NAME, Manifest, ProcessedPerson,
                                ProcessedSequence, ShardAttrs, ShardError, ShardWriter, write_manifest)
@@ -289,6 +290,26 @@ def test_batches_leave_the_intra_op_thread_count_as_it_was(folder):
         torch.set_num_threads(threads)
     for item in items:
         check_item(item, seqs)
+
+
+@settings(max_examples=25, deadline=None)
+@given(yaw=st.floats(-np.pi, np.pi), x=st.floats(-5, 5), z=st.floats(-5, 5),
+       frames=st.integers(1, 9), seed=st.integers(0, 2**16))
+def test_window_motion_is_the_rigid_transform_on_one_blas_thread(yaw, x, z, frames, seed):
+    from threadpoolctl import threadpool_info
+
+    rng = np.random.default_rng(seed)
+    ico, shell = rng.normal(size=(frames, 3, 12, 3)), rng.normal(size=(frames, 5, 3))
+    transform = WindowTransform(yaw, x, z)
+    points = homogeneous_points(ico, shell)
+    blas_before = [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+    out = torch.full((frames, 41 * 3), np.nan)
+    assert window_motion(points, transform, out=out) is out
+    expected = points.astype(np.float64) @ transform.matrix().astype(np.float32).astype(np.float64)
+    np.testing.assert_allclose(out.numpy().reshape(frames, 41, 3), expected, rtol=1e-5, atol=1e-5)
+    assert [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"] == blas_before
+    with pytest.raises(ValueError, match="contiguous"):
+        window_motion(points, transform, out=torch.empty((frames, 41 * 3 * 2))[:, ::2])
 
 
 def test_normalize_window_is_the_item_transform(folder):

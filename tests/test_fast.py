@@ -22,8 +22,10 @@ from hypothesis import given, settings, strategies as st
 from sarah_models.bench import NaiveStreamer, random_models
 from sarah_models.checkpoint import LoadedModels
 from sarah_models.config import RunConfig
-from sarah_models.fast import (BF16Linear, BufferedKVCache, InputMemo, optimize_for_inference,
-                               solver_times, stream_deviation, stream_inputs)
+import sarah_models.fast as fast_module
+from sarah_models.fast import (BF16Linear, BufferedKVCache, InputMemo, decoder_linears,
+                               optimize_for_inference, resolve_decoder, solver_times,
+                               stream_deviation, stream_inputs)
 from sarah_models.layers import KVCache, RopeAngles
 from sarah_models.stream import StreamConfig, StreamingGenerator
 
@@ -101,11 +103,42 @@ def test_reduced_precision_within_tolerance(tiny, mode):
     assert deviation.wrist_speed_delta <= METRIC_TOLERANCE
 
 
-def test_int8_within_tolerance_at_paper_size():
+@pytest.mark.parametrize("decoder", ["fp32", "bf16"])
+def test_int8_within_tolerance_at_paper_size(decoder):
     paper = random_models("paper", audio_dim=AUDIO_DIM, shell_points=SHELL, seed=1)
-    deviation = stream_deviation(paper, optimize_for_inference(paper, "int8"), frames=12)
+    fast = optimize_for_inference(paper, "int8", decoder=decoder)
+    assert any(isinstance(m, BF16Linear) for m in fast[0].modules()) == (decoder == "bf16")
+    deviation = stream_deviation(paper, fast, frames=12)
     assert 0.0 < deviation.max_joint_mm <= TOLERANCE_MM, deviation
     assert deviation.head_angle_delta <= METRIC_TOLERANCE
+
+
+def test_bf16_decoder_converts_the_decode_path_only(tiny):
+    fast = optimize_for_inference(tiny, "int8", decoder="bf16")
+    vae, names = fast[0], decoder_linears(tiny[0])
+    assert "frame_out" in names and "decoder.0.attn.qkv" in names
+    for name in names:
+        assert isinstance(vae.get_submodule(name), BF16Linear), name
+    assert all(type(m) is torch.nn.Linear for m in vae.encoder.modules()
+               if isinstance(m, (torch.nn.Linear, BF16Linear)))
+    deviation = stream_deviation(tiny, fast, frames=32)
+    assert 0.0 < deviation.max_joint_mm <= TOLERANCE_MM, deviation
+
+
+def test_decoder_precision_rules(monkeypatch):
+    cpu = torch.device("cpu")
+    for native, expected in ((True, "bf16"), (False, "fp32")):
+        monkeypatch.setattr(fast_module, "native_bf16", lambda native=native: native)
+        assert resolve_decoder("auto", "int8", cpu) == expected
+        assert resolve_decoder("auto", "bf16", cpu) == expected
+        assert resolve_decoder("auto", "fp32", cpu) == "fp32"  # the exact mode stays exact
+    assert resolve_decoder("bf16", "int8", cpu) == "bf16"
+    assert resolve_decoder("fp32", "int8", cpu) == "fp32"
+    assert resolve_decoder("auto", "int8", torch.device("meta")) == "fp32"
+    with pytest.raises(ValueError, match="exact|fp32"):
+        resolve_decoder("bf16", "fp32", cpu)
+    with pytest.raises(ValueError, match="decoder precision"):
+        resolve_decoder("fp16", "int8", cpu)
 
 
 def test_solver_times_are_the_midpoint_grid():
