@@ -25,7 +25,8 @@ def build_parser() -> argparse.ArgumentParser:
                              + "; ".join(f"{m}: {h}" for m, h in MODE_HELP.items()))
     parser.add_argument("--decoder", choices=DECODER_PRECISIONS, default=defaults.decoder,
                         help="the VAE decoder's Linears in the int8 and bf16 modes: auto = bf16 "
-                             "on a CPU with native bfloat16 (AVX512-BF16, AMX), fp32 otherwise")
+                             "where it measured faster (AMX, or AVX512-BF16 on a non-Intel CPU), "
+                             "fp32 otherwise")
     parser.add_argument("--sizes", default=",".join(defaults.sizes),
                         help="model sizes to benchmark (paper, tiny)")
     parser.add_argument("--quick", action="store_true",

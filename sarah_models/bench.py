@@ -40,7 +40,7 @@ from sarah_data.constants import AUDIO_SAMPLE_RATE, FPS, NUM_JOINTS, SAMPLES_PER
 
 from .checkpoint import build_models
 from .config import RunConfig
-from .fast import (DECODER_PRECISIONS, MODES, native_bf16, optimize_for_inference,
+from .fast import (DECODER_PRECISIONS, MODES, optimize_for_inference, prefer_bf16_decoder,
                    resolve_decoder, stream_deviation, warm_time_grid)
 from .flow import FlowModel
 from .normalizer import Normalizer
@@ -571,7 +571,7 @@ def environment(threads: int) -> dict[str, Any]:
     return {"date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
             "cpu": cpu, "cores": os.cpu_count(), "threads": threads, "torch": torch.__version__,
             "numpy": np.__version__, "python": platform.python_version(),
-            "native_bf16": native_bf16(),
+            "bf16_decoder_preferred": prefer_bf16_decoder(),
             "load_before": list(os.getloadavg())}
 
 
@@ -772,8 +772,11 @@ def history_row(results: dict[str, Any]) -> str:
         value = _lookup(results, key)
         return _f(value)
 
+    mode = results["config"]["mode"]
+    if results["config"].get("decoder_precision") == "bf16":
+        mode += ", bf16 decoder"
     return (f"| {env['date'][:10]} | {env['cpu']} | {env['threads']} | {env['torch']} | "
-            f"{results['config']['mode']} | {get('streaming.paper.fps')} | "
+            f"{mode} | {get('streaming.paper.fps')} | "
             f"{get('streaming.paper.latency_ms.p99')} | "
             f"{get('streaming.paper.fewer_steps.latency_ms.p99')} | {get('offline.paper.fps')} | "
             f"{get('streaming.tiny.fps')} | {get('prep.logmel.rtf')} | "

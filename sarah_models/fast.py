@@ -24,10 +24,10 @@ the time, and ``fused`` cuts their number:
   flow's transformer blocks (``block_linears``) -- 4x fewer weight bytes and VNNI int8
   arithmetic. Input/output projections, condition encoders and the VAE stay fp32.
 * ``bf16``: the same Linears with bfloat16 weights and activations (2x fewer bytes).
-* ``decoder`` (int8 and bf16 modes): the VAE decoder's Linears in bfloat16 (``BF16Linear``) on a
-  CPU with native bfloat16 arithmetic (AVX512-BF16 or AMX, ``native_bf16``), fp32 elsewhere
-  (``decoder="auto"``). On a 2-core AMD EPYC with AVX512-BF16 it took ~4 ms off a streamed
-  chunk for 0.5 mm more deviation; on a Xeon without it a bf16 decode step was slower than fp32.
+* ``decoder`` (int8 and bf16 modes): the VAE decoder's Linears in bfloat16 (``BF16Linear``)
+  where that measured faster than fp32 (``prefer_bf16_decoder``: AMX, or AVX512-BF16 on a
+  non-Intel CPU, where torch's MKL fp32 GEMM is slow), fp32 elsewhere (``decoder="auto"``). On a
+  2-core AMD EPYC it took 2 ms off a decode step for 0.5 mm more deviation at paper size.
 * ``fused`` (int8 and bf16 modes): the flow's solver evaluations run ``fused.FusedFlowForward``,
   the same maths in about a third of the tensor operations (AdaLN modulation folded into the
   LayerNorm affine, gates as ``addcmul``, RoPE from tables); rounding differs from the module
@@ -79,10 +79,11 @@ DECODER_PRECISIONS = ("auto", "fp32", "bf16")
 MODE_HELP = {
     "none": "the plain models (only the thread count is set)",
     "fp32": "fp32 with the flow-time path memoized for the solver grid (exact)",
-    "bf16": "fp32 time cache + bfloat16 Linear layers + fused forwards (+ a bf16 VAE decoder on "
-            "CPUs with native bf16)",
+    "bf16": "fp32 time cache + bfloat16 Linear layers + fused forwards (+ a bf16 VAE decoder "
+            "where it is faster: AMX, or AVX512-BF16 on non-Intel CPUs)",
     "int8": "fp32 time cache + dynamic int8 Linear layers (per-channel weight scales) + fused "
-            "forwards (+ a bf16 VAE decoder on CPUs with native bf16)",
+            "forwards (+ a bf16 VAE decoder where it is faster: AMX, or AVX512-BF16 on non-Intel "
+            "CPUs)",
 }
 
 
@@ -309,13 +310,30 @@ def to_bf16(flow: FlowModel) -> FlowModel:
     return flow
 
 
-def native_bf16() -> bool:
-    """Whether this CPU has bfloat16 matmul instructions (AVX512-BF16 or AMX): without them
-    oneDNN emulates bf16 and a bf16 Linear is slower than fp32."""
+def cpu_vendor() -> str:
+    """The CPU's vendor id ("GenuineIntel", "AuthenticAMD", ...; "" when unknown)."""
+    try:
+        for line in open("/proc/cpuinfo", encoding="ascii", errors="replace"):
+            if line.startswith("vendor_id"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return ""
+
+
+def prefer_bf16_decoder() -> bool:
+    """Whether a bf16 VAE decoder beats fp32 on this CPU, from measurements, not theory: AMX
+    (bf16 tiles) wins anywhere; AVX512-BF16 won on an AMD EPYC, where torch's fp32 GEMM (MKL) runs
+    a slow code path (decode step 8.5 -> 6.5 ms), and lost on a Xeon with AVX512-BF16 but no AMX
+    (6.1 -> 10.1 ms), where MKL's fp32 is fast. docs/performance.md has both."""
     import torch.cpu
 
-    checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")  # private, so guarded
-    return any(bool(getattr(torch.cpu, name, lambda: False)()) for name in checks)
+    def has(name: str) -> bool:  # private torch helpers, so guarded
+        return bool(getattr(torch.cpu, name, lambda: False)())
+
+    if has("_is_amx_tile_supported"):
+        return True
+    return has("_is_avx512_bf16_supported") and cpu_vendor() not in ("", "GenuineIntel")
 
 
 def decoder_linears(vae: CausalVAE) -> list[str]:
@@ -342,7 +360,7 @@ def resolve_decoder(decoder: str, mode: str, device: torch.device) -> str:
                              "int8 or bf16")
         return "fp32"
     if decoder == "auto":
-        return "bf16" if device.type == "cpu" and native_bf16() else "fp32"
+        return "bf16" if device.type == "cpu" and prefer_bf16_decoder() else "fp32"
     return decoder
 
 
@@ -372,8 +390,8 @@ def optimize_for_inference(models, mode: str = "int8", *, stream_config: StreamC
     is returned. mode: one of ``MODES`` (see ``MODE_HELP``). stream_config: whose solver grid to
     precompute (default the paper's). threads: ``torch.set_num_threads`` when given.
     compile: also ``torch.compile`` the transformer blocks. decoder: the VAE decoder's Linears
-    in int8 and bf16 modes, one of ``DECODER_PRECISIONS`` ("auto": bf16 on a CPU with native
-    bfloat16, ``native_bf16``; fp32 otherwise; ``resolve_decoder``)."""
+    in int8 and bf16 modes, one of ``DECODER_PRECISIONS`` ("auto": bf16 where it measured
+    faster, ``prefer_bf16_decoder``; fp32 otherwise; ``resolve_decoder``)."""
     if mode not in MODES:
         raise ValueError(f"unknown optimization mode {mode!r}; choose from {MODES}")
     if threads is not None:

@@ -128,7 +128,7 @@ def test_bf16_decoder_converts_the_decode_path_only(tiny):
 def test_decoder_precision_rules(monkeypatch):
     cpu = torch.device("cpu")
     for native, expected in ((True, "bf16"), (False, "fp32")):
-        monkeypatch.setattr(fast_module, "native_bf16", lambda native=native: native)
+        monkeypatch.setattr(fast_module, "prefer_bf16_decoder", lambda native=native: native)
         assert resolve_decoder("auto", "int8", cpu) == expected
         assert resolve_decoder("auto", "bf16", cpu) == expected
         assert resolve_decoder("auto", "fp32", cpu) == "fp32"  # the exact mode stays exact
@@ -139,6 +139,16 @@ def test_decoder_precision_rules(monkeypatch):
         resolve_decoder("bf16", "fp32", cpu)
     with pytest.raises(ValueError, match="decoder precision"):
         resolve_decoder("fp16", "int8", cpu)
+
+
+@pytest.mark.parametrize("amx, bf16, vendor, expected", [
+    (True, False, "GenuineIntel", True), (False, True, "AuthenticAMD", True),
+    (False, True, "GenuineIntel", False), (False, True, "", False), (False, False, "AuthenticAMD", False)])
+def test_bf16_decoder_is_preferred_where_it_measured_faster(monkeypatch, amx, bf16, vendor, expected):
+    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: amx, raising=False)
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: bf16, raising=False)
+    monkeypatch.setattr(fast_module, "cpu_vendor", lambda: vendor)
+    assert fast_module.prefer_bf16_decoder() is expected
 
 
 def test_solver_times_are_the_midpoint_grid():
