@@ -57,7 +57,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--table1-gaze", type=lambda t: _gazes(t)[0], default="none",
                         help="gaze target of the model's Table 1 row (the paper: none)")
     parser.add_argument("--methods", type=_methods, default=",".join(d.methods),
-                        help="comma-separated subset of gt,random,nn,model")
+                        help="comma-separated subset of gt,random,nn,model (the paper's Table "
+                             "1) and vae (the run's VAE reconstructing the ground truth: the "
+                             "floor under any flow sample; needs only vae.pt)")
     parser.add_argument("--batch-clips", type=int, default=d.batch_clips,
                         help="clips per batch of the FGD / FGD_acc Avg column")
     parser.add_argument("--library-size", type=int, default=d.library_size,

@@ -47,7 +47,8 @@ from .metrics import (METRICS, CategoryValues, Clip, FrechetRidgeWarning, Metric
                       wrist_speed)
 from .plots import save_figure
 
-METHODS = ("gt", "random", "nn", "model")
+METHODS = ("gt", "random", "nn", "model", "vae")
+PAPER_METHODS = ("gt", "random", "nn", "model")  # Table 1's rows; "vae" is opt-in
 PROTOCOLS = ("offline", "stream")
 METRIC_LABELS = {"fgd": "FGD", "fgd_acc": "FGD_acc", "foot_slide": "Foot Slide",
                  "wrist_speed": "Wrist Var", "head_angle": "Head Ang."}
@@ -70,7 +71,7 @@ class EvalConfig:
     window: int = 400  # T frames per window
     gaze: tuple[float | None, ...] = (None, 0.0, 0.8, 1.0)  # Table 2 rows; None = no gaze control
     table1_gaze: float | None = None  # the model row of Table 1 (the paper's "Ours" = the ∅ row)
-    methods: tuple[str, ...] = METHODS
+    methods: tuple[str, ...] = PAPER_METHODS
     batch_clips: int = 16  # clips per FGD batch of the Avg column
     seed: int = 0
     steps: int = 4  # solver steps (midpoint)
@@ -460,12 +461,35 @@ def _model_producer(models, config: EvalConfig, gaze: float | None):
     return produce
 
 
-def _load_model(run: Path | None, config: EvalConfig):
+def _vae_producer(models):
+    """The run's VAE reconstructing the ground truth (encoder mean, then decoder): the best any
+    flow sample can decode to, which separates the VAE's error from the flow's."""
+    device = next(models.vae.parameters()).device
+    nz = models.normalizer
+
+    def produce(item: dict, index: int) -> np.ndarray:
+        mu, _ = models.vae.encode(nz.normalize("motion", item["motion"].to(device))[None])
+        return nz.denormalize("motion", models.vae.decode(mu)[0]).cpu().numpy()
+
+    return produce
+
+
+def _load_model(run: Path | None, config: EvalConfig, method: str = "model"):
+    """The run's flow-stage models; for "vae" alone, its VAE checkpoint will do."""
+    from .checkpoint import load_models
     from .generate import GenerateError, load_run
 
     if run is None:
-        raise EvalError("--run is required to evaluate the model (or leave 'model' out of "
-                        "--methods)")
+        raise EvalError(f"--run is required to evaluate the {method} (or leave {method!r} out "
+                        "of --methods)")
+    if method == "vae" and run.is_dir() and not (run / "flow.pt").is_file():
+        path = run / "vae.pt"
+        if not path.is_file():
+            raise EvalError(f"{run}: no vae.pt or flow.pt (train the VAE stage first)")
+        try:
+            return load_models(path, device=config.device)
+        except (ValueError, KeyError, RuntimeError) as exc:
+            raise EvalError(f"{path}: cannot load checkpoint ({exc})") from None
     try:
         models, _ = load_run(run, device=config.device)
     except GenerateError as exc:
@@ -485,19 +509,22 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
     shards, out = Path(shards), Path(out)
     run = None if run is None else Path(run)
     models = _load_model(run, config) if "model" in config.methods else None
-    features = models.features if models is not None else (config.features or "logmel")
-    if models is not None and config.window % models.vae.stride:
+    vae_models = None
+    if "vae" in config.methods:
+        vae_models = models if models is not None else _load_model(run, config, "vae")
+    loaded = models or vae_models
+    features = loaded.features if loaded is not None else (config.features or "logmel")
+    if loaded is not None and config.window % loaded.vae.stride:
         raise EvalError(f"--window {config.window} is not a multiple of the model's stride "
-                        f"{models.vae.stride}")
+                        f"{loaded.vae.stride}")
     dataset, speaking_settings = _open_shards(shards, config.split, features, config.window)
-    if models is not None:
-        if dataset.audio_dim != models.flow.audio_dim:
-            raise EvalError(f"{shards}: mismatched feature extractor: {features!r} features have "
-                            f"{dataset.audio_dim} channels, the checkpoint expects "
-                            f"{models.flow.audio_dim}")
-        if dataset.motion_dim != models.dims["motion"]:
-            raise EvalError(f"{shards}: motion width {dataset.motion_dim} (shell points) differs "
-                            f"from the checkpoint's {models.dims['motion']}")
+    if loaded is not None and dataset.motion_dim != loaded.dims["motion"]:
+        raise EvalError(f"{shards}: motion width {dataset.motion_dim} (shell points) differs "
+                        f"from the checkpoint's {loaded.dims['motion']}")
+    if models is not None and dataset.audio_dim != models.flow.audio_dim:
+        raise EvalError(f"{shards}: mismatched feature extractor: {features!r} features have "
+                        f"{dataset.audio_dim} channels, the checkpoint expects "
+                        f"{models.flow.audio_dim}")
     indices = select_windows(len(dataset), config.windows)
     windows = TestWindows(dataset, indices)
     try:
@@ -567,6 +594,9 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
         table1.append(replace(sweep[config.table1_gaze], key="model",
                               label=f"Model ({config.protocol}, g = "
                                     f"{gaze_label(config.table1_gaze)})"))
+    if vae_models is not None:
+        with torch.inference_mode():
+            table1.append(score("vae", "VAE (reconstruction)", _vae_producer(vae_models), True))
     table2 = [sweep[g] for g in config.gaze] if models is not None else []
 
     result = Evaluation(table1, table2, len(windows), len(dataset), int(speaking.sum()))

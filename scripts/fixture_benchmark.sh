@@ -63,6 +63,6 @@ done
 
 stamp "eval: begin"
 $PYTHON -m cli.eval --run "$RUN" --shards "$BENCH/shards" --split test --windows 2048 \
-  --gaze none,0.0,0.8,1.0 --methods gt,random,nn,model --batch-clips 16 --seed 0 --device cpu \
+  --gaze none,0.0,0.8,1.0 --methods gt,random,nn,model,vae --batch-clips 16 --seed 0 --device cpu \
   --steps 4 --cfg 1.3 --protocol offline --out "$EVAL_OUT"
 stamp "eval: end"

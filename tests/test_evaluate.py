@@ -12,6 +12,7 @@ from PIL import Image
 
 from cli.eval import main
 from helpers import write_split_shards
+from sarah_models.checkpoint import load_checkpoint, save_checkpoint
 from sarah_models.evaluate import MethodResult, select_windows, table1_markdown, table2_markdown
 from sarah_models.metrics import METRICS, CategoryValues, MetricsConfig, MetricsTable
 from test_generate import save_run
@@ -147,6 +148,27 @@ def test_streaming_protocol_and_subset_of_methods(tiny, tmp_path):
     assert [r["key"] for r in t1["rows"]] == ["gt", "model"] and t1["num_windows"] == 8
     assert "all the split has; 100 requested" in t1["caption"]
     assert t1["rows"][1]["gaze"] == 0.8 and "stream" in t1["rows"][1]["method"]
+
+
+def test_vae_reconstruction_row_is_opt_in_and_needs_only_the_vae(tiny, tmp_path):
+    out = tmp_path / "out"
+    assert main(eval_args(tiny, out, "--methods", "gt,model,vae", "--gaze", "none",
+                          "--windows", "4")) == 0
+    rows = {r["key"]: r for r in json.loads((out / "table1.json").read_text())["rows"]}
+    assert list(rows) == ["gt", "model", "vae"] and rows["vae"]["causal"] is True
+    assert rows["vae"]["shown"]["fgd/avg"] > 0 and rows["vae"]["fps"] > 0
+    assert "VAE (reconstruction)" in (out / "table1.md").read_text()
+
+    vae_only = tmp_path / "vae_run"
+    vae_only.mkdir()
+    payload = load_checkpoint(tiny["run"] / "flow.pt")
+    del payload["flow"]
+    save_checkpoint(vae_only / "vae.pt", {**payload, "stage": "vae"})
+    again = tmp_path / "again"
+    assert main(eval_args(dict(tiny, run=vae_only), again, "--methods", "gt,vae", "--windows",
+                          "4")) == 0
+    shown = [r["shown"] for r in json.loads((again / "table1.json").read_text())["rows"]]
+    assert shown[1] == rows["vae"]["shown"]  # the same VAE from vae.pt as from flow.pt
 
 
 def _error(capsys, argv) -> str:
