@@ -13,20 +13,24 @@ cd "$(dirname "$0")/.."
 
 BENCH=${1:-bench}
 PYTHON=${PYTHON:-python}
-SESSIONS=${SESSIONS:-30}         # 30 sessions x 2 sequences x 120 s = 2 dyad-hours
+# Defaults: the recipe of run 5 in docs/results.md (the best so far), 40 dyad-minutes that the
+# loader keeps in memory, ~75 min of training on 2 idle cores.
+SESSIONS=${SESSIONS:-20}         # 20 sessions x 2 sequences x 60 s = 40 dyad-minutes
 SEQUENCES=${SEQUENCES:-2}
-SECONDS_PER_SEQUENCE=${SECONDS_PER_SEQUENCE:-120}
+SECONDS_PER_SEQUENCE=${SECONDS_PER_SEQUENCE:-60}
 JOBS=${JOBS:-2}
-VAE_STEPS=${VAE_STEPS:-600}
-FLOW_STEPS=${FLOW_STEPS:-600}
+VAE_STEPS=${VAE_STEPS:-4000}
+FLOW_STEPS=${FLOW_STEPS:-4000}
 WINDOW=${WINDOW:-400}            # train on the evaluation's T = 400 (the tiny preset's is 64)
-# One intra-op thread per process and one loader worker: on 2 cores this trains ~3x faster than
-# two contending threads with loading on the main process (data reads cost ~0.1 s per window).
-export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
+# Two intra-op threads and batches made in the training process: the corpus fits the loader's
+# in-memory cache, so reading a window is cheap (runs 1-4 used one thread and one loader worker).
+export OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
 RUN=${RUN:-$BENCH/runs/tiny}
 EVAL_OUT=${EVAL_OUT:-$BENCH/eval}
 UNTIL=${UNTIL:-eval}             # stop after this stage: prep, train or eval
-read -r -a TRAIN_SET <<< "${TRAIN_SET:-}"  # extra --set FIELD=VALUE overrides, space-separated
+# Extra --set FIELD=VALUE overrides, space-separated; the default is run 5's planted-foot term
+# and learning-rate decay (docs/models.md).
+read -r -a TRAIN_SET <<< "${TRAIN_SET-train.num_workers=0 vae.contact_weight=0.01 train.lr_schedule=linear train.final_lr_ratio=0.1}"
 
 mkdir -p "$BENCH"
 stamp() { echo "$(date -u +%FT%TZ) $*" | tee -a "$BENCH/timings.txt"; }
