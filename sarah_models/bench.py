@@ -40,8 +40,8 @@ from sarah_data.constants import AUDIO_SAMPLE_RATE, FPS, NUM_JOINTS, SAMPLES_PER
 
 from .checkpoint import build_models
 from .config import RunConfig
-from .fast import (DECODER_PRECISIONS, MODES, optimize_for_inference, prefer_bf16_decoder,
-                   resolve_decoder, stream_deviation, warm_time_grid)
+from .fast import (MODES, cpu_info, optimize_for_inference, resolve_decoder, stream_deviation,
+                   warm_time_grid)
 from .flow import FlowModel
 from .normalizer import Normalizer
 from .stream import (StreamConfig, StreamingGenerator, drop_masks, generate_offline, imputer, integrate,
@@ -560,18 +560,10 @@ def bench_loader(shards: Path, windows: int, batch: int, workers: int, seed: int
 
 
 def environment(threads: int) -> dict[str, Any]:
-    cpu = platform.processor() or "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    cpu = cpu_info("model name") or platform.processor() or "unknown"
     return {"date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
             "cpu": cpu, "cores": os.cpu_count(), "threads": threads, "torch": torch.__version__,
             "numpy": np.__version__, "python": platform.python_version(),
-            "bf16_decoder_preferred": prefer_bf16_decoder(),
             "load_before": list(os.getloadavg())}
 
 

@@ -476,22 +476,18 @@ def _vae_producer(models):
 
 def _load_model(run: Path | None, config: EvalConfig, method: str = "model"):
     """The run's flow-stage models; for "vae" alone, its VAE checkpoint will do."""
-    from .checkpoint import load_models
     from .generate import GenerateError, load_run
 
     if run is None:
         raise EvalError(f"--run is required to evaluate the {method} (or leave {method!r} out "
                         "of --methods)")
+    checkpoint = None
     if method == "vae" and run.is_dir() and not (run / "flow.pt").is_file():
-        path = run / "vae.pt"
-        if not path.is_file():
+        checkpoint = run / "vae.pt"
+        if not checkpoint.is_file():
             raise EvalError(f"{run}: no vae.pt or flow.pt (train the VAE stage first)")
-        try:
-            return load_models(path, device=config.device)
-        except (ValueError, KeyError, RuntimeError) as exc:
-            raise EvalError(f"{path}: cannot load checkpoint ({exc})") from None
     try:
-        models, _ = load_run(run, device=config.device)
+        models, _ = load_run(run, checkpoint, device=config.device, need_flow=method == "model")
     except GenerateError as exc:
         raise EvalError(str(exc)) from None
     return models

@@ -303,23 +303,34 @@ def quantize_int8(flow: FlowModel) -> FlowModel:
         return quantize_dynamic(flow, spec, dtype=torch.qint8, inplace=True)
 
 
+def linears_to_bf16(root: nn.Module, names: Iterable[str]) -> nn.Module:
+    """Replace the Linears ``names`` of ``root`` by ``BF16Linear`` (in place)."""
+    for name in names:
+        _set_submodule(root, name, BF16Linear(root.get_submodule(name)))
+    return root
+
+
 def to_bf16(flow: FlowModel) -> FlowModel:
     """Replace ``block_linears`` by ``BF16Linear`` (in place)."""
-    for name in block_linears(flow):
-        _set_submodule(flow, name, BF16Linear(flow.get_submodule(name)))
-    return flow
+    return linears_to_bf16(flow, block_linears(flow))
 
 
-def cpu_vendor() -> str:
-    """The CPU's vendor id ("GenuineIntel", "AuthenticAMD", ...; "" when unknown)."""
+def cpu_info(field: str) -> str:
+    """A field of /proc/cpuinfo ("vendor_id", "model name", ...) for the first CPU; "" when
+    unknown (not Linux, or no such field)."""
     try:
         with open("/proc/cpuinfo", encoding="ascii", errors="replace") as cpuinfo:
             for line in cpuinfo:
-                if line.startswith("vendor_id"):
+                if line.split(":", 1)[0].strip() == field:
                     return line.split(":", 1)[1].strip()
     except OSError:
         pass
     return ""
+
+
+def cpu_vendor() -> str:
+    """The CPU's vendor id ("GenuineIntel", "AuthenticAMD", ...; "" when unknown)."""
+    return cpu_info("vendor_id")
 
 
 def prefer_bf16_decoder() -> bool:
@@ -346,9 +357,7 @@ def decoder_linears(vae: CausalVAE) -> list[str]:
 
 def decoder_to_bf16(vae: CausalVAE) -> CausalVAE:
     """Replace ``decoder_linears`` by ``BF16Linear`` (in place; the encoder stays fp32)."""
-    for name in decoder_linears(vae):
-        _set_submodule(vae, name, BF16Linear(vae.get_submodule(name)))
-    return vae
+    return linears_to_bf16(vae, decoder_linears(vae))
 
 
 def resolve_decoder(decoder: str, mode: str, device: torch.device) -> str:

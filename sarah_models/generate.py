@@ -76,8 +76,9 @@ class Result:
 
 
 def load_run(run: str | Path, checkpoint: str | Path | None = None,
-             device: str | None = None) -> tuple[LoadedModels, Path]:
-    """The flow-stage models of a run (``run/flow.pt`` unless ``checkpoint`` is given)."""
+             device: str | None = None, need_flow: bool = True) -> tuple[LoadedModels, Path]:
+    """The flow-stage models of a run (``run/flow.pt`` unless ``checkpoint`` is given);
+    ``need_flow=False`` also accepts a VAE-stage checkpoint."""
     run = Path(run)
     if not run.is_dir():
         raise GenerateError(f"{run}: run folder does not exist")
@@ -94,7 +95,7 @@ def load_run(run: str | Path, checkpoint: str | Path | None = None,
         models = load_models(path, device=device)
     except (ValueError, KeyError, RuntimeError) as exc:
         raise GenerateError(f"{path}: cannot load checkpoint ({exc})") from None
-    if models.flow is None:
+    if need_flow and models.flow is None:
         raise GenerateError(f"{path}: a {models.stage}-stage checkpoint; generation needs the "
                             f"flow stage (flow.pt)")
     return models, path

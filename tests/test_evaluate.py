@@ -169,6 +169,8 @@ def test_vae_reconstruction_row_is_opt_in_and_needs_only_the_vae(tiny, tmp_path)
                           "4")) == 0
     shown = [r["shown"] for r in json.loads((again / "table1.json").read_text())["rows"]]
     assert shown[1] == rows["vae"]["shown"]  # the same VAE from vae.pt as from flow.pt
+    (vae_only / "vae.pt").unlink()
+    assert main(eval_args(dict(tiny, run=vae_only), again, "--methods", "gt,vae")) == 2
 
 
 def _error(capsys, argv) -> str:
