@@ -292,6 +292,56 @@ def test_feet_do_not_slide_outside_steps(fixture_raw_dir, bodies):
     assert stepping_total > 0
 
 
+def test_a_standing_foot_stays_planted_during_steps(fixture_raw_dir, bodies):
+    """The ground truth does not skate: the paper's metric on it is near its real-data 0.01."""
+    from sarah_models.metrics import foot_slide
+
+    truth, _ = _truth(fixture_raw_dir)
+    feet = [[JOINT[f"{side}_ankle"], JOINT[f"{side}_foot"]] for side in ("left", "right")]
+    lifted = 0
+    for (sequence, subject), (frames, valid) in bodies.items():
+        assert foot_slide(frames.joints[valid]) < 0.005, (sequence, subject)
+        for start, end in truth["sequences"][sequence]["persons"][subject]["step_intervals"]:
+            if not valid[start:end].all():
+                continue
+            last = end - start - 1  # the step's progress is k / last at its frame start + k
+            for half in (frames.joints[start:start + last // 2 + 1], frames.joints[start + (last + 1) // 2:end]):
+                # One leg swings in each half while the other foot stands still.
+                moved = [np.linalg.norm(half[:, f] - half[:1, f], axis=-1).max() for f in feet]
+                assert min(moved) < 0.003, (sequence, subject, start)
+                lifted += max(half[:, f, 1].max() - half[0, f, 1].min() for f in feet) > 0.05
+    assert lifted > 0
+
+
+def test_leg_solver_reaches_its_targets():
+    """Hip, knee and ankle rotations put the ankle on its target with the foot level and turned."""
+    from scipy.spatial.transform import Rotation
+
+    from sarah_data.fixtures.legs import LEGS, solve_legs, yaw_matrix
+
+    rng = np.random.default_rng(0)
+    rest = np.zeros((55, 3))
+    for side, sign in enumerate((1.0, -1.0)):
+        hip, knee, ankle = (JOINT[n] for n in LEGS[side])
+        rest[hip], rest[knee], rest[ankle] = (sign * 0.09, 0.88, 0.0), (sign * 0.1, 0.5, 0.015), (sign * 0.1, 0.085, -0.01)
+    T = 64
+    pelvis_yaw = rng.uniform(-np.pi, np.pi, T)
+    hips = rng.normal(0.0, 1.0, (2, T, 3))
+    heading = pelvis_yaw + rng.uniform(-0.6, 0.6, (2, T))
+    horizontal = rng.uniform(-0.25, 0.25, (2, T, 2))  # reachable: under the 0.795 m rest leg
+    gap = np.stack([horizontal[..., 0], -rng.uniform(0.45, 0.7, (2, T)), horizontal[..., 1]], axis=-1)
+    rotations = solve_legs(hips, pelvis_yaw, hips + gap, heading, rest)
+    for side, (hip, knee, ankle) in enumerate(LEGS):
+        hip, knee, ankle = JOINT[hip], JOINT[knee], JOINT[ankle]
+        hip_global = yaw_matrix(pelvis_yaw) @ Rotation.from_rotvec(rotations[side, 0]).as_matrix()
+        knee_global = hip_global @ Rotation.from_rotvec(rotations[side, 1]).as_matrix()
+        reached = hips[side] + hip_global @ (rest[knee] - rest[hip]) + knee_global @ (rest[ankle] - rest[knee])
+        np.testing.assert_allclose(reached, hips[side] + gap[side], atol=1e-9)
+        foot = knee_global @ Rotation.from_rotvec(rotations[side, 2]).as_matrix()
+        np.testing.assert_allclose(foot, yaw_matrix(heading[side]), atol=1e-9)
+        assert (rotations[side, 1, :, 0] >= 0).all()  # the knee only flexes
+
+
 def test_head_facing_matches_truth(fixture_raw_dir, bodies):
     from sarah_data.frames import yaw_of
     from sarah_data.gaze import gaze_score, head_trajectory
