@@ -27,6 +27,7 @@ import torch
 from sarah_data import icosahedron
 from sarah_data.constants import (AUDIO_SAMPLE_RATE, FPS, JOINT, JOINT_PARENTS, NUM_JOINTS,
                                   SAMPLES_PER_FRAME)
+from sarah_data.dataset import tracked_runs
 from sarah_data.frames import WindowTransform, rotation_about_y, window_transform
 from sarah_data.gaze import gaze_score, head_points
 
@@ -111,11 +112,57 @@ def _frames_multiple(frames: int, stride: int, what: str) -> int:
     return usable
 
 
+def _default_window(valid: np.ndarray, frames: int | None) -> tuple[int, int]:
+    """(start, length) of the first tracked run that holds ``frames`` frames, else the longest
+    tracked run (whole); length 0 when no frame is tracked. ``frames`` None: the longest run."""
+    runs = tracked_runs(valid)
+    if frames is not None:
+        for first, stop in runs:
+            if stop - first >= frames:
+                return first, frames
+    first, stop = max(runs, key=lambda run: run[1] - run[0], default=(0, 0))
+    return first, stop - first
+
+
+def _choose_window(shards, shards_dir: Path, split: str, names: list[str], sequence: str | None,
+                   agent: str | None, start: int | None, frames: int | None
+                   ) -> tuple[str, str, str, int, int | None]:
+    """(sequence, agent, user, start, tracked length or None for an explicit start)."""
+    best = None
+    for name in [sequence] if sequence is not None else names:
+        persons = [str(p) for p in shards.group(name).attrs["persons"]]
+        chosen = persons[0] if agent is None else agent
+        if chosen not in persons:
+            if sequence is None:
+                continue  # --agent without --sequence: the sequences this person is in
+            raise GenerateError(f"{shards_dir}: sequence {name} has no person {agent!r} "
+                                f"(persons: {', '.join(persons)})")
+        user = persons[1 - persons.index(chosen)]
+        if start is not None:
+            return name, chosen, user, start, None
+        group = shards.group(name)
+        first, length = _default_window(group[chosen]["valid"][:].astype(bool)
+                                        & group[user]["valid"][:].astype(bool), frames)
+        if best is None or length > best[4]:
+            best = (name, chosen, user, first, length)
+        if frames is not None and length >= frames:
+            break
+    if best is None:
+        raise GenerateError(f"{shards_dir}: no person {agent!r} in any sequence of split {split!r}")
+    if best[4] == 0:
+        raise GenerateError(f"{best[0]}: no frame is tracked for both persons")
+    return best
+
+
 def shard_inputs(shards_dir: str | Path, split: str, sequence: str | None, agent: str | None,
-                 features: str, audio_dim: int, stride: int, start: int = 0,
+                 features: str, audio_dim: int, stride: int, start: int | None = None,
                  frames: int | None = DEFAULT_FRAMES) -> Inputs:
-    """One window of a prepared sequence, with ``agent`` as the agent and the other as user
-    (defaults: the split's first sequence, its first person)."""
+    """One window of a prepared sequence, with ``agent`` as the agent and the other as user.
+
+    Defaults: the sequence's first person as agent; without ``start``, the first frame from
+    which ``frames`` frames are tracked for both persons (or the longest tracked run, when no
+    run is that long), in ``sequence`` or else in the split's first sequence that has one.
+    An explicit ``start`` is taken as given, and a window with untracked frames is an error."""
     from sarah_data.shards import ShardError, ShardSet
 
     shards_dir = Path(shards_dir)
@@ -125,19 +172,16 @@ def shard_inputs(shards_dir: str | Path, split: str, sequence: str | None, agent
         raise GenerateError(str(exc)) from None
     try:
         names = shards.sequences(split)
-        if sequence is None and names:
-            sequence = names[0]
-        if sequence not in names:
+        if not names:
+            raise GenerateError(f"{shards_dir}: split {split!r} has no sequences")
+        if sequence is not None and sequence not in names:
             hint = ", ".join(names[:5]) + (" ..." if len(names) > 5 else "")
             raise GenerateError(f"{shards_dir}: no sequence {sequence!r} in split {split!r} "
                                 f"(it has {len(names)}: {hint or 'none'})")
+        sequence, agent, user, start, tracked = _choose_window(shards, shards_dir, split, names,
+                                                               sequence, agent, start, frames)
         group = shards.group(sequence)
-        persons = [str(p) for p in group.attrs["persons"]]
-        agent = persons[0] if agent is None else agent
-        if agent not in persons:
-            raise GenerateError(f"{shards_dir}: sequence {sequence} has no person {agent!r} "
-                                f"(persons: {', '.join(persons)})")
-        a, u = group[agent], group[persons[1 - persons.index(agent)]]
+        a, u = group[agent], group[user]
         stored = sorted(a["audio"]) if "audio" in a else []
         if features not in stored:
             raise GenerateError(f"{shards_dir}: mismatched feature extractor: the checkpoint "
@@ -146,7 +190,8 @@ def shard_inputs(shards_dir: str | Path, split: str, sequence: str | None, agent
         if not 0 <= start < total:
             raise GenerateError(f"{sequence}: --start {start} is outside its {total} frames")
         count = total - start if frames is None else min(int(frames), total - start)
-        count = _frames_multiple(count, stride, f"{sequence} from frame {start}")
+        count = _frames_multiple(count if tracked is None else min(count, tracked), stride,
+                                 f"{sequence} from frame {start}")
         window = slice(start, start + count)
         width = int(a["audio"][features].shape[-1])
         if width != audio_dim:
@@ -157,7 +202,7 @@ def shard_inputs(shards_dir: str | Path, split: str, sequence: str | None, agent
             bad = np.flatnonzero(~valid)
             raise GenerateError(f"{sequence}: frames {start + bad[0]}..{start + bad[-1]} are not "
                                 f"tracked for both persons; choose --start/--frames inside a "
-                                f"tracked run")
+                                f"tracked run, or leave --start out to have one found")
         anchor = window_transform(a["root_position"][start], a["root_rotation"][start])
         return Inputs(
             user_head=u["head"][window].astype(np.float32),
@@ -167,7 +212,7 @@ def shard_inputs(shards_dir: str | Path, split: str, sequence: str | None, agent
             agent_audio=a["audio"][features][window].astype(np.float32),
             user_audio=u["audio"][features][window].astype(np.float32),
             source={"kind": "shard", "shards": str(shards_dir), "split": split,
-                    "sequence": sequence, "agent": agent, "user": persons[1 - persons.index(agent)],
+                    "sequence": sequence, "agent": agent, "user": user,
                     "start": int(start), "reference_gaze": a["gaze"][window].astype(np.float32)},
         )
     finally:
@@ -397,7 +442,7 @@ class Summary:
 def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
         checkpoint: str | Path | None = None, device: str | None = None,
         shards: str | Path | None = None, split: str = "test", sequence: str | None = None,
-        agent: str | None = None, start: int = 0, frames: int | None = None,
+        agent: str | None = None, start: int | None = None, frames: int | None = None,
         trajectory: str | Path | None = None, agent_audio: str | Path | None = None,
         user_audio: str | Path | None = None,
         agent_start: tuple[float, float, float] = (0.0, 0.0, 0.0),

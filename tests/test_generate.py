@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -160,21 +161,30 @@ def make_person(rng, name, frames, features):
         audio={f: rng.normal(-8, 4, (frames, LOGMEL_DIM)).astype(np.float32) for f in features})
 
 
-def write_shards(root, features=("logmel",), frames=40):
+def write_shards(root, features=("logmel",), frames=40, tracked=None):
+    """One test sequence "seq-one" (persons AAA111, BBB222; the last 4 frames untracked), or with
+    ``tracked`` {name: (start, stop) tracked for both} one sequence per name, in that order."""
     rng = np.random.default_rng(0)
     attrs = ShardAttrs(toolkit_version="0.1.0", joint_names=JOINT_NAMES,
                        icosahedron_template=icosahedron.TEMPLATE,
                        icosahedron_radius=icosahedron.DEFAULT_RADIUS,
                        shell_vertex_ids=np.arange(SHELL), body_model_name="procedural",
                        body_model_sha256="0" * 64, extractors={f: {} for f in features})
-    seq = ProcessedSequence(name="seq-one", session="c--one", split="test", persons=(
-        make_person(rng, "AAA111", frames, features), make_person(rng, "BBB222", frames, features)))
+    sequences = []
+    for name, run in (tracked or {"seq-one": None}).items():
+        persons = [make_person(rng, person, frames, features) for person in ("AAA111", "BBB222")]
+        if run is not None:
+            valid = (np.arange(frames) >= run[0]) & (np.arange(frames) < run[1])
+            persons = [dataclasses.replace(p, valid=valid) for p in persons]
+        sequences.append(ProcessedSequence(name=name, session="c--one", split="test",
+                                           persons=tuple(persons)))
     with ShardWriter(root, "test", attrs) as writer:
-        writer.add(seq)
+        for seq in sequences:
+            writer.add(seq)
     write_manifest(root / MANIFEST_NAME, Manifest(toolkit_version="0.1.0", config={},
                                                   splits={"test": ["c--one"]},
                                                   shards=writer.close(), sequences=writer.entries))
-    return seq
+    return sequences[0]
 
 
 @pytest.fixture(scope="module")
@@ -221,6 +231,25 @@ def test_shard_errors(run_dir, shards, tmp_path, capsys):
     write_shards(hubert_only, features=("hubert-large",))
     assert "mismatched feature extractor" in _error(capsys, shard_args(run_dir, hubert_only, out))
     assert "no manifest" in _error(capsys, shard_args(run_dir, tmp_path, out))
+
+
+def test_default_window_is_a_tracked_run(run_dir, tmp_path, capsys):
+    """Without --start, generation starts where both persons are tracked for --frames frames,
+    in the split's first sequence that has such a run; an explicit --start is taken as given."""
+    root = tmp_path / "shards"
+    write_shards(root, tracked={"seq-a": (10, 20), "seq-b": (5, 40)})
+
+    def source(*extra):
+        out = tmp_path / f"out{len(list(tmp_path.iterdir()))}"
+        assert main(shard_args(run_dir, root, out, *extra)) == 0
+        data = np.load(out / "motion.npz")
+        return str(data["source_sequence"]), int(data["source_start"]), data["icosahedra"].shape[0]
+
+    assert source("--frames", "16") == ("seq-b", 5, 16)  # seq-a's run of 10 is too short
+    assert source("--frames", "8") == ("seq-a", 10, 8)
+    assert source("--sequence", "seq-a", "--frames", "16") == ("seq-a", 10, 8)  # its longest run
+    assert source("--agent", "BBB222", "--frames", "400") == ("seq-b", 5, 32)  # longest anywhere
+    assert "not tracked" in _error(capsys, shard_args(run_dir, root, tmp_path / "x", "--start", "0"))
 
 
 def test_prepared_fixture_shards(prepared_shards, tmp_path):
