@@ -130,7 +130,8 @@ def _choose_window(shards, shards_dir: Path, split: str, names: list[str], seque
     """(sequence, agent, user, start, tracked length or None for an explicit start)."""
     best = None
     for name in [sequence] if sequence is not None else names:
-        persons = [str(p) for p in shards.group(name).attrs["persons"]]
+        group = shards.group(name)
+        persons = [str(p) for p in group.attrs["persons"]]
         chosen = persons[0] if agent is None else agent
         if chosen not in persons:
             if sequence is None:
@@ -140,7 +141,6 @@ def _choose_window(shards, shards_dir: Path, split: str, names: list[str], seque
         user = persons[1 - persons.index(chosen)]
         if start is not None:
             return name, chosen, user, start, None
-        group = shards.group(name)
         first, length = _default_window(group[chosen]["valid"][:].astype(bool)
                                         & group[user]["valid"][:].astype(bool), frames)
         if best is None or length > best[4]:

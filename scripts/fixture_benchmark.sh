@@ -78,10 +78,11 @@ if [ "$TUNE_VAE_STEPS" -gt 0 ]; then
              --set train.final_lr_ratio=0.1)
   for stage in vae flow; do
     if [ ! -f "$TUNED/$stage.done" ]; then
-      stage_args=("${tune_args[@]}" --set "train.flow_steps=$TUNE_FLOW_STEPS")
       if [ "$stage" = vae ]; then
         stage_args=("${tune_args[@]}" --set "train.vae_steps=$TUNE_VAE_STEPS")
         for item in "${TUNE_VAE_SET[@]}"; do stage_args+=(--set "$item"); done
+      else
+        stage_args=("${tune_args[@]}" --set "train.flow_steps=$TUNE_FLOW_STEPS")
       fi
       start=(--init-from "$RUN")
       [ -f "$TUNED/$stage.pt" ] && start=(--resume)

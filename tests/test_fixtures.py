@@ -317,7 +317,8 @@ def test_leg_solver_reaches_its_targets():
     """Hip, knee and ankle rotations put the ankle on its target with the foot level and turned."""
     from scipy.spatial.transform import Rotation
 
-    from sarah_data.fixtures.legs import LEGS, solve_legs, yaw_matrix
+    from sarah_data.fixtures.legs import LEGS, solve_legs
+    from sarah_data.frames import rotation_about_y as yaw_matrix
 
     rng = np.random.default_rng(0)
     rest = np.zeros((55, 3))
