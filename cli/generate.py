@@ -92,9 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
     shard.add_argument("--agent", default=None,
                        help="person generated as the agent (default: the sequence's first)")
     shard.add_argument("--start", type=int, default=None,
-                       help="first frame (default: the first frame from which --frames frames are "
-                            "tracked for both persons, in --sequence or the split's first "
-                            "sequence that has such a run)")
+                       help="first frame; when not given, the first frame from which --frames "
+                            "frames are tracked for both persons, in --sequence or the split's "
+                            "first sequence that has such a run")
     shard.add_argument("--frames", type=int, default=None,
                        help="frames to generate (default: 400 from a shard, all for raw input)")
     raw = parser.add_argument_group("raw input")

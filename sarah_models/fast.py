@@ -37,6 +37,8 @@ the time, and ``fused`` cuts their number:
 * ``threads``: ``torch.set_num_threads`` (process-wide).
 * ``compile``: ``torch.compile`` of the flow's transformer blocks (optional). Measured on the
   2-core CPU: about a minute to compile and no gain over eager mode, so it is off by default.
+  In the int8 and bf16 modes the solver's evaluations run the fused forward, not the blocks, so
+  there it only changes the calls that fall back to the module forward.
 
 Not used, and why: KV caching in the flow model is not exact for the paper's protocol (history
 tokens are re-noised at every solver step and the 3-token window truncates their causal

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -101,6 +102,19 @@ def test_reduced_precision_within_tolerance(tiny, mode):
     assert 0.0 < deviation.max_joint_mm <= TOLERANCE_MM, deviation
     assert deviation.head_angle_delta <= METRIC_TOLERANCE
     assert deviation.wrist_speed_delta <= METRIC_TOLERANCE
+
+
+@pytest.mark.skipif(shutil.which("g++") is None and shutil.which("c++") is None,
+                    reason="torch.compile on a CPU needs a C++ compiler")
+def test_compiled_blocks_within_tolerance(tiny):
+    """``compile=True``: the flow's blocks through torch.compile (inductor) stay within the
+    tolerance of the plain models (the fp32 mode runs the blocks' own forwards)."""
+    compiled = optimize_for_inference(tiny, "fp32", compile=True)
+    assert any(type(m).__name__ == "OptimizedModule" or getattr(m, "_compiled_call_impl", None)
+               for m in compiled[1].modules())
+    deviation = stream_deviation(tiny, compiled, frames=16)
+    assert deviation.max_joint_mm <= TOLERANCE_MM, deviation
+    assert deviation.head_angle_delta <= METRIC_TOLERANCE
 
 
 @pytest.mark.parametrize("decoder", ["fp32", "bf16"])
