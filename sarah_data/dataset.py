@@ -30,6 +30,7 @@ from torch.utils.data import default_collate
 
 from sarah_data.frames import WindowTransform, window_transform
 from sarah_data.shards import ShardSet
+from sarah_data.skeleton import MotionLayout
 
 log = logging.getLogger(__name__)
 
@@ -153,8 +154,7 @@ class WindowDataset(torch.utils.data.Dataset):
         try:
             self._index_sequences()
             attrs = self.shards.attrs if self.shards.manifest.shards else None
-            self.motion_dim = (len(attrs.joint_names) * 12 * 3 + len(attrs.shell_vertex_ids) * 3
-                               if attrs else None)
+            self.motion_dim = MotionLayout.of_shards(attrs).width if attrs else None
         finally:
             self.shards.close()  # no open file may cross into DataLoader workers
         if deterministic:

@@ -32,7 +32,8 @@ from .embody3d import PairRecord, read_corpus
 from .executors import make_executor
 from .assemble import Assembler
 from .process import TaskResult, fingerprint, jsonable, run_task
-from .shards import atomic_write_bytes, file_sha256
+from .atomic import atomic_write_bytes
+from .shards import file_sha256
 from .splits import SPLITS, session_frames_of, split_sessions
 
 BODY_MODEL_ENV = "SARAH_BODY_MODEL"
@@ -154,7 +155,8 @@ def prepare(inputs: list[Path] | Path, out_dir: Path, config: PrepConfig = PrepC
         write_stats(out_dir, merge_moments([moments[name] for name in sorted(moments)],
                                            sorted(assembler.attrs.extractors)), len(moments))
     report = {"written": len(result.written), "skipped": result.skipped}
-    atomic_write_bytes(out_dir / "report.json", (json.dumps(report, indent=2, sort_keys=True) + "\n").encode())
+    atomic_write_bytes(out_dir / "report.json", (json.dumps(report, indent=2, sort_keys=True) + "\n").encode(),
+                       durable=True)
     shutil.rmtree(work_dir, ignore_errors=True)
     result.wall_seconds = time.perf_counter() - started
     return result

@@ -26,7 +26,8 @@ from .config import PrepConfig
 from .constants import JOINT, JOINT_NAMES
 from .embody3d import PairRecord, load_person
 from .loading import DataProblem
-from .shards import (ProcessedSequence, ShardAttrs, atomic_h5, atomic_write_bytes, create_group,
+from .atomic import atomic_write_bytes
+from .shards import (ProcessedSequence, ShardAttrs, atomic_h5, create_group,
                      file_sha256, write_sequence)
 
 _MODELS: dict[tuple, object] = {}  # per process: loading a body model or HuBERT once is enough
@@ -163,7 +164,8 @@ def run_task(pair: PairRecord, split: str, body_model_path: str, body_model_sha:
     result_seconds = time.perf_counter() - start
     marker = {**asdict(result), "fingerprint": fingerprint(pair, split, body_model_sha, config),
               "wall_seconds": result_seconds}
-    atomic_write_bytes(Path(work_dir) / f"{pair.sequence}.json", json.dumps(marker, sort_keys=True).encode())
+    atomic_write_bytes(Path(work_dir) / f"{pair.sequence}.json", json.dumps(marker, sort_keys=True).encode(),
+                       durable=True)
     return result
 
 

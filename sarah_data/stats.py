@@ -30,6 +30,7 @@ import h5py
 import numpy as np
 
 from sarah_data.constants import SHARD_SCHEMA_VERSION
+from sarah_data.moments import Moments
 from sarah_data.dataset import DEFAULT_WINDOW, normalize_window, tracked_runs
 from sarah_data.shards import (MANIFEST_NAME, STATS_NAME, ShardError, ShardSet, atomic_h5, create_dataset,
                                create_group, read_manifest)
@@ -38,39 +39,6 @@ log = logging.getLogger(__name__)
 
 STD_EPSILON = 1e-4  # metres for motion and head; feature units for audio
 STATS_SPLIT = "train"
-
-
-class Moments:
-    """Running per-channel count, mean and sum of squared deviations (float64)."""
-
-    def __init__(self, count: int = 0, mean: np.ndarray | None = None, m2: np.ndarray | None = None):
-        self.count, self.mean, self.m2 = count, mean, m2
-
-    def add(self, x: np.ndarray) -> None:
-        x = np.array(x, np.float64).reshape(len(x), -1)  # a copy: deviations are taken in place
-        if len(x):
-            batch_mean = x.mean(axis=0)
-            x -= batch_mean
-            self.merge(Moments(len(x), batch_mean, np.einsum("ij,ij->j", x, x)))
-
-    def merge(self, other: "Moments") -> None:
-        """Chan's pairwise update: as if `other`'s frames had been added here."""
-        if other.count == 0:
-            return
-        if self.count == 0:
-            self.count, self.mean, self.m2 = other.count, other.mean.copy(), other.m2.copy()
-            return
-        if other.mean.shape != self.mean.shape:
-            raise ValueError(f"channel count changed from {self.mean.shape[0]} to {other.mean.shape[0]}")
-        total = self.count + other.count
-        delta = other.mean - self.mean
-        self.mean = self.mean + delta * (other.count / total)
-        self.m2 = self.m2 + other.m2 + delta ** 2 * (self.count * other.count / total)
-        self.count = total
-
-    def result(self, epsilon: float) -> tuple[np.ndarray, np.ndarray]:
-        std = np.sqrt(self.m2 / self.count)
-        return self.mean.astype(np.float32), np.maximum(std, epsilon).astype(np.float32)
 
 
 def sequence_moments(persons: list[Mapping], extractors: list[str], window: int = DEFAULT_WINDOW
@@ -113,7 +81,7 @@ def write_moments(group: h5py.Group, moments: dict[str, Moments]) -> None:
         if value.count:
             sub = group.create_group(key)
             sub.attrs["count"] = np.int64(value.count)
-            sub["mean"], sub["m2"] = value.mean, value.m2
+            sub["mean"], sub["m2"] = value.mean, value.scatter
 
 
 def read_moments(group: h5py.Group) -> dict[str, Moments]:
@@ -171,7 +139,7 @@ def write_stats(shards_dir: Path | str, moments: dict[str, Moments], sequences: 
             for part in key.split("/"):
                 group = group[part] if part in group else create_group(group, part)
             group.attrs["count"] = np.int64(acc.count)
-            mean, std = acc.result(epsilon)
+            mean, std = acc.mean_std(epsilon)
             create_dataset(group, "mean", mean)
             create_dataset(group, "std", std)
     return load_stats(shards_dir)

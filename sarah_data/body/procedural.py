@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sarah_data.atomic import atomic_path
 from sarah_data.constants import JOINT, JOINT_NAMES, JOINT_PARENTS, NUM_JOINTS, NUM_VERTICES
 
 SOLE_Y = -1.0  # y of the soles in the rest pose, for every betas
@@ -451,18 +452,12 @@ def write_procedural_body_model(path: str | os.PathLike, seed: int = 0) -> Path:
     Same seed -> byte-identical file (the archive carries fixed timestamps).
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     arrays = procedural_body_arrays(seed)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as archive:
-            for key in sorted(arrays):
-                info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-                with archive.open(info, "w", force_zip64=True) as member:
-                    np.lib.format.write_array(member, np.ascontiguousarray(arrays[key]),
-                                              allow_pickle=False)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_path(path) as tmp, zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED,
+                                                   allowZip64=True) as archive:
+        for key in sorted(arrays):
+            info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            with archive.open(info, "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.ascontiguousarray(arrays[key]),
+                                          allow_pickle=False)
     return path

@@ -1,0 +1,91 @@
+"""The motion vector's layout: which channels hold which joint, and the named joints we score.
+
+A window's ``motion`` (T, J*12*3 + V*3) is every joint's icosahedron (12 points x 3 coordinates,
+sarah_data/icosahedron.py) in the order of the shard's ``joint_names``, then the V shell points
+(docs/representation.md). Every module that slices a motion vector asks a ``MotionLayout`` for
+the slice, so the layout is written down once. A joint's position is its icosahedron's centroid.
+Works on numpy arrays and torch tensors alike (reshape and mean only).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+from sarah_data.constants import DEFAULT_SHELL_POINTS, JOINT_NAMES
+
+ICOSAHEDRON_POINTS = 12
+POINT_WIDTH = ICOSAHEDRON_POINTS * 3  # channels per joint
+
+# The joints the paper's metrics and our losses look at (SMPL-X names).
+FEET = ("left_foot", "right_foot")
+WRISTS = ("left_wrist", "right_wrist")
+HEAD = "head"
+ROOT = "pelvis"
+
+
+@dataclass(frozen=True)
+class MotionLayout:
+    joint_names: tuple[str, ...] = JOINT_NAMES
+    shell_points: int = DEFAULT_SHELL_POINTS
+
+    @classmethod
+    def from_width(cls, width: int, joint_names: Sequence[str] = JOINT_NAMES) -> "MotionLayout":
+        """The layout of a ``width``-channel motion vector over ``joint_names``; ValueError when
+        the width is not that many icosahedra plus whole shell points."""
+        joints = len(joint_names) * POINT_WIDTH
+        shell, rest = divmod(width - joints, 3)
+        if width < joints or rest:
+            raise ValueError(f"motion width {width} is not {len(joint_names)}*12*3 icosahedron "
+                             f"coordinates plus 3 per shell point")
+        return cls(tuple(joint_names), shell)
+
+    @classmethod
+    def of_shards(cls, attrs: Any) -> "MotionLayout":
+        """The layout of a shards folder's motion, from its root attributes (``ShardAttrs``)."""
+        return cls(tuple(attrs.joint_names), len(attrs.shell_vertex_ids))
+
+    @property
+    def num_joints(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def icosahedra_width(self) -> int:
+        return self.num_joints * POINT_WIDTH
+
+    @property
+    def width(self) -> int:
+        return self.icosahedra_width + 3 * self.shell_points
+
+    def joint(self, name: str) -> int:
+        try:
+            return self.joint_names.index(name)
+        except ValueError:
+            raise KeyError(f"no joint {name!r} in this layout") from None
+
+    def joint_slice(self, name: str) -> slice:
+        """The channels of ``name``'s icosahedron in a motion vector."""
+        start = self.joint(name) * POINT_WIDTH
+        return slice(start, start + POINT_WIDTH)
+
+    def split(self, motion):
+        """(..., width) -> icosahedra (..., J, 12, 3) and shell points (..., V, 3)."""
+        lead = tuple(motion.shape[:-1])
+        ico = motion[..., :self.icosahedra_width].reshape(lead + (self.num_joints, ICOSAHEDRON_POINTS, 3))
+        return ico, motion[..., self.icosahedra_width:].reshape(lead + (self.shell_points, 3))
+
+    def joint_positions(self, motion, names: Sequence[str] | None = None):
+        """(..., width) -> (..., J, 3) joint positions (icosahedron centroids); only ``names``
+        (in that order) when given."""
+        if names is None:
+            return self.split(motion)[0].mean(-2)
+        lead = tuple(motion.shape[:-1])
+        points = [motion[..., self.joint_slice(n)].reshape(lead + (ICOSAHEDRON_POINTS, 3)).mean(-2)
+                  for n in names]
+        if isinstance(motion, np.ndarray):
+            return np.stack(points, axis=-2)
+        import torch
+
+        return torch.stack(points, dim=-2)
