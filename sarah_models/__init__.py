@@ -1,11 +1,25 @@
-"""Causal motion models of SARAH: the interleaved-latent causal VAE, the causal flow matcher,
-their shared transformer layers, and staged training with checkpoints."""
+"""Causal motion models of SARAH, in rooms:
 
-from .config import FlowConfig, RunConfig, TrainConfig, VAEConfig
-from .flow import MODALITIES, FlowModel, build_block_mask
-from .layers import KVCache, causal_mask
-from .normalizer import Normalizer
-from .vae import CausalVAE
+``nn`` the reference model (layers, causal VAE, causal flow matcher, normalizer);
+``sampling`` path, solver, guidance and the streaming / offline generators;
+``training`` objectives, loop, stages, checkpoints, DDP;
+``evaluation`` metrics registry, baselines, Table 1 / Table 2;
+``generation`` inputs -> motion.npz and pictures;
+``accel`` inference speed-ups by module replacement; ``testing`` shared test fixtures.
+``config`` holds every default once.
+"""
+
+from .config import FlowConfig, RunConfig, StreamConfig, TrainConfig, VAEConfig
+from .nn import (
+           MODALITIES,
+           CausalVAE,
+           FlowModel,
+           KVCache,
+           Normalizer,
+           build_block_mask,
+           causal_mask,
+)
 
 __all__ = ["CausalVAE", "FlowConfig", "FlowModel", "KVCache", "MODALITIES", "Normalizer",
-           "RunConfig", "TrainConfig", "VAEConfig", "build_block_mask", "causal_mask"]
+           "RunConfig", "StreamConfig", "TrainConfig", "VAEConfig", "build_block_mask",
+           "causal_mask"]

@@ -1,4 +1,7 @@
-"""Model and training configuration: dataclasses whose defaults are the paper's values.
+"""Every default of the models, once: the paper's numbers, then dataclasses built from them.
+
+The constants below are the only place a paper value is written; configs, evaluation, generation
+and the bench import them.
 
 Feature widths (motion Dx, audio Da) are not configuration: they come from the data and are
 stored next to the configs in every checkpoint. Every dataclass round-trips through
@@ -9,11 +12,28 @@ stored next to the configs in every checkpoint. Every dataclass round-trips thro
 from __future__ import annotations
 
 import dataclasses
+import math
 import typing
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Mapping, Sequence, TypeVar
 
 T = TypeVar("T")
+
+WINDOW = 400  # T: frames per training window and per evaluated window (A.2)
+STRIDE = 4  # s: frames per latent token (4)
+CFG_SCALE = 1.3  # w of classifier-free guidance (A.3)
+SOLVER = "midpoint"  # A.3: midpoint method, 4 steps (8 network evaluations per chunk)
+SOLVERS = ("midpoint", "euler")
+SOLVER_STEPS = 4
+GAZE_RANGE = (-1.0, 1.0)  # the gaze score is a cosine: targets outside cannot be reached
+HISTORY_TOKENS = 2  # latents of history the streaming flow sees beside the new one (A.3)
+
+
+def check_gaze(gaze: float | None) -> None:
+    """A gaze target is None (no gaze control) or a finite score in ``GAZE_RANGE``."""
+    low, high = GAZE_RANGE
+    if gaze is not None and not (math.isfinite(gaze) and low <= gaze <= high):
+        raise ValueError(f"gaze target must be in [{low:g}, {high:g}] or None, got {gaze}")
 
 
 def from_dict(cls: type[T], data: Mapping[str, Any]) -> T:
@@ -38,7 +58,7 @@ VELOCITY_WEIGHT_TINY = 10.0
 class VAEConfig:
     """Causal transformer VAE with interleaved latent tokens (paper 3.2 and 4)."""
 
-    stride: int = 4  # s: frames per latent token
+    stride: int = STRIDE  # s: frames per latent token
     latent_dim: int = 256  # Dz
     hidden: int = 256
     heads: int = 4
@@ -104,7 +124,7 @@ LR_SCHEDULES = ("constant", "linear", "cosine")
 class TrainConfig:
     """Optimisation and data settings (paper A.2: AdamW, 1k warmup to 1e-4, 200k + 300k steps)."""
 
-    window: int = 400  # T frames per training window (K = window / stride tokens)
+    window: int = WINDOW  # T frames per training window (K = window / stride tokens)
     batch_size: int = 16  # per process; the paper uses 16 on each of 8 GPUs
     lr: float = 1e-4
     warmup_steps: int = 1_000
@@ -219,3 +239,39 @@ def _parse_value(current: Any, raw: str, text: str) -> Any:
         return raw
     except ValueError as exc:
         raise ValueError(f"--set {text!r}: cannot parse {raw!r} as {type(current).__name__}") from exc
+
+
+@dataclass(frozen=True)
+class StreamConfig:
+    """Inference settings; defaults are the paper's (A.3 and Tab. 2)."""
+
+    history_tokens: int | None = HISTORY_TOKENS  # latents kept as history (None: never drop any)
+    steps: int = SOLVER_STEPS  # solver steps (midpoint: 2 network evaluations each)
+    solver: str = SOLVER
+    cfg_scale: float = CFG_SCALE  # w in x1 = x1_u + w (x1_c - x1_u)
+    gaze: float | None = 0.8  # target gaze score on every frame; None drops g
+    guide: tuple[str, ...] = ("gaze",)  # modalities dropped in the unconditional pass
+    seed: int = 0
+    decoder_blocks: int | None = WINDOW // STRIDE  # decoder attention context in blocks (T / s)
+
+    def __post_init__(self) -> None:
+        from .nn.flow import MODALITIES
+
+        if self.history_tokens is not None and self.history_tokens < 0:
+            raise ValueError(f"history_tokens must be >= 0 or None, got {self.history_tokens}")
+        if self.steps < 1:
+            raise ValueError(f"steps must be >= 1, got {self.steps}")
+        if self.solver not in SOLVERS:
+            raise ValueError(f"unknown solver {self.solver!r}; choose from {SOLVERS}")
+        if not math.isfinite(self.cfg_scale):
+            raise ValueError(f"cfg_scale must be finite, got {self.cfg_scale}")
+        check_gaze(self.gaze)
+        unknown = [m for m in self.guide if m not in MODALITIES]
+        if unknown:
+            raise ValueError(f"guide names unknown modalities {unknown}; choose from {MODALITIES}")
+        if self.decoder_blocks is not None and self.decoder_blocks < 1:
+            raise ValueError(f"decoder_blocks must be >= 1 or None, got {self.decoder_blocks}")
+
+    @property
+    def nfe_per_step(self) -> int:
+        return 2 if self.solver == "midpoint" else 1

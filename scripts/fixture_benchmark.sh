@@ -46,14 +46,14 @@ stamp "start: $(uname -srm), $(nproc --all) cores, $($PYTHON -c 'import torch; p
 
 if [ ! -f "$BENCH/raw/fixture_truth.json" ]; then
   stamp "fixtures: begin"
-  $PYTHON -m cli.fixtures "$BENCH/raw" --sessions "$SESSIONS" --sequences-per-session "$SEQUENCES" \
+  $PYTHON -m sarah_cli.fixtures "$BENCH/raw" --sessions "$SESSIONS" --sequences-per-session "$SEQUENCES" \
     --seconds "$SECONDS_PER_SEQUENCE" --seed 0 --quiet
   stamp "fixtures: end"
 fi
 
 if [ ! -f "$BENCH/shards/manifest.json" ]; then
   stamp "prep: begin"
-  $PYTHON -m cli.prep "$BENCH/raw" "$BENCH/shards" -j "$JOBS" --no-progress
+  $PYTHON -m sarah_cli.prep "$BENCH/raw" "$BENCH/shards" -j "$JOBS" --no-progress
   stamp "prep: end"
 fi
 [ "$UNTIL" = prep ] && exit 0
@@ -65,7 +65,7 @@ for stage in vae flow; do
     stamp "train $stage: begin (${set_args[*]})"
     resume=()
     [ -f "$RUN/$stage.pt" ] && resume=(--resume)
-    $PYTHON -m cli.train --stage "$stage" --config tiny --shards "$BENCH/shards" --out "$RUN" \
+    $PYTHON -m sarah_cli.train --stage "$stage" --config tiny --shards "$BENCH/shards" --out "$RUN" \
       --device cpu --no-progress "${set_args[@]}" "${resume[@]}"
     touch "$RUN/$stage.done"
     stamp "train $stage: end"
@@ -87,7 +87,7 @@ if [ "$TUNE_VAE_STEPS" -gt 0 ]; then
       start=(--init-from "$RUN")
       [ -f "$TUNED/$stage.pt" ] && start=(--resume)
       stamp "tune $stage: begin (${stage_args[*]})"
-      $PYTHON -m cli.train --stage "$stage" --config tiny --shards "$BENCH/shards" --out "$TUNED" \
+      $PYTHON -m sarah_cli.train --stage "$stage" --config tiny --shards "$BENCH/shards" --out "$TUNED" \
         --device cpu --no-progress "${stage_args[@]}" "${start[@]}"
       touch "$TUNED/$stage.done"
       stamp "tune $stage: end"
@@ -98,7 +98,7 @@ fi
 [ "$UNTIL" = tune ] && exit 0
 
 stamp "eval: begin ($RUN)"
-$PYTHON -m cli.eval --run "$RUN" --shards "$BENCH/shards" --split test --windows 2048 \
+$PYTHON -m sarah_cli.eval --run "$RUN" --shards "$BENCH/shards" --split test --windows 2048 \
   --gaze none,0.0,0.8,1.0 --methods gt,random,nn,model,vae --batch-clips 16 --seed 0 --device cpu \
   --steps 4 --cfg 1.3 --protocol offline --out "$EVAL_OUT"
 stamp "eval: end"

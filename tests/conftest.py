@@ -65,7 +65,7 @@ def prep_raw_dir(tmp_path_factory):
 @pytest.fixture(scope="session")
 def prepared_shards(prep_raw_dir, tmp_path_factory):
     """`sarah-prep prep_raw_dir shards -j 1` run once; returns the shards folder. Read-only."""
-    from cli.prep import main
+    from sarah_cli.prep import main
 
     out = tmp_path_factory.mktemp("prepared") / "shards"
     assert main([str(prep_raw_dir), str(out), "-j", "1", "--no-progress"]) == 0

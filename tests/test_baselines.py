@@ -7,7 +7,7 @@ import pytest
 import torch
 from hypothesis import given, settings, strategies as st
 
-from sarah_models.baselines import NearestNeighbourBaseline, NNConfig, RandomBaseline, library_indices
+from sarah_models.evaluation.baselines import (NearestNeighbourBaseline, NNConfig, RandomBaseline, library_indices)
 
 T, D, DX = 16, 6, 9
 

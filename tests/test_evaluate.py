@@ -10,11 +10,12 @@ import pytest
 from hypothesis import given, strategies as st
 from PIL import Image
 
-from cli.eval import main
+from sarah_cli.eval import main
 from helpers import write_split_shards
-from sarah_models.checkpoint import load_checkpoint, save_checkpoint
-from sarah_models.evaluate import MethodResult, select_windows, table1_markdown, table2_markdown
-from sarah_models.metrics import METRICS, CategoryValues, MetricsConfig, MetricsTable
+from sarah_models.training.checkpoint import load_checkpoint, save_checkpoint
+from sarah_models.evaluation.runner import select_windows
+from sarah_models.evaluation.tables import MethodResult, table1_markdown, table2_markdown
+from sarah_models.evaluation.metrics import METRICS, CategoryValues, MetricsConfig, MetricsTable
 from test_generate import save_run
 
 WINDOW = 16  # frames per evaluation window (a multiple of the tiny VAE's stride 4)

@@ -2,11 +2,11 @@
 naive streaming reference computes what the generator computes, and sarah-bench runs.
 
 Tolerances (a stream of fixed seed and inputs, joints = icosahedron centroids, world frame):
-  fp32 (time cache + buffered decoder cache)   identical frames (0 mm)
+  fp32 (time cache + rotary tables)           identical frames (0 mm)
   bf16 Linears in the flow's blocks            max joint deviation <= 1 mm
   int8 Linears in the flow's blocks            max joint deviation <= 1 mm, paper size too
   both                                          |head-angle delta| <= 0.01, |wrist-speed delta| <= 0.01 m/s
-Models have random weights and a motion std of 0.1 m per coordinate (bench.random_models).
+Models have random weights and a motion std of 0.1 m per coordinate (testing.random_models).
 """
 
 from __future__ import annotations
@@ -20,15 +20,18 @@ import pytest
 import torch
 from hypothesis import given, settings, strategies as st
 
-from sarah_models.bench import NaiveStreamer, random_models
-from sarah_models.checkpoint import LoadedModels
-from sarah_models.config import RunConfig
-import sarah_models.fast as fast_module
-from sarah_models.fast import (BF16Linear, BufferedKVCache, InputMemo, decoder_linears,
-                               optimize_for_inference, resolve_decoder, solver_times,
-                               stream_deviation, stream_inputs)
-from sarah_models.layers import KVCache, RopeAngles
-from sarah_models.stream import StreamConfig, StreamingGenerator
+import sarah_models.accel.cpu as cpu_module
+import sarah_models.accel.optimize as optimize_module
+from sarah_bench.naive import NaiveStreamer
+from sarah_models.accel import optimize_for_inference, resolve_decoder
+from sarah_models.accel.linears import BF16Linear, Int8Linear, decoder_linears
+from sarah_models.accel.memo import InputMemo
+from sarah_models.config import RunConfig, StreamConfig
+from sarah_models.nn.layers import KVCache, RopeAngles
+from sarah_models.sampling.solver import time_grid
+from sarah_models.sampling.stream import StreamingGenerator
+from sarah_models.testing import random_models, stream_deviation, stream_inputs
+from sarah_models.training.checkpoint import LoadedModels
 
 AUDIO_DIM = 8
 SHELL = 4
@@ -54,7 +57,7 @@ def test_fp32_mode_is_exact_and_fully_precomputed(tiny):
     memos = [m for m in fast[1].modules() if isinstance(m, InputMemo)]
     rope = [m for m in memos if isinstance(m.module, RopeAngles)]
     time = [m for m in memos if m not in rope]
-    assert len(time) == 2 + len(fast[1].blocks)  # time MLP, every block, the output layer
+    assert len(time) == 3 + len(fast[1].blocks)  # time embedding and MLP, every block, output
     assert len(rope) == len(fast[1].blocks)
     misses = [m.misses for m in time]
     deviation = stream_deviation(tiny, fast, frames=24)
@@ -75,6 +78,7 @@ def test_optimized_copies_leave_the_originals_alone(tiny):
     assert all(torch.equal(before[k], v) for k, v in flow.state_dict().items())
     assert fast[0] is not vae and fast[2] is tiny[2]
     assert not any(isinstance(m, torch.nn.Linear) for m in fast[1].blocks[0].mlp)
+    assert any(isinstance(m, Int8Linear) for m in fast[1].blocks[0].mlp)
 
 
 def test_loaded_models_in_loaded_models_out(tiny):
@@ -142,7 +146,7 @@ def test_bf16_decoder_converts_the_decode_path_only(tiny):
 def test_decoder_precision_rules(monkeypatch):
     cpu = torch.device("cpu")
     for native, expected in ((True, "bf16"), (False, "fp32")):
-        monkeypatch.setattr(fast_module, "prefer_bf16_decoder", lambda native=native: native)
+        monkeypatch.setattr(optimize_module, "prefer_bf16_decoder", lambda native=native: native)
         assert resolve_decoder("auto", "int8", cpu) == expected
         assert resolve_decoder("auto", "bf16", cpu) == expected
         assert resolve_decoder("auto", "fp32", cpu) == "fp32"  # the exact mode stays exact
@@ -161,13 +165,28 @@ def test_decoder_precision_rules(monkeypatch):
 def test_bf16_decoder_is_preferred_where_it_measured_faster(monkeypatch, amx, bf16, vendor, expected):
     monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: amx, raising=False)
     monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: bf16, raising=False)
-    monkeypatch.setattr(fast_module, "cpu_vendor", lambda: vendor)
-    assert fast_module.prefer_bf16_decoder() is expected
+    monkeypatch.setattr(cpu_module, "cpu_vendor", lambda: vendor)
+    assert cpu_module.prefer_bf16_decoder() is expected
 
 
-def test_solver_times_are_the_midpoint_grid():
-    assert solver_times(StreamConfig(steps=4)) == [0.0, 0.125, 0.25, 0.375, 0.5, 0.625, 0.75, 0.875]
-    assert solver_times(StreamConfig(steps=2, solver="euler")) == [0.0, 0.5]
+def test_time_grid_is_the_midpoint_grid():
+    assert time_grid(4, "midpoint") == [0.0, 0.125, 0.25, 0.375, 0.5, 0.625, 0.75, 0.875]
+    assert time_grid(2, "euler") == [0.0, 0.5]
+
+
+def test_int8_linear_is_the_dynamic_quantized_linear_bit_for_bit():
+    import warnings
+
+    from torch.ao.quantization import per_channel_dynamic_qconfig, quantize_dynamic
+
+    torch.manual_seed(0)
+    linear = torch.nn.Linear(48, 40)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        reference = quantize_dynamic(torch.nn.Sequential(linear), {"0": per_channel_dynamic_qconfig},
+                                     dtype=torch.qint8)
+    x = torch.randn(2, 3, 48)
+    assert torch.equal(Int8Linear(linear)(x), reference(x))
 
 
 def test_time_memo_computes_afresh_with_autograd():
@@ -184,18 +203,25 @@ def test_time_memo_computes_afresh_with_autograd():
 @settings(max_examples=40, deadline=None)
 @given(max_tokens=st.one_of(st.none(), st.integers(1, 7)),
        calls=st.lists(st.tuples(st.integers(1, 5), st.booleans()), min_size=1, max_size=12))
-def test_buffered_kv_cache_equals_kv_cache(max_tokens, calls):
-    plain, buffered = KVCache(max_tokens), BufferedKVCache(max_tokens)
+def test_kv_cache_returns_the_concatenation_of_what_it_keeps(max_tokens, calls):
+    """The preallocated cache gives what concatenating the kept keys would: every committed
+    token (the latest ``max_tokens`` only, after each commit) followed by the new ones."""
+    cache, kept_k, kept_v = KVCache(max_tokens), None, None
     g = torch.Generator().manual_seed(len(calls))
     for n, commit in calls:
         k, v = torch.randn(2, 3, n, 4, generator=g), torch.randn(2, 3, n, 4, generator=g)
-        expected, got = plain.extend(k, v, commit), buffered.extend(k, v, commit)
-        assert torch.equal(expected[0], got[0]) and torch.equal(expected[1], got[1])
-        assert len(plain) == len(buffered)
-    if len(plain):
-        assert torch.equal(plain.k, buffered.k) and torch.equal(plain.v, buffered.v)
-    buffered.reset()
-    assert len(buffered) == 0 and buffered.k is None
+        want_k = k if kept_k is None else torch.cat((kept_k, k), dim=2)
+        want_v = v if kept_v is None else torch.cat((kept_v, v), dim=2)
+        got_k, got_v = cache.extend(k, v, commit)
+        assert torch.equal(got_k, want_k) and torch.equal(got_v, want_v)
+        if commit:
+            keep = want_k.shape[2] if max_tokens is None else max_tokens
+            kept_k, kept_v = want_k[:, :, -keep:], want_v[:, :, -keep:]
+        assert len(cache) == (0 if kept_k is None else kept_k.shape[2])
+    if kept_k is not None:
+        assert torch.equal(cache.k, kept_k) and torch.equal(cache.v, kept_v)
+    cache.reset()
+    assert len(cache) == 0 and cache.k is None
 
 
 def test_naive_reference_computes_what_the_generator_computes(tiny):
@@ -213,7 +239,7 @@ def test_naive_reference_computes_what_the_generator_computes(tiny):
 
 
 def test_bench_quick_runs_end_to_end(tmp_path):
-    from cli.bench import main
+    from sarah_cli.bench import main
 
     history = tmp_path / "performance.md"
     history.write_text("| date | cpu |\n| --- | --- |\n| old | row |\n\nafter the table\n")
@@ -237,7 +263,7 @@ def test_bench_quick_runs_end_to_end(tmp_path):
 
 
 def test_bench_config_rejects_bad_values():
-    from sarah_models.bench import BenchConfig
+    from sarah_bench.config import BenchConfig
 
     with pytest.raises(ValueError, match="multiple of 4"):
         BenchConfig(stream_frames=10)

@@ -15,7 +15,7 @@ import pytest
 import soundfile as sf
 from hypothesis import given, settings, strategies as st
 
-from cli.fixtures import main as fixtures_main
+from sarah_cli.fixtures import main as fixtures_main
 from conftest import FIXTURE_RAW_ARGS
 from sarah_data.constants import (AUDIO_SAMPLE_RATE, FPS, JOINT, NUM_BETAS, SAMPLES_PER_FRAME,
                                   SMPLX_PARAM_WIDTHS)
@@ -191,7 +191,7 @@ def test_cli_rejects_bad_arguments(tmp_path, capsys):
 
 
 def test_cli_help_runs_as_a_module():
-    result = subprocess.run([sys.executable, "-m", "cli.fixtures", "--help"], capture_output=True,
+    result = subprocess.run([sys.executable, "-m", "sarah_cli.fixtures", "--help"], capture_output=True,
                             text=True, cwd=Path(__file__).resolve().parents[1], timeout=60)
     assert result.returncode == 0
     assert "--sessions" in result.stdout and "(default: 4)" in result.stdout
@@ -294,7 +294,7 @@ def test_feet_do_not_slide_outside_steps(fixture_raw_dir, bodies):
 
 def test_a_standing_foot_stays_planted_during_steps(fixture_raw_dir, bodies):
     """The ground truth does not skate: the paper's metric on it is near its real-data 0.01."""
-    from sarah_models.metrics import foot_slide
+    from sarah_models.evaluation.metrics import foot_slide
 
     truth, _ = _truth(fixture_raw_dir)
     feet = [[JOINT[f"{side}_ankle"], JOINT[f"{side}_foot"]] for side in ("left", "right")]

@@ -11,14 +11,14 @@ import pytest
 import soundfile as sf
 from PIL import Image
 
-from cli.generate import main
+from sarah_cli.generate import main
 from sarah_data import icosahedron
 from sarah_data.constants import JOINT_NAMES, NUM_JOINTS
 from sarah_data.frames import rotation_about_y, window_transform
 from sarah_data.shards import (MANIFEST_NAME, Manifest, ProcessedPerson, ProcessedSequence,
                                ShardAttrs, ShardWriter, write_manifest)
-from sarah_models.checkpoint import save_checkpoint
-from sarah_models.generate import head_gaze
+from sarah_models.training.checkpoint import save_checkpoint
+from sarah_models.generation.outputs import head_gaze
 from test_stream import SHELL, tiny_models
 
 LOGMEL_DIM = 80

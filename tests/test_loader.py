@@ -245,7 +245,8 @@ def test_close_leaves_no_process_and_no_shared_memory(dataset):
 
 def test_training_batches_come_from_the_loader(root):
     from sarah_models.config import TrainConfig
-    from sarah_models.train import DistInfo, EpochBatches
+    from sarah_models.training.batches import EpochBatches
+    from sarah_models.training.distributed import DistInfo
 
     dataset = WindowDataset(root, "train", window=W, length=12, seed=0)
     config = replace(TrainConfig.tiny(), window=W, batch_size=4)
@@ -267,10 +268,12 @@ def test_training_steps_are_done_with_a_batch_before_the_next_is_requested(root)
     """With one slot and no worker, requesting a batch overwrites the previous one at once: a
     training loop that still used a batch after asking for the next would lose other values
     than one trained on copies."""
-    from sarah_models.checkpoint import build_models
-    from sarah_models.normalizer import Normalizer
-    from sarah_models.train import (DistInfo, EpochBatches, FlowObjective, VAEObjective,
-                                    make_optimizer, train_loop)
+    from sarah_models.training.checkpoint import build_models
+    from sarah_models.nn.normalizer import Normalizer
+    from sarah_models.training.batches import EpochBatches
+    from sarah_models.training.distributed import DistInfo
+    from sarah_models.training.loop import make_optimizer, train_loop
+    from sarah_models.training.objectives import FlowObjective, VAEObjective
     from test_train import tiny_config
 
     dataset = WindowDataset(root, "train", window=W, length=12, seed=0)

@@ -6,9 +6,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from sarah_models.config import FlowConfig, VAEConfig
-from sarah_models.flow import MODALITIES, FlowModel, build_block_mask
-from sarah_models.layers import AdaLNZeroBlock, Attention, KVCache, TransformerBlock, causal_mask
-from sarah_models.vae import CausalVAE, decoder_layout, encoder_layout
+from sarah_models.nn.flow import MODALITIES, FlowModel, build_block_mask
+from sarah_models.nn.layers import AdaLNZeroBlock, Attention, KVCache, TransformerBlock, causal_mask
+from sarah_models.nn.vae import CausalVAE, decoder_layout, encoder_layout
 
 S, K, DX, DA = 4, 5, 18, 6
 T = S * K

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from cli.prep import main as prep_main
+from sarah_cli.prep import main as prep_main
 from sarah_data.dataset import WindowDataset
 from sarah_data.verify import verify_shards
 from sarah_data.splits import split_sessions
@@ -76,7 +76,7 @@ def test_parallel_run_is_byte_identical(prepared_shards, prep_raw_dir, tmp_path)
 
 def test_kill_and_resume_equals_uninterrupted_run(prepared_shards, prep_raw_dir, tmp_path):
     out = tmp_path / "shards"
-    command = [sys.executable, "-m", "cli.prep", str(prep_raw_dir), str(out), "-j", "1", "--no-progress"]
+    command = [sys.executable, "-m", "sarah_cli.prep", str(prep_raw_dir), str(out), "-j", "1", "--no-progress"]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     process = subprocess.Popen(command, env=env, start_new_session=True,
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

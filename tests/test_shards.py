@@ -177,7 +177,7 @@ def test_close_removes_stale_files_of_the_split_only(tmp_path):
 def test_failure_mid_write_leaves_no_file(tmp_path, monkeypatch):
     rng = np.random.default_rng(5)
     first, second = make_sequence(rng, "s1"), make_sequence(rng, "s2")
-    real, calls = shards.create_dataset, []
+    real, calls = shards.writer.create_dataset, []
 
     def failing(group, name, data):
         calls.append(name)
@@ -185,7 +185,7 @@ def test_failure_mid_write_leaves_no_file(tmp_path, monkeypatch):
             raise OSError("disk full")
         return real(group, name, data)
 
-    monkeypatch.setattr(shards, "create_dataset", failing)
+    monkeypatch.setattr(shards.writer, "create_dataset", failing)
     with pytest.raises(OSError, match="disk full"):
         with ShardWriter(tmp_path, "train", make_attrs()) as writer:
             writer.add(first)

@@ -10,10 +10,12 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 from sarah_data import icosahedron
 from sarah_data.constants import NUM_JOINTS, SAMPLES_PER_FRAME
 from sarah_data.frames import rotation_about_y, window_transform
-from sarah_models.bench import random_models
+from sarah_models.testing import random_models
 from sarah_models.config import RunConfig
-from sarah_models.stream import (StreamConfig, StreamingGenerator, StreamingSession, drop_masks,
-                                 generate_offline, imputer, integrate, solve)
+from sarah_models.config import StreamConfig
+from sarah_models.sampling.guidance import drop_masks
+from sarah_models.sampling.solver import imputer, integrate
+from sarah_models.sampling.stream import (StreamingGenerator, StreamingSession, generate_offline, solve)
 
 SHELL = 4
 S = 4  # stride of the tiny VAE

@@ -11,11 +11,14 @@ import pytest
 import torch
 import torch.multiprocessing as mp
 
-from cli.train import build_parser, main
-from sarah_models.checkpoint import capture_rng_state, load_checkpoint, load_models, restore_rng_state
+from sarah_cli.train import build_parser, main
+from sarah_models.training.checkpoint import (capture_rng_state, load_checkpoint, load_models, restore_rng_state)
 from sarah_models.config import FlowConfig, RunConfig, TrainConfig, VAEConfig
-from sarah_models.train import (DistInfo, EpochBatches, PlantedFeet, VAEObjective, lr_at,
-                                model_stats, train)
+from sarah_models.training.batches import EpochBatches
+from sarah_models.training.distributed import DistInfo
+from sarah_models.training.loop import lr_at
+from sarah_models.training.objectives import PlantedFeet, VAEObjective
+from sarah_models.training.stages import model_stats, train
 
 WINDOW, DX, DA = 16, 21, 6
 
@@ -134,7 +137,7 @@ def test_planted_feet_term_counts_only_planted_steps_in_threshold_units():
 
 
 def test_vae_objective_adds_the_weighted_contact_term():
-    from sarah_models.normalizer import Normalizer
+    from sarah_models.nn.normalizer import Normalizer
 
     frames = 8
     motion = _feet_motion(np.zeros((frames, 2)), np.full(frames, 0.03), frames)
@@ -142,7 +145,7 @@ def test_vae_objective_adds_the_weighted_contact_term():
     stats = {"motion": (np.zeros(dx), np.full(dx, 0.3))}
     config = replace(tiny_config(1).vae, hidden=32, latent_dim=8, encoder_layers=1,
                      decoder_layers=1, contact_weight=0.5)
-    from sarah_models.vae import CausalVAE
+    from sarah_models.nn.vae import CausalVAE
 
     torch.manual_seed(0)
     objective = VAEObjective(CausalVAE(config, dx), Normalizer(stats))
@@ -298,7 +301,7 @@ def test_decoder_fine_tune_with_latent_noise_keeps_the_encoder(tmp_path):
 
 
 def test_latent_noise_perturbs_only_the_decoder_input():
-    from sarah_models.vae import CausalVAE
+    from sarah_models.nn.vae import CausalVAE
 
     x = torch.randn(2, WINDOW, DX, generator=torch.Generator().manual_seed(0))
     vae_config = tiny_config(1).vae
@@ -338,10 +341,11 @@ def _ddp_replica_worker(rank: int, world: int, port: int, out: str) -> None:
     torch.set_num_threads(1)
     from torch.nn.parallel import DistributedDataParallel
 
-    from sarah_models.checkpoint import build_models
-    from sarah_models.normalizer import Normalizer
-    from sarah_models.train import (VAEObjective, cleanup_distributed, make_optimizer,
-                                    setup_distributed, train_loop)
+    from sarah_models.training.checkpoint import build_models
+    from sarah_models.nn.normalizer import Normalizer
+    from sarah_models.training.distributed import cleanup_distributed, setup_distributed
+    from sarah_models.training.loop import make_optimizer, train_loop
+    from sarah_models.training.objectives import VAEObjective
 
     try:
         info = setup_distributed("cpu")
@@ -375,7 +379,7 @@ def test_ddp_two_processes_keep_identical_replicas_and_write_once(tmp_path):
     for key, value in a["weights"].items():
         assert torch.equal(value, b["weights"][key]), key
     torch.manual_seed(0)
-    from sarah_models.checkpoint import build_models
+    from sarah_models.training.checkpoint import build_models
 
     init, _ = build_models(tiny_config(2), {"motion": DX, "audio": DA})
     assert not torch.equal(init.state_dict()["frame_in.weight"], a["weights"]["frame_in.weight"])

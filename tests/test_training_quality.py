@@ -11,9 +11,9 @@ import torch
 from sarah_data import icosahedron
 from sarah_data.constants import NUM_JOINTS
 from sarah_data.dataset import WindowDataset
-from sarah_models.checkpoint import load_models
+from sarah_models.training.checkpoint import load_models
 from sarah_models.config import RunConfig
-from sarah_models.train import train
+from sarah_models.training.stages import train
 
 VAE_STEPS, FLOW_STEPS = 400, 200
 # Mean joint position error on held-out 64-frame windows after VAE_STEPS (measured 22.8 cm; the

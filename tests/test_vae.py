@@ -5,7 +5,7 @@ import torch
 from torch.distributions import Normal, kl_divergence
 
 from sarah_models.config import VAEConfig
-from sarah_models.vae import CausalVAE
+from sarah_models.nn.vae import CausalVAE
 
 CFG = VAEConfig.tiny()
 DX = 30

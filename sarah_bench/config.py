@@ -1,0 +1,78 @@
+"""What ``sarah-bench`` runs (``BenchConfig``) and the goals its figures are held to."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
+
+import torch
+
+from sarah_models.accel import MODES, resolve_decoder
+from sarah_models.config import STRIDE, WINDOW
+
+CHUNK_FRAMES = STRIDE  # paper A.3: chunks of s = 4 frames
+GOALS = (  # (key, description, target, "min" = at least / "max" = below)
+    ("streaming.paper.fps", "streaming fps, paper size, logmel (real time)", 30.0, "min"),
+    ("streaming.paper.fps@60", "streaming fps, paper size (paper's 60 fps)", 60.0, "min"),
+    ("streaming.paper.latency_ms.p99", "chunk latency p99, paper size (ms)", 33.0, "max"),
+    # The brief allows fewer solver steps; they change the output (quality: docs/results.md).
+    ("streaming.paper.fewer_steps.latency_ms.p99",
+     "chunk latency p99, paper size, fewer solver steps (ms)", 33.0, "max"),
+    ("offline.paper.fps", "offline fps, paper size (paper: 600)", 600.0, "min"),
+    ("prep.logmel.rtf", "prep real-time factor, logmel, -j 2", 100.0, "min"),
+    ("loader.workers_2.windows_per_s", "loader windows/s, 2 workers", 1000.0, "min"),
+)
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """What ``sarah-bench`` runs; ``quick()`` is the CI smoke run (tiny model, small inputs)."""
+
+    threads: int = 2
+    mode: str = "int8"  # the optimized path (fast.MODES)
+    decoder: str = "auto"  # the VAE decoder's precision in that path (fast.DECODER_PRECISIONS)
+    sizes: tuple[str, ...] = ("paper", "tiny")
+    stream_frames: int = WINDOW  # streamed by the optimized generator
+    naive_frames: int = 64  # streamed by the naive reference (its cost grows per chunk)
+    max_stream_seconds: float = 60.0  # a stream stops early past this (slow or loaded machine)
+    fewer_steps: int | None = 2  # also stream with this many midpoint steps (None: skip)
+    offline_frames: int = WINDOW  # the paper's T
+    deviation_frames: int = 64  # tolerance check: optimized vs plain fp32
+    prep: bool = True
+    prep_sessions: int = 4  # the fixture corpus the loader section reads (as shards)
+    prep_sequences_per_session: int = 2
+    prep_seconds: float = 60.0
+    prep_jobs: int = 2
+    # The prep benchmark's own corpus (sessions, sequences per session, seconds): 12 dyads of 4
+    # min, 40 dyad-minutes with audio, so that fixed start-up (workers that import torch and load
+    # the body model) weighs about as little as in a real corpus. None: the loader's corpus.
+    prep_corpus: tuple[int, int, float] | None = (6, 2, 240.0)
+    loader: bool = True
+    loader_windows: int = 1024  # 64 batches: start-up (fork, slot mapping) paid once, as in training
+    loader_batch: int = 16
+    hubert: bool = True
+    hubert_prep_seconds: float = 6.0
+    hubert_windows_s: tuple[float, ...] = (1.0, 2.0, 4.0, 13.2)  # 13.2 s = T = 396 + 4 frames
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.threads < 1:
+            raise ValueError(f"threads must be >= 1, got {self.threads}")
+        if self.mode not in MODES:
+            raise ValueError(f"unknown mode {self.mode!r}; choose from {MODES}")
+        resolve_decoder(self.decoder, self.mode, torch.device("cpu"))  # raises on a bad pair
+        unknown = [s for s in self.sizes if s not in ("paper", "tiny")]
+        if unknown:
+            raise ValueError(f"unknown model sizes {unknown}; choose from paper, tiny")
+        for name in ("stream_frames", "naive_frames", "offline_frames", "deviation_frames"):
+            if getattr(self, name) < CHUNK_FRAMES or getattr(self, name) % CHUNK_FRAMES:
+                raise ValueError(f"{name} must be a positive multiple of {CHUNK_FRAMES}")
+
+    @classmethod
+    def quick(cls, **overrides: Any) -> "BenchConfig":
+        base = cls(sizes=("tiny",), stream_frames=32, naive_frames=16, offline_frames=64,
+                   fewer_steps=1,
+                   deviation_frames=16, prep_sessions=1, prep_sequences_per_session=2,
+                   prep_seconds=14.0, prep_corpus=None, loader_windows=32, loader_batch=8,
+                   hubert=False)
+        return replace(base, **overrides)

@@ -1,0 +1,157 @@
+"""The bench's verdicts and outputs: goals met or missed, the plain-text report, the history
+row of docs/performance.md and the JSON file."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from sarah_data.atomic import atomic_write_text
+
+from .config import GOALS
+
+
+def _lookup(results: dict[str, Any], key: str) -> float | None:
+    node: Any = results
+    for part in key.split("@")[0].split("."):
+        if not isinstance(node, dict) or part not in node:
+            return None
+        node = node[part]
+    return float(node)
+
+
+def check_goals(results: dict[str, Any]) -> list[dict[str, Any]]:
+    """Each goal of ``GOALS`` with its measured value (None when not measured) and verdict."""
+    rows = []
+    for key, text, target, kind in GOALS:
+        value = _lookup(results, key)
+        met = None if value is None else (value >= target if kind == "min" else value < target)
+        rows.append({"goal": key, "description": text, "target": target, "kind": kind,
+                     "value": value, "met": met})
+    return rows
+
+
+def _deviation_text(label: str, dev: dict[str, float], reference: str = "fp32") -> str:
+    return (f"{label} vs {reference} over {dev['frames']} frames: max joint {dev['max_joint_mm']:.3f} mm, "
+            f"mean {dev['mean_joint_mm']:.3f} mm (motion scale {dev['motion_scale_mm']:.1f} mm), "
+            f"head-angle delta {dev['head_angle_delta']:.4f}")
+
+
+def _f(value: float | None, digits: int = 1) -> str:
+    return "-" if value is None or value != value else f"{value:,.{digits}f}"
+
+
+def format_report(results: dict[str, Any]) -> str:
+    """The results as plain-text tables."""
+    env = results["environment"]
+    lines = [f"sarah-bench  {env['date']}  {env['cpu']}, {env['cores']} cores, "
+             f"{env['threads']} threads, torch {env['torch']}",
+             f"load average before {env['load_before'][0]:.2f}, after "
+             f"{env.get('load_after', [float('nan')])[0]:.2f} "
+             f"(other processes on these cores slow every figure down)", ""]
+    prep = results.get("prep", {})
+    if prep:
+        lines += ["prep (dyad-seconds per wall-second)      fast    naive(-j 1)   ratio   "
+                  "CPU ms per dyad-s, fast / naive"]
+        for name, row in prep.items():
+            lines.append(f"  {name:<14} -j {int(row['jobs'])}, {row['dyad_seconds']:.0f} dyad-s "
+                         f"{_f(row['rtf']):>9}x {_f(row['naive_rtf']):>9}x   {_f(row['ratio'], 2)}"
+                         f"    {_f(row.get('fast_cpu_ms_per_dyad_s'), 2)} / "
+                         f"{_f(row.get('naive_cpu_ms_per_dyad_s'), 2)}")
+    loader = results.get("loader")
+    if loader:
+        lines += ["", "loader (400-frame windows per second)   steady   with start-up   CPU ms/window"]
+        rows = [(f"WindowLoader, {key.replace('_', ' ')}", loader[key]) for key in ("workers_0", "workers_2")]
+        rows += [(f"DataLoader, {key.replace('_', ' ')} (reference)", loader[key]["dataloader"])
+                 for key in ("workers_0", "workers_2") if "dataloader" in loader[key]]
+        for label, row in rows:
+            lines.append(f"  {label:<38}{_f(row['windows_per_s']):>8}  "
+                         f"{_f(row['windows_per_s_with_startup']):>8}   "
+                         f"{_f(row.get('cpu_ms_per_window'), 2):>13}")
+        lines.append(f"  ratio 2 workers / 0 workers: {_f(loader['ratio'], 2)}")
+    offline = results.get("offline", {})
+    if offline:
+        lines += ["", f"offline generation (fps = T / time, best of 3)   {results['config']['mode']}"
+                      f"     fp32 plain   ratio"]
+        for size, row in offline.items():
+            lines.append(f"  {size:<44}{_f(row['fps']):>8}  {_f(row['naive_fps']):>10}   "
+                         f"{_f(row['ratio'], 2)}")
+    streaming = results.get("streaming", {})
+    if streaming:
+        cfg = results["config"]
+        lines += ["", "streaming (chunks of 4 frames, midpoint x 4 = 8 NFE, cfg 1.3, logmel audio; "
+                      f"fast = {cfg['mode']} flow, {cfg.get('decoder_precision', 'fp32')} decoder)"]
+        header = (f"  {'':<16}{'fps':>8}  {'p50 ms':>8}  {'p99 ms':>8}   "
+                  f"stage p50/p99 ms: audio | flow | decode | other")
+        lines.append(header)
+        for size, row in streaming.items():
+            variants = [(f"{size} fast", row), (f"{size} naive", row["naive"])]
+            if "fewer_steps" in row:
+                variants.append((f"{size} fast {2 * row['fewer_steps']['steps']} NFE",
+                                 row["fewer_steps"]))
+            for label, r in variants:
+                st = r["stages_ms"]
+                stage_text = " | ".join(f"{_f(st[k]['p50'])}/{_f(st[k]['p99'])}"
+                                        for k in ("audio", "flow", "decode", "other"))
+                lines.append(f"  {label:<16}{_f(r['fps']):>8}  {_f(r['latency_ms']['p50']):>8}  "
+                             f"{_f(r['latency_ms']['p99']):>8}   {stage_text}")
+            lines.append(f"  {size} ratio fast/naive {_f(row['ratio'], 2)}; "
+                         f"{_deviation_text(results['config']['mode'], row['deviation'])}")
+            if "deviation" in row.get("fewer_steps", {}):
+                nfe = 2 * row["fewer_steps"]["steps"]
+                text = _deviation_text(f"{nfe} NFE {results['config']['mode']}",
+                                       row["fewer_steps"]["deviation"], "8 NFE fp32")
+                lines.append(f"  {size} {text}"
+                             f" (fewer steps change the output: quality in docs/results.md)")
+    hubert = results.get("hubert_streaming")
+    if hubert:
+        lines += ["", "HuBERT-Large causal streaming: one pass per 4-frame chunk (133 ms of audio)",
+                  "  window s   ms per chunk   x real time   fps"]
+        for row in hubert:
+            lines.append(f"  {row['window_s']:>8.1f}   {row['ms_per_chunk']:>12,.0f}   "
+                         f"{row['realtime_factor']:>11.3f}   {row['fps']:>5.2f}")
+    lines += ["", "goals"]
+    for goal in results.get("goals", []):
+        verdict = {True: "MET", False: "MISSED", None: "not measured"}[goal["met"]]
+        sign = ">=" if goal["kind"] == "min" else "<"
+        lines.append(f"  {goal['description']:<48} {_f(goal['value']):>9}  {sign} "
+                     f"{goal['target']:g}  {verdict}")
+    lines.append(f"\nbench time {results['environment'].get('bench_seconds', 0):.0f} s")
+    return "\n".join(lines)
+
+
+def history_row(results: dict[str, Any]) -> str:
+    """One line for the history table of docs/performance.md."""
+    env = results["environment"]
+
+    def get(key: str) -> str:
+        value = _lookup(results, key)
+        return _f(value)
+
+    mode = results["config"]["mode"]
+    if results["config"].get("decoder_precision") == "bf16":
+        mode += ", bf16 decoder"
+    return (f"| {env['date'][:10]} | {env['cpu']} | {env['threads']} | {env['torch']} | "
+            f"{mode} | {get('streaming.paper.fps')} | "
+            f"{get('streaming.paper.latency_ms.p99')} | "
+            f"{get('streaming.paper.fewer_steps.latency_ms.p99')} | {get('offline.paper.fps')} | "
+            f"{get('streaming.tiny.fps')} | {get('prep.logmel.rtf')} | "
+            f"{get('loader.workers_2.windows_per_s')} | {env['load_before'][0]:.1f} |")
+
+
+def write_json(path: Path, results: dict[str, Any]) -> None:
+    """Write ``results`` to ``path`` via a temporary file and a rename."""
+    atomic_write_text(path, json.dumps(results, indent=2, sort_keys=True) + "\n")
+
+
+def append_history(path: Path, row: str) -> None:
+    """Append ``row`` after the last line of the history table (the file's last table row)."""
+    text = path.read_text() if path.exists() else ""
+    lines = text.splitlines()
+    last = max((i for i, line in enumerate(lines) if line.startswith("| ")), default=None)
+    if last is None:
+        lines += ["", row]
+    else:
+        lines.insert(last + 1, row)
+    atomic_write_text(path, "\n".join(lines) + "\n")

@@ -1,0 +1,79 @@
+"""sarah-bench: prep, loader, offline and streaming speed against naive references, one run."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from sarah_bench.config import BenchConfig
+    from sarah_models.accel import DECODER_PRECISIONS, MODE_HELP, MODES
+
+    defaults = BenchConfig()
+    parser = argparse.ArgumentParser(
+        prog="sarah-bench", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        description="Measure prep real-time factor, loader throughput, offline and streaming "
+                    "generation (paper and tiny sizes, random weights) and HuBERT-Large "
+                    "streaming cost, each against a naive reference in the same run; print a "
+                    "table (and JSON with --json). Takes a few minutes; --quick is a smoke run.")
+    parser.add_argument("--threads", type=int, default=defaults.threads,
+                        help="torch intra-op threads for the whole run")
+    parser.add_argument("--mode", choices=MODES, default=defaults.mode,
+                        help="optimization of the fast path: "
+                             + "; ".join(f"{m}: {h}" for m, h in MODE_HELP.items()))
+    parser.add_argument("--decoder", choices=DECODER_PRECISIONS, default=defaults.decoder,
+                        help="the VAE decoder's Linears in the int8 and bf16 modes: auto = bf16 "
+                             "where it measured faster (AMX, or AVX512-BF16 on a non-Intel CPU), "
+                             "fp32 otherwise")
+    parser.add_argument("--sizes", default=",".join(defaults.sizes),
+                        help="model sizes to benchmark (paper, tiny)")
+    parser.add_argument("--quick", action="store_true",
+                        help="smoke run: tiny model, short streams, small prep, no HuBERT")
+    parser.add_argument("--no-prep", action="store_true", help="skip the prep benchmark")
+    parser.add_argument("--no-loader", action="store_true", help="skip the loader benchmark")
+    parser.add_argument("--no-hubert", action="store_true", help="skip HuBERT-Large")
+    parser.add_argument("--json", type=Path, default=None, help="also write the results here")
+    parser.add_argument("--history", type=Path, default=None,
+                        help="append one row to the history table of this markdown file "
+                             "(docs/performance.md)")
+    parser.add_argument("--workdir", type=Path, default=None,
+                        help="keep fixtures and shards here (default: a temporary folder, removed)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from sarah_bench.bench import run_bench
+    from sarah_bench.config import BenchConfig
+    from sarah_bench.report import append_history, format_report, history_row, write_json
+
+    overrides = {"threads": args.threads, "mode": args.mode, "decoder": args.decoder}
+    if args.sizes != ",".join(BenchConfig().sizes) or not args.quick:
+        overrides["sizes"] = tuple(s.strip() for s in args.sizes.split(",") if s.strip())
+    if args.no_prep:
+        overrides["prep"] = False
+    if args.no_loader:
+        overrides["loader"] = False
+    if args.no_hubert:
+        overrides["hubert"] = False
+    try:
+        config = BenchConfig.quick(**overrides) if args.quick else BenchConfig(**overrides)
+    except ValueError as error:
+        print(f"sarah-bench: error: {error}", file=sys.stderr)
+        return 2
+    results = run_bench(config, workdir=args.workdir,
+                        log=lambda line: print(f"sarah-bench: {line}", file=sys.stderr, flush=True))
+    print(format_report(results))
+    if args.json is not None:
+        write_json(args.json, results)
+        print(f"wrote {args.json}")
+    if args.history is not None:
+        append_history(args.history, history_row(results))
+        print(f"appended a row to {args.history}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

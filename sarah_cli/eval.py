@@ -1,0 +1,107 @@
+"""sarah-eval: the paper's Table 1 (GT, Random, NN, model) and Table 2 (gaze sweep) on test windows."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+EXIT_ERROR = 2
+
+
+def _gazes(text: str) -> tuple[float | None, ...]:
+    values = []
+    for part in text.split(","):
+        part = part.strip().lower()
+        if part in ("none", "null", "off", "∅"):
+            values.append(None)
+            continue
+        try:
+            value = float(part)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"--gaze expects comma-separated numbers in [-1, 1] or 'none', got {part!r}") from None
+        if not -1.0 <= value <= 1.0:
+            raise argparse.ArgumentTypeError(f"--gaze values must be in [-1, 1], got {value:g}")
+        values.append(value)
+    if not values:
+        raise argparse.ArgumentTypeError("--gaze needs at least one value")
+    return tuple(values)
+
+
+def _methods(text: str) -> tuple[str, ...]:
+    return tuple(p.strip().lower() for p in text.split(",") if p.strip())
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from sarah_models.evaluation.runner import EvalConfig
+
+    d = EvalConfig()
+    parser = argparse.ArgumentParser(
+        prog="sarah-eval", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        description="Evaluate GT, the Random and NN baselines and a trained run on a split's "
+                    "non-overlapping T-frame windows (paper sec. 4 and A.2). Writes "
+                    "table1.md/.json, table2.md/.json, windows.json and plots/*.png to --out.")
+    parser.add_argument("--run", type=Path, default=None,
+                        help="training run folder with flow.pt (needed for the 'model' method)")
+    parser.add_argument("--shards", type=Path, required=True, help="shards folder (sarah-prep)")
+    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    parser.add_argument("--split", default=d.split, help="split evaluated")
+    parser.add_argument("--windows", type=int, default=d.windows,
+                        help="test windows evaluated (evenly spaced over the split; all when it "
+                             "has fewer)")
+    parser.add_argument("--window", type=int, default=d.window, help="frames per window (T)")
+    parser.add_argument("--gaze", type=_gazes, default=",".join(
+        "none" if g is None else f"{g:g}" for g in d.gaze),
+        help="Table 2's gaze targets, comma-separated; 'none' disables gaze control")
+    parser.add_argument("--table1-gaze", type=lambda t: _gazes(t)[0], default="none",
+                        help="gaze target of the model's Table 1 row (the paper: none)")
+    parser.add_argument("--methods", type=_methods, default=",".join(d.methods),
+                        help="comma-separated subset of gt,random,nn,model (the paper's Table "
+                             "1) and vae (the run's VAE reconstructing the ground truth: the "
+                             "floor under any flow sample; needs only vae.pt)")
+    parser.add_argument("--batch-clips", type=int, default=d.batch_clips,
+                        help="clips per batch of the FGD / FGD_acc Avg column")
+    parser.add_argument("--library-size", type=int, default=d.library_size,
+                        help="training windows in the NN library and the Random pool")
+    parser.add_argument("--seed", type=int, default=d.seed,
+                        help="seed of the baselines' draws and the model's noise")
+    parser.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
+    parser.add_argument("--steps", type=int, default=d.steps, help="midpoint solver steps")
+    parser.add_argument("--cfg", type=float, default=d.cfg_scale, help="guidance scale w")
+    parser.add_argument("--protocol", choices=("offline", "stream"), default=d.protocol,
+                        help="offline: all T frames at once (causal mask), as the paper times "
+                             "FPS; stream: 4 frames per step")
+    parser.add_argument("--features", default=None,
+                        help="audio features for the baselines when no model is evaluated "
+                             "(default: logmel; with a model: the checkpoint's)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from sarah_data.loading import DataProblem
+    from sarah_models.evaluation.runner import EvalConfig, EvalError, run_evaluation
+
+    try:
+        config = EvalConfig(split=args.split, windows=args.windows, window=args.window,
+                            gaze=args.gaze, table1_gaze=args.table1_gaze, methods=args.methods,
+                            batch_clips=args.batch_clips, seed=args.seed, steps=args.steps,
+                            cfg_scale=args.cfg, protocol=args.protocol,
+                            library_size=args.library_size, features=args.features,
+                            device=args.device)
+        result = run_evaluation(args.run, args.shards, args.out, config,
+                                progress=not args.no_progress)
+    except (EvalError, DataProblem) as exc:
+        print(f"sarah-eval: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    for path in result.paths:
+        if path.suffix == ".md":
+            print(path.read_text(encoding="utf-8"))
+    print("wrote " + ", ".join(str(p) for p in result.paths))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,97 @@
+"""sarah-train: train the causal VAE, then the flow matcher on its frozen latents.
+
+Multi-GPU: ``torchrun --nproc_per_node 8 -m sarah_cli.train --stage all --shards shards/ --out runs/x``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from sarah_models.config import PRESETS, RunConfig
+
+EXIT_ERROR = 2
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="sarah-train", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        description="Staged training of SARAH's motion models: `vae` (causal VAE), then `flow` "
+                    "(causal flow matcher on the frozen VAE's latents), or `all` for both. "
+                    "Writes OUT/config.json, OUT/vae.pt, OUT/flow.pt, *_log.jsonl and *_loss.png. "
+                    "Under torchrun (WORLD_SIZE > 1) every process trains on its own data slice "
+                    "(DDP; nccl on CUDA, gloo on CPU) and rank 0 writes the files.")
+    parser.add_argument("--stage", choices=("vae", "flow", "all"), default="all",
+                        help="what to train; flow needs OUT/vae.pt")
+    parser.add_argument("--config", choices=PRESETS, default="paper",
+                        help="model and training preset: paper sizes, or tiny for CPU runs")
+    parser.add_argument("--shards", type=Path, required=True,
+                        help="shards folder written by sarah-prep (with stats.h5)")
+    parser.add_argument("--out", type=Path, required=True, help="run folder, e.g. runs/NAME")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue from OUT/<stage>.pt (exactly: same data order and noise)")
+    parser.add_argument("--init-from", type=Path, default=None, metavar="CKPT",
+                        help="fine-tune: start each trained stage from the weights of CKPT (a "
+                             "checkpoint, or a run folder with vae.pt / flow.pt) with a fresh "
+                             "step count, optimizer and LR schedule; loss weights (e.g. --set "
+                             "vae.velocity_weight=100) and train.lr_schedule may differ, sizes "
+                             "may not")
+    parser.add_argument("--device", default=None,
+                        help="cpu, cuda or cuda:N; None = cuda when available (cuda:LOCAL_RANK "
+                             "under torchrun), else cpu")
+    parser.add_argument("--steps", type=int, default=None,
+                        help="total steps of each stage trained; None = the preset's "
+                             "train.vae_steps / train.flow_steps")
+    parser.add_argument("--batch-size", type=int, default=None,
+                        help="windows per process per step; None = the preset's train.batch_size")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="seed of data order and noise; None = the preset's train.seed")
+    parser.add_argument("--set", dest="overrides", action="append", default=[],
+                        metavar="FIELD=VALUE",
+                        help="override a config field, e.g. --set train.lr=3e-4 --set "
+                             "vae.hidden=512 --set train.audio_features=logmel (repeatable; "
+                             "sections vae, flow, train)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return parser
+
+
+def run_config(args: argparse.Namespace) -> RunConfig:
+    overrides = list(args.overrides)
+    if args.batch_size is not None:
+        overrides.append(f"train.batch_size={args.batch_size}")
+    if args.seed is not None:
+        overrides.append(f"train.seed={args.seed}")
+    if args.steps is not None:
+        overrides += [f"train.vae_steps={args.steps}", f"train.flow_steps={args.steps}"]
+    return RunConfig.preset(args.config).with_overrides(overrides)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        config = run_config(args)
+    except ValueError as exc:
+        print(f"sarah-train: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    from sarah_data.loading import DataProblem
+    from sarah_models.training.distributed import cleanup_distributed
+    from sarah_models.training.stages import train
+
+    stages = ("vae", "flow") if args.stage == "all" else (args.stage,)
+    try:
+        for stage in stages:
+            path = train(stage, config, args.shards, args.out, resume=args.resume,
+                         device=args.device, init_from=args.init_from,
+                         progress=not args.no_progress)
+            print(f"{stage}: checkpoint {path}")
+    except (DataProblem, ValueError, FileNotFoundError, FileExistsError, KeyError, OSError) as exc:
+        print(f"sarah-train: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    finally:
+        cleanup_distributed()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

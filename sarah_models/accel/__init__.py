@@ -1,0 +1,15 @@
+"""Inference speed-ups by module replacement (see ``optimize.py``): the reference model in
+``sarah_models.nn`` never imports this package."""
+
+from .cpu import cpu_info, prefer_bf16_decoder
+from .optimize import (
+                       DECODER_PRECISIONS,
+                       MODE_HELP,
+                       MODES,
+                       optimize_for_inference,
+                       resolve_decoder,
+                       warm_up,
+)
+
+__all__ = ["DECODER_PRECISIONS", "MODES", "MODE_HELP", "cpu_info", "optimize_for_inference",
+           "prefer_bf16_decoder", "resolve_decoder", "warm_up"]

@@ -1,0 +1,195 @@
+"""Inference speed-ups for generation on a CPU: copies of the models with modules REPLACED.
+
+Nothing here patches a method or reads a private field: ``optimize_for_inference`` deep-copies
+the models and puts subclasses of the reference modules (or memo wrappers around them) where
+the reference modules were, so the reference model's own ``forward``, ``decoder_step`` and
+solver run unchanged on top of them. Each swap is checked against the plain fp32 models
+(``sarah_models.testing.stream_deviation``, ``tests/test_fast.py``, ``tests/test_fused.py``).
+
+Where the time goes (paper size, streaming, 2 CPU cores): in plain fp32 ~95 % is ``nn.Linear``
+of the flow model, bound by reading the weights -- a chunk runs 8 network evaluations over only
+3 tokens x 2 guidance branches, so every evaluation streams all ~75 M flow weights from memory.
+Once those are int8, the many small operations around them are the other half of the time.
+
+* time cache (every mode but "none", exact): the flow-time embedding and MLP, and every AdaLN
+  modulation, depend on the flow time only; the solver visits a fixed grid (``solver.time_grid``),
+  so they are ``InputMemo``-wrapped and filled up front (``warm_up``). That removes ~27 M of the
+  ~77 M weights from every evaluation.
+* rope cache (every mode but "none", exact): the flow's rotary angles are memoized; the VAE
+  decoder's come from a growing table (``RopeTable``, bit-identical).
+* int8: the Linears of the flow's blocks become ``Int8Linear`` (4x fewer weight bytes).
+* bf16: the same Linears become ``BF16Linear`` (2x fewer).
+* decoder (int8 and bf16 modes): the VAE decoder's Linears in bfloat16 where that measured
+  faster than fp32 (``cpu.prefer_bf16_decoder``), fp32 elsewhere (``decoder="auto"``).
+* fused (int8 and bf16 modes): the flow's blocks and output layer become
+  ``FusedAdaLNZeroBlock`` / ``FusedAdaLNZeroOutput`` and the decoder's attention
+  ``FusedAttention`` (fewer operations; rounding differs at the 1e-6 level, so the exact "fp32"
+  mode does not use them).
+* threads: ``torch.set_num_threads`` (process-wide).
+* compile: ``torch.compile`` of the flow's transformer blocks (optional; measured on 2 CPU cores:
+  about a minute to compile and no gain over eager, so off by default).
+
+Not used, and why: KV caching in the flow model is not exact for the paper's protocol (history
+tokens are re-noised at every solver step and the 3-token window truncates their causal
+context, see ``nn/flow.py``); batched guidance and per-block condition caching are already what
+``StreamingGenerator`` does; the VAE decoder already streams with a KV cache.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+
+import torch
+from torch import nn
+
+from ..config import StreamConfig
+from ..nn.flow import FlowModel
+from ..nn.layers import AdaLNZeroBlock, TransformerBlock
+from ..nn.vae import CausalVAE
+from ..sampling.solver import time_grid
+from .cpu import prefer_bf16_decoder
+from .fused import FusedAdaLNZeroBlock, FusedAdaLNZeroOutput, FusedAttention
+from .linears import (
+    BF16Linear,
+    Int8Linear,
+    decoder_linears,
+    flow_block_linears,
+    swap_linears,
+)
+from .memo import InputMemo, RopeTable, RopeTables
+
+MODES = ("none", "fp32", "bf16", "int8")
+DECODER_PRECISIONS = ("auto", "fp32", "bf16")
+MODE_HELP = {
+    "none": "the plain models (only the thread count is set)",
+    "fp32": "fp32 with the flow-time path memoized for the solver grid (exact)",
+    "bf16": "fp32 time cache + bfloat16 Linear layers + fused blocks (+ a bf16 VAE decoder "
+            "where it is faster: AMX, or AVX512-BF16 on non-Intel CPUs)",
+    "int8": "fp32 time cache + dynamic int8 Linear layers (per-channel weight scales) + fused "
+            "blocks (+ a bf16 VAE decoder where it is faster: AMX, or AVX512-BF16 on non-Intel "
+            "CPUs)",
+}
+
+
+def memoize_time_path(flow: FlowModel, fused: bool) -> None:
+    """Memo-wrap the time embedding and MLP; without ``fused`` every AdaLN modulation too (the
+    fused blocks fold and memoize their modulations themselves)."""
+    flow.time_embedding = InputMemo(flow.time_embedding)
+    flow.time_mlp = InputMemo(flow.time_mlp)
+    if not fused:
+        for module in [*flow.blocks, flow.out]:
+            module.modulation = InputMemo(module.modulation)
+
+
+def fuse_flow(flow: FlowModel) -> None:
+    """Blocks and output layer -> their fused subclasses, sharing one rotary table memo."""
+    tables = RopeTables(flow.blocks[0].attn.rope.angles)
+    flow.blocks = nn.ModuleList(FusedAdaLNZeroBlock(block, tables) for block in flow.blocks)
+    flow.out = FusedAdaLNZeroOutput(flow.out)
+
+
+def memoize_flow_rope(flow: FlowModel) -> None:
+    for block in flow.blocks:
+        block.attn.rope.angles = InputMemo(block.attn.rope.angles, max_entries=16)
+
+
+def table_decoder_rope(vae: CausalVAE, fused: bool) -> None:
+    """Every decoder layer's rotary angles from one growing ``RopeTable``; with ``fused`` the
+    decoder's attention becomes ``FusedAttention`` over shared tables."""
+    table = RopeTable(vae.decoder[0].attn.rope.angles)
+    tables = RopeTables(table)
+    for block in vae.decoder:
+        block.attn.rope.angles = table
+        if fused:
+            block.attn = FusedAttention(block.attn, tables)
+
+
+def resolve_decoder(decoder: str, mode: str, device: torch.device) -> str:
+    """The decoder precision ``optimize_for_inference`` uses: "fp32" or "bf16"."""
+    if decoder not in DECODER_PRECISIONS:
+        raise ValueError(f"unknown decoder precision {decoder!r}; choose from {DECODER_PRECISIONS}")
+    if mode in ("none", "fp32"):
+        if decoder == "bf16":
+            raise ValueError(f"mode {mode!r} keeps the models in fp32: a bf16 decoder needs mode "
+                             "int8 or bf16")
+        return "fp32"
+    if decoder == "auto":
+        return "bf16" if device.type == "cpu" and prefer_bf16_decoder() else "fp32"
+    return decoder
+
+
+@torch.inference_mode()
+def warm_up(flow: FlowModel, config: StreamConfig, branches: tuple[int, ...] = (1, 2)) -> int:
+    """Evaluate the flow once at every flow time of ``config``'s solver grid for batches of 1
+    and 2 (guidance) so that every memo holds its entries before the first chunk; returns the
+    number of evaluations."""
+    device = next(flow.parameters()).device
+    count = 0
+    for tau in time_grid(config.steps, config.solver):
+        for b in branches:
+            z = torch.zeros(b, 1, flow.latent_dim, device=device)
+            flow(z, tau, cond_tokens=torch.zeros(b, 1, flow.config.hidden, device=device))
+            count += 1
+    return count
+
+
+def compile_blocks(module: nn.Module) -> nn.Module:
+    """``torch.compile`` every transformer block in place (hooks and names stay as they are)."""
+    for m in module.modules():
+        if isinstance(m, (AdaLNZeroBlock, TransformerBlock)):
+            m.compile(dynamic=False)
+    return module
+
+
+def _unpack(models) -> tuple[CausalVAE, FlowModel | None, object]:
+    if hasattr(models, "vae") and hasattr(models, "flow"):
+        return models.vae, models.flow, getattr(models, "normalizer", None)
+    if isinstance(models, (tuple, list)) and len(models) in (2, 3):
+        return models[0], models[1], (models[2] if len(models) == 3 else None)
+    raise TypeError("optimize_for_inference expects LoadedModels or a (vae, flow[, normalizer]) "
+                    f"tuple, got {type(models).__name__}")
+
+
+def optimize_for_inference(models, mode: str = "int8", *, stream_config: StreamConfig | None = None,
+                           threads: int | None = None, compile: bool = False,
+                           decoder: str = "auto"):
+    """Optimized copies of ``models`` for generation; the originals are not modified.
+
+    models: ``training.checkpoint.LoadedModels`` or a ``(vae, flow[, normalizer])`` tuple; the
+    same kind is returned. mode: one of ``MODES`` (see ``MODE_HELP``). stream_config: whose
+    solver grid to precompute (default the paper's). threads: ``torch.set_num_threads`` when
+    given. compile: also ``torch.compile`` the flow's blocks. decoder: the VAE decoder's Linears
+    in int8 and bf16 modes, one of ``DECODER_PRECISIONS`` (``resolve_decoder``)."""
+    if mode not in MODES:
+        raise ValueError(f"unknown optimization mode {mode!r}; choose from {MODES}")
+    if threads is not None:
+        if threads < 1:
+            raise ValueError(f"threads must be >= 1, got {threads}")
+        torch.set_num_threads(threads)
+    vae, flow, normalizer = _unpack(models)
+    if flow is None:
+        raise ValueError("optimize_for_inference needs a flow model (a flow-stage checkpoint)")
+    precision = resolve_decoder(decoder, mode, next(vae.parameters()).device)
+    if mode == "int8" and next(flow.parameters()).device.type != "cpu":
+        raise ValueError(f"int8 dynamic quantization runs on the CPU only, models are on "
+                         f"{next(flow.parameters()).device}")
+    vae, flow = copy.deepcopy(vae).eval(), copy.deepcopy(flow).eval()
+    if mode != "none":
+        fused = mode != "fp32"  # fused blocks round differently: not in the exact mode
+        if precision == "bf16":  # not int8: 2.7 mm from fp32 at paper size, over the 1 mm limit
+            swap_linears(vae, decoder_linears(vae), BF16Linear)
+        if mode in ("int8", "bf16"):
+            swap_linears(flow, flow_block_linears(flow), Int8Linear if mode == "int8" else BF16Linear)
+        table_decoder_rope(vae, fused)
+        memoize_time_path(flow, fused)
+        if fused:
+            fuse_flow(flow)
+        else:
+            memoize_flow_rope(flow)
+        warm_up(flow, stream_config or StreamConfig())
+    if compile:  # the flow only: the VAE decoder's growing KV cache would recompile per step
+        compile_blocks(flow)
+    if dataclasses.is_dataclass(models):
+        return dataclasses.replace(models, vae=vae, flow=flow)
+    return (vae, flow) if normalizer is None else (vae, flow, normalizer)

@@ -1,0 +1,36 @@
+"""Foot slide: the fraction of frame steps in which a foot near the floor moves horizontally."""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from sarah_data.constants import FPS, JOINT
+from sarah_data.skeleton import FEET
+
+from .clips import as_numpy
+from .spec import Metric
+
+
+def foot_slide(joint_positions, fps: float = FPS, max_height: float = 0.05, min_speed: float = 0.03,
+               foot_joints: Sequence[str] = FEET) -> float:
+    """Fraction of frame steps (t-1 -> t) in which at least one foot slides; in [0, 1].
+
+    A foot slides during a step when its joint is below `max_height` (metres above the floor
+    y = 0) at both ends of the step and its horizontal (x, z) speed over the step exceeds
+    `min_speed` (m/s). joint_positions: (T,J,3) in metres, y up.
+    """
+    p = np.asarray(as_numpy(joint_positions), dtype=np.float64)[:, [JOINT[n] for n in foot_joints]]
+    if len(p) < 2:
+        raise ValueError(f"foot_slide needs at least 2 frames, got {len(p)}")
+    low = np.maximum(p[1:, :, 1], p[:-1, :, 1]) < max_height
+    speed = np.linalg.norm(np.diff(p[..., [0, 2]], axis=0), axis=-1) * fps
+    return float(np.mean(np.any(low & (speed > min_speed), axis=1)))
+
+
+METRIC = Metric(name="foot_slide", label="Foot Slide", kind="clip", order=30,
+                unit="fraction of frame steps", decimals=2, better="lower", value_range=" ∈ [0, 1]",
+                function=lambda clip, config: foot_slide(
+                    clip.joints[0], clip.fps, config.foot_max_height, config.foot_min_speed,
+                    config.foot_joints))

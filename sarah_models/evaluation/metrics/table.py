@@ -1,0 +1,184 @@
+"""Scoring clips with every registered metric, three ways: Avg, NS (non-speaking), S (speaking).
+
+* Fréchet metrics (FGD, FGD_acc): S and NS are one Fréchet distance each between the pooled
+  generated and pooled ground-truth samples of that category; Avg is the mean of per-batch
+  Fréchet distances over consecutive batches of ``batch_clips`` clips (all categories mixed).
+  Small batches bias the covariance, so Avg is not a combination of S and NS and usually
+  exceeds both.
+* Per-clip metrics (foot slide, wrist speed, head angle): one value per generated clip; S and
+  NS are the means over the clips of each category; Avg is their clip-count-weighted mean.
+
+Reported values are in centimetres (the paper's meshes are in centimetres, and its thresholds
+and table magnitudes read naturally in them); "FGD (x10^1)" in the paper's table header is read
+as "shown in units of 10^1": shown = raw / 10.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, replace
+from typing import Sequence
+
+import numpy as np
+
+from sarah_data.moments import Moments
+
+from .clips import Clip, DecodedClip, as_numpy
+from .frechet import moments_distance
+from .spec import MetricsConfig, registered, unit_name
+
+
+@dataclass
+class CategoryValues:
+    """One metric's Avg, NS and S values (NaN where a category has no clips)."""
+
+    avg: float
+    ns: float
+    s: float
+
+
+@dataclass
+class MetricsTable:
+    """Raw metric values (in `units`) with the counts and settings that produced them."""
+
+    values: dict[str, CategoryValues]
+    units: dict[str, str]
+    display_scale: dict[str, float]
+    num_clips: int
+    num_speaking: int
+    num_non_speaking: int
+    window_frames: int
+    fps: float
+    batch_clips: int
+    num_batches: int
+
+    def to_row(self, scale: bool = True) -> dict[str, float]:
+        """{"fgd/avg": ..., "fgd/ns": ..., "fgd/s": ..., ...}; scale=True divides by the table's
+        display factors (FGD / 10, FGD_acc / 1e5), as the paper's Table 1 shows them."""
+        row = {}
+        for name in self.values:
+            factor = self.display_scale[name] if scale else 1.0
+            for column, value in asdict(self.values[name]).items():
+                row[f"{name}/{column}"] = value / factor
+        return row
+
+    def to_dict(self) -> dict:
+        """JSON-ready, raw (unscaled) values; NaN becomes None."""
+        out = asdict(self)
+        out["values"] = {name: {k: (None if math.isnan(v) else v) for k, v in values.items()}
+                         for name, values in out["values"].items()}
+        return out
+
+
+def category_means(per_clip: np.ndarray, speaking: np.ndarray) -> CategoryValues:
+    """Avg, NS and S of a per-clip metric: Avg is the mean over all clips, i.e. the clip-count
+    weighted mean of the NS and S means (NaN for a category without clips)."""
+    ns, s = (float(per_clip[speaking == cat].mean()) if np.any(speaking == cat) else math.nan
+             for cat in (False, True))
+    return CategoryValues(float(per_clip.mean()), ns, s)
+
+
+def metric_units(report_unit: float) -> dict[str, str]:
+    unit = unit_name(report_unit)
+    return {m.name: m.unit.format(u=unit) for m in registered()}
+
+
+def _check_like(kind: str, index: int, clip: Clip, reference: Clip) -> None:
+    if (clip.num_frames, clip.fps, clip.shell.shape[1]) != (
+            reference.num_frames, reference.fps, reference.shell.shape[1]):
+        raise ValueError(f"evaluate: {kind} clip {index} has {clip.num_frames} frames at {clip.fps} fps "
+                         f"with {clip.shell.shape[1]} shell points; generated clip 0 has "
+                         f"{reference.num_frames} at {reference.fps} with {reference.shell.shape[1]}")
+
+
+def _table(values: dict[str, CategoryValues], cfg: MetricsConfig, speaking: np.ndarray,
+           reference: Clip, num_batches: int) -> MetricsTable:
+    return MetricsTable(
+        values=values, units=metric_units(cfg.report_unit), display_scale=dict(cfg.display_scale),
+        num_clips=len(speaking), num_speaking=int(speaking.sum()),
+        num_non_speaking=int((~speaking).sum()), window_frames=reference.num_frames,
+        fps=float(reference.fps), batch_clips=cfg.batch_clips, num_batches=num_batches)
+
+
+def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
+             batch_clips: int | None = None, config: MetricsConfig | None = None) -> MetricsTable:
+    """Score generated clips against their ground truth (clip i of each is the same window).
+
+    speaking (N,) bool: whether clip i is a speaking clip (sarah_data.speaking's clip rule on the
+    agent's audio). FGD batches are consecutive runs of `batch_clips` clips in the given order;
+    the last batch may be shorter. Per-clip metrics are computed on the generated clips only.
+    The clip sequences may be lazy (any __len__/__getitem__); each clip is read once, in order.
+    All clips must share one length, frame rate and shell size.
+    """
+    cfg = config or MetricsConfig()
+    if batch_clips is not None:
+        cfg = replace(cfg, batch_clips=batch_clips)
+    if cfg.batch_clips < 1:
+        raise ValueError(f"evaluate: batch_clips must be positive, got {cfg.batch_clips}")
+    speaking = np.asarray(as_numpy(speaking)).astype(bool).reshape(-1)
+    if len(generated) != len(ground_truth) or len(generated) != len(speaking) or len(generated) == 0:
+        raise ValueError(f"evaluate: {len(generated)} generated clips, {len(ground_truth)} ground-truth "
+                         f"clips and {len(speaking)} speaking flags; need equal, non-zero counts")
+    reference = generated[0]
+    frechet = [m for m in registered() if m.kind == "frechet"]
+    per_clip = {m.name: [] for m in registered() if m.kind == "clip"}
+    pooled = {(m.name, role, cat): Moments(full=True) for m in frechet
+              for role in ("gen", "gt") for cat in (False, True)}
+    batch_values: dict[str, list[float]] = {m.name: [] for m in frechet}
+    for start in range(0, len(generated), cfg.batch_clips):
+        batch = {(m.name, role): Moments(full=True) for m in frechet for role in ("gen", "gt")}
+        for i in range(start, min(start + cfg.batch_clips, len(generated))):
+            for role, clip in (("gen", generated[i]), ("gt", ground_truth[i])):
+                _check_like("generated" if role == "gen" else "ground-truth", i, clip, reference)
+                decoded = DecodedClip(clip, cfg.root_joint, cfg.normalize_window)
+                for metric in frechet:
+                    moments = Moments(full=True)
+                    moments.add(metric.function(decoded, cfg))
+                    batch[metric.name, role].merge(moments)
+                    pooled[metric.name, role, bool(speaking[i])].merge(moments)
+                if role == "gen":
+                    _add_clip_values(per_clip, decoded, cfg)
+        for metric in frechet:
+            batch_values[metric.name].append(moments_distance(
+                batch[metric.name, "gen"], batch[metric.name, "gt"], cfg.fd_ridge))
+
+    length = 1.0 / cfg.report_unit  # metres -> reported unit
+    values = {}
+    for metric in registered():
+        factor = length ** metric.length_power
+        if metric.kind == "frechet":
+            ns, s = (moments_distance(pooled[metric.name, "gen", cat], pooled[metric.name, "gt", cat],
+                                      cfg.fd_ridge) for cat in (False, True))
+            values[metric.name] = CategoryValues(float(np.mean(batch_values[metric.name])) * factor,
+                                                 ns * factor, s * factor)
+        else:
+            values[metric.name] = category_means(np.asarray(per_clip[metric.name]) * factor, speaking)
+    return _table(values, cfg, speaking, reference, len(next(iter(batch_values.values()), [])))
+
+
+def _add_clip_values(per_clip: dict[str, list[float]], decoded: DecodedClip,
+                     cfg: MetricsConfig) -> None:
+    for metric in registered():
+        if metric.kind == "clip":
+            per_clip[metric.name].append(metric.function(decoded, cfg))
+
+
+def reference_table(clips: Sequence[Clip], speaking: np.ndarray,
+                    config: MetricsConfig = MetricsConfig()) -> MetricsTable:
+    """The GT row: the per-clip metrics of real motion with the same S/NS pooling as ``evaluate``
+    and the Fréchet metrics NaN -- FGD of the ground truth against itself is 0 by definition,
+    and computing it would only measure the covariance square root's rounding."""
+    speaking = np.asarray(speaking, bool)
+    per_clip: dict[str, list[float]] = {m.name: [] for m in registered() if m.kind == "clip"}
+    for i in range(len(clips)):
+        _add_clip_values(per_clip, DecodedClip(clips[i], config.root_joint, config.normalize_window),
+                         config)
+    length = 1.0 / config.report_unit
+    values = {}
+    for metric in registered():
+        if metric.kind == "frechet":
+            values[metric.name] = CategoryValues(math.nan, math.nan, math.nan)
+        else:
+            values[metric.name] = category_means(
+                np.asarray(per_clip[metric.name]) * length ** metric.length_power, speaking)
+    return _table(values, config, speaking, clips[0], 0)

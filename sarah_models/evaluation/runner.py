@@ -1,0 +1,465 @@
+"""The library behind ``sarah-eval``: the paper's Table 1 and Table 2 on a split's test windows.
+
+Windows (A.2): the split's non-overlapping T = 400-frame windows (``WindowDataset.sliding``:
+every tracked run tiled from its start, either person as the agent), in the dataset's order
+(sequence, start, agent). When there are more than ``windows`` of them, ``windows`` evenly
+spaced ones are kept (indices round(linspace(0, n - 1, windows))), so the subset spans the whole
+split; when there are fewer, all are used and the tables say so.
+
+Methods, each producing one (T, Dx) motion per window in its window frame:
+  gt      the window's own motion (a reference row: per-clip metrics of real motion; FGD "-")
+  random  RandomBaseline: a random training window
+  nn      NearestNeighbourBaseline: the nearest of 2048 random training windows (full clip)
+  model   the run's flow checkpoint, once per gaze setting: the offline protocol by default (all
+          T frames denoised at once under the causal mask), or streaming 4 frames at a time
+
+Speaking: a window is S when the agent's per-frame speaking labels stored in the shards
+(``sarah_data.speaking`` on the agent's separated audio energy) satisfy the clip rule
+``clip_is_speaking`` with the shards' speaking configuration, NS otherwise.
+
+FPS = T / median seconds to produce one window's motion (the paper: "generating all 400 frames
+in one go and then dividing the total time taken by 400"; the median ignores warm-up). R
+(real-time) is FPS >= 30, the motion's frame rate; C (causal) is a property of the method.
+
+Outputs in ``out``: table1.md/.json, table2.md/.json, windows.json (the windows evaluated and
+their S/NS flags), plots/metric_<name>.png (bars across methods) and plots/gaze_control.png.
+Memory stays at a few clips: clips are produced lazily while the metrics read them.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from sarah_data.atomic import atomic_write_text
+from sarah_data.constants import FPS
+from sarah_data.skeleton import MotionLayout
+
+from ..config import CFG_SCALE, SOLVER_STEPS, WINDOW, check_gaze
+from .metrics import (
+    Clip,
+    FrechetRidgeWarning,
+    MetricsConfig,
+    evaluate,
+    reference_table,
+    registered,
+)
+from .tables import (
+    MethodResult,
+    fps_of,
+    gaze_label,
+    number,
+    plot_gaze_control,
+    plot_metric_bars,
+    table1_markdown,
+    table2_markdown,
+    write_json,
+)
+
+METHODS = ("gt", "random", "nn", "model", "vae")
+PAPER_METHODS = ("gt", "random", "nn", "model")  # Table 1's rows; "vae" is opt-in
+PROTOCOLS = ("offline", "stream")
+
+class EvalError(Exception):
+    """A problem with the inputs of an evaluation, stated in one line."""
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """sarah-eval settings; defaults are the paper's (sec. 4, A.2, A.3)."""
+
+    split: str = "test"
+    windows: int = 2048  # test windows evaluated ("2048 sequences in total")
+    window: int = WINDOW  # T frames per window
+    gaze: tuple[float | None, ...] = (None, 0.0, 0.8, 1.0)  # Table 2 rows; None = no gaze control
+    table1_gaze: float | None = None  # the model row of Table 1 (the paper's "Ours" = the ∅ row)
+    methods: tuple[str, ...] = PAPER_METHODS
+    batch_clips: int = 16  # clips per FGD batch of the Avg column
+    seed: int = 0
+    steps: int = SOLVER_STEPS  # solver steps (midpoint)
+    cfg_scale: float = CFG_SCALE
+    protocol: str = "offline"
+    library_size: int = 2048  # NN library and Random pool of training windows
+    train_split: str = "train"
+    features: str | None = None  # audio extractor when no model is evaluated (else the run's)
+    device: str | None = None
+
+    def __post_init__(self) -> None:
+        unknown = [m for m in self.methods if m not in METHODS]
+        if unknown or not self.methods:
+            raise EvalError(f"unknown method(s) {unknown or '(none given)'}; choose from "
+                            f"{', '.join(METHODS)}")
+        if self.protocol not in PROTOCOLS:
+            raise EvalError(f"unknown protocol {self.protocol!r}; choose offline or stream")
+        for name in ("windows", "window", "batch_clips", "steps", "library_size"):
+            if getattr(self, name) < 1:
+                raise EvalError(f"--{name.replace('_', '-')} must be positive, got "
+                                f"{getattr(self, name)}")
+        for g in (*self.gaze, self.table1_gaze):
+            try:
+                check_gaze(g)
+            except ValueError as error:
+                raise EvalError(str(error)) from None
+
+    @property
+    def model_gazes(self) -> tuple[float | None, ...]:
+        """Every gaze setting the model runs with: the sweep, plus Table 1's if not in it."""
+        return tuple(self.gaze) + (() if self.table1_gaze in self.gaze else (self.table1_gaze,))
+
+
+# --------------------------------------------------------------------------- windows
+
+
+def select_windows(available: int, requested: int) -> np.ndarray:
+    """Indices of the evaluated windows: all of them, or ``requested`` evenly spaced ones."""
+    if available <= requested:
+        return np.arange(available, dtype=np.int64)
+    return np.unique(np.round(np.linspace(0, available - 1, requested)).astype(np.int64))
+
+
+class TestWindows:
+    """The evaluated windows of a split, read on demand (the last two items are cached: the
+    metrics read a method's clip and its ground truth one after the other)."""
+
+    def __init__(self, dataset, indices: np.ndarray) -> None:
+        self.dataset, self.indices = dataset, np.asarray(indices, np.int64)
+        self._cache: dict[int, dict] = {}
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, i: int) -> dict:
+        i = int(i)
+        if i not in self._cache:
+            if len(self._cache) >= 2:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[i] = self.dataset[int(self.indices[i])]
+        return self._cache[i]
+
+
+def motion_clip(motion, user_head) -> Clip:
+    """A metrics Clip from a (T, Dx) motion vector (icosahedra then shell) and (T, 2) user head."""
+    motion = np.asarray(motion.numpy() if hasattr(motion, "numpy") else motion, np.float32)
+    ico, shell = MotionLayout.from_width(motion.shape[-1]).split(motion)
+    head = user_head.numpy() if hasattr(user_head, "numpy") else user_head
+    return Clip(ico, shell, np.asarray(head, np.float32), fps=FPS)
+
+
+class MethodClips:
+    """Lazily produced clips of one method: clip i = ``produce(window i, i)`` scored against
+    window i's user head. Seconds per window are recorded in ``seconds``."""
+
+    def __init__(self, windows: TestWindows, produce: Callable[[dict, int], np.ndarray],
+                 progress=None) -> None:
+        self.windows, self.produce, self.progress = windows, produce, progress
+        self.seconds: list[float] = []
+        self._last: tuple[int, Clip] | None = None
+
+    def __len__(self) -> int:
+        return len(self.windows)
+
+    def __getitem__(self, i: int) -> Clip:
+        if self._last is not None and self._last[0] == i:
+            return self._last[1]
+        item = self.windows[i]
+        tick = time.perf_counter()
+        motion = self.produce(item, i)
+        self.seconds.append(time.perf_counter() - tick)
+        clip = motion_clip(motion, item["user_head"])
+        self._last = (i, clip)
+        if self.progress is not None:
+            self.progress.update(1)
+        return clip
+
+
+def gt_clips(windows: TestWindows) -> MethodClips:
+    return MethodClips(windows, lambda item, _: item["motion"])
+
+
+# --------------------------------------------------------------------------- running
+
+
+@dataclass
+class Evaluation:
+    """Everything an evaluation produced."""
+
+    table1: list[MethodResult]
+    table2: list[MethodResult]
+    num_windows: int
+    available_windows: int
+    num_speaking: int
+    paths: list[Path] = field(default_factory=list)
+
+
+def _open_shards(shards_dir: Path, split: str, features: str, window: int):
+    from sarah_data.dataset import WindowDataset
+    from sarah_data.loading import DataProblem
+    from sarah_data.shards import ShardSet
+
+    try:
+        shard_set = ShardSet(shards_dir)
+    except (DataProblem, OSError, ValueError) as exc:
+        raise EvalError(str(exc)) from None
+    try:
+        if not shard_set.manifest.shards:
+            raise EvalError(f"{shards_dir}: the shards folder holds no shard files")
+        stored = sorted(shard_set.attrs.extractors)
+        speaking = shard_set.manifest.config.get("speaking", {})
+    finally:
+        shard_set.close()
+    if features not in stored:
+        raise EvalError(f"{shards_dir}: mismatched feature extractor: {features!r} is needed, "
+                        f"the shards hold {stored or 'no features'}")
+    try:
+        dataset = WindowDataset.sliding(shards_dir, split, extractor=features, window=window)
+    except (DataProblem, OSError, ValueError) as exc:
+        raise EvalError(str(exc)) from None
+    if len(dataset) == 0:
+        reasons = "; ".join(f"{name}: {why}" for name, why in dataset.skipped[:3])
+        more = f" (+{len(dataset.skipped) - 3} more)" if len(dataset.skipped) > 3 else ""
+        raise EvalError(f"{shards_dir}: split {split!r} has no windows of {window} frames with "
+                        f"{features!r} audio" + (f" (skipped: {reasons}{more})" if reasons else ""))
+    return dataset, speaking
+
+
+def _training_windows(shards_dir: Path, features: str, config: EvalConfig):
+    from sarah_data.dataset import WindowDataset
+    from sarah_data.loading import DataProblem
+
+    try:
+        return WindowDataset(shards_dir, config.train_split, extractor=features,
+                             window=config.window, seed=config.seed, length=config.library_size)
+    except (DataProblem, OSError, ValueError) as exc:
+        raise EvalError(f"{shards_dir}: training windows for the baselines: {exc}") from None
+
+
+def _window_seed(seed: int, index: int) -> int:
+    return int(np.random.default_rng((seed, index)).integers(2**31 - 1))
+
+
+def _model_producer(models, config: EvalConfig, gaze: float | None):
+    from ..config import StreamConfig
+    from ..generation.inputs import Inputs
+    from ..generation.run import generate
+    from ..sampling.stream import IDENTITY
+
+    def produce(item: dict, index: int) -> np.ndarray:
+        # Windows are already in the window frame: the identity anchor generates in that frame.
+        inputs = Inputs(user_head=item["user_head"].numpy(),
+                        agent_speaking=item["agent_speaking"].numpy() > 0.5,
+                        user_speaking=item["user_speaking"].numpy() > 0.5,
+                        anchor=IDENTITY, source={},
+                        agent_audio=item["agent_audio"].numpy(),
+                        user_audio=item["user_audio"].numpy())
+        stream = StreamConfig(steps=config.steps, cfg_scale=config.cfg_scale, gaze=gaze,
+                              seed=_window_seed(config.seed, index))
+        return generate(models, inputs, stream, offline=config.protocol == "offline").motion
+
+    return produce
+
+
+def _vae_producer(models):
+    """The run's VAE reconstructing the ground truth (encoder mean, then decoder): the best any
+    flow sample can decode to, which separates the VAE's error from the flow's."""
+    device = next(models.vae.parameters()).device
+    nz = models.normalizer
+
+    def produce(item: dict, index: int) -> np.ndarray:
+        mu, _ = models.vae.encode(nz.normalize("motion", item["motion"].to(device))[None])
+        return nz.denormalize("motion", models.vae.decode(mu)[0]).cpu().numpy()
+
+    return produce
+
+
+def _load_model(run: Path | None, config: EvalConfig, method: str = "model"):
+    """The run's flow-stage models; for "vae" alone, its VAE checkpoint will do."""
+    from ..generation.run import GenerateError, load_run
+
+    if run is None:
+        raise EvalError(f"--run is required to evaluate the {method} (or leave {method!r} out "
+                        "of --methods)")
+    checkpoint = None
+    if method == "vae" and run.is_dir() and not (run / "flow.pt").is_file():
+        checkpoint = run / "vae.pt"
+        if not checkpoint.is_file():
+            raise EvalError(f"{run}: no vae.pt or flow.pt (train the VAE stage first)")
+    try:
+        models, _ = load_run(run, checkpoint, device=config.device, need_flow=method == "model")
+    except GenerateError as exc:
+        raise EvalError(str(exc)) from None
+    return models
+
+
+def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
+                   config: EvalConfig = EvalConfig(), progress: bool = True,
+                   echo: Callable[[str], None] = print) -> Evaluation:
+    """Everything ``sarah-eval`` does: windows, methods, metrics, tables, plots."""
+    import torch
+    from tqdm import tqdm
+
+    from sarah_data.speaking import SpeakingConfig, clip_is_speaking
+
+    shards, out = Path(shards), Path(out)
+    run = None if run is None else Path(run)
+    models = _load_model(run, config) if "model" in config.methods else None
+    vae_models = None
+    if "vae" in config.methods:
+        vae_models = models if models is not None else _load_model(run, config, "vae")
+    loaded = models or vae_models
+    features = loaded.features if loaded is not None else (config.features or "logmel")
+    if loaded is not None and config.window % loaded.vae.stride:
+        raise EvalError(f"--window {config.window} is not a multiple of the model's stride "
+                        f"{loaded.vae.stride}")
+    dataset, speaking_settings = _open_shards(shards, config.split, features, config.window)
+    if loaded is not None and dataset.motion_dim != loaded.dims["motion"]:
+        raise EvalError(f"{shards}: motion width {dataset.motion_dim} (shell points) differs "
+                        f"from the checkpoint's {loaded.dims['motion']}")
+    if models is not None and dataset.audio_dim != models.flow.audio_dim:
+        raise EvalError(f"{shards}: mismatched feature extractor: {features!r} features have "
+                        f"{dataset.audio_dim} channels, the checkpoint expects "
+                        f"{models.flow.audio_dim}")
+    indices = select_windows(len(dataset), config.windows)
+    windows = TestWindows(dataset, indices)
+    try:
+        speaking_config = SpeakingConfig(**speaking_settings)
+    except TypeError as exc:
+        raise EvalError(f"{shards}: unreadable speaking settings in the manifest ({exc})") from None
+    speaking = np.array([clip_is_speaking(windows[i]["agent_speaking"].numpy() > 0.5,
+                                          speaking_config)
+                         for i in tqdm(range(len(windows)), desc="S/NS labels", unit="window",
+                                       disable=not progress, leave=False)], dtype=bool)
+    echo(f"{len(windows)} of {len(dataset)} {config.window}-frame windows of split "
+         f"{config.split!r} ({int(speaking.sum())} S, {int((~speaking).sum())} NS), features "
+         f"{features!r}")
+
+    metrics_config = MetricsConfig(batch_clips=config.batch_clips)
+    train_windows = None
+    if "random" in config.methods or "nn" in config.methods:
+        train_windows = _training_windows(shards, features, config)
+
+    def score(key: str, label: str, produce, causal: bool | None, gaze=None,
+              reference: bool = False) -> MethodResult:
+        with tqdm(total=len(windows), desc=label, unit="window", disable=not progress,
+                  leave=False) as bar:
+            clips = MethodClips(windows, produce, bar)
+            if reference:
+                table = reference_table(clips, speaking, metrics_config)
+            else:
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always", FrechetRidgeWarning)
+                    table = evaluate(clips, gt_clips(windows), speaking, config=metrics_config)
+                ridged = [w for w in caught if issubclass(w.category, FrechetRidgeWarning)]
+                for w in caught:
+                    if not issubclass(w.category, FrechetRidgeWarning):
+                        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+                if ridged:
+                    echo(f"{label}: {len(ridged)} Fréchet distance(s) needed a covariance ridge "
+                         f"(near-singular covariances; see metrics.frechet_distance_from_moments)")
+        fps = None if reference else fps_of(clips.seconds, config.window)
+        result = MethodResult(key, label, causal, fps, table, gaze, reference)
+        shown = result.shown()
+        echo(f"{label}: " + ", ".join(f"{m.label} {number(shown[f'{m.name}/avg'], m.decimals)}"
+                                      for m in registered())
+             + ("" if fps is None else f", {fps:.0f} FPS"))
+        return result
+
+    table1: list[MethodResult] = []
+    if "gt" in config.methods:
+        table1.append(score("gt", "GT", lambda item, _: item["motion"], None, reference=True))
+    if "random" in config.methods:
+        from .baselines import RandomBaseline
+
+        baseline = RandomBaseline(train_windows, seed=config.seed)
+        table1.append(score("random", "Random", baseline.motion, False))
+    if "nn" in config.methods:
+        from .baselines import NearestNeighbourBaseline, NNConfig
+
+        nn = NearestNeighbourBaseline(train_windows, NNConfig(library_size=config.library_size),
+                                      seed=config.seed, progress=progress)
+        table1.append(score("nn", "NN", nn.motion, False))
+    sweep: dict[float | None, MethodResult] = {}
+    if models is not None:
+        with torch.inference_mode():
+            for g in config.model_gazes:
+                label = f"Model (g = {gaze_label(g)}, {config.protocol})"
+                sweep[g] = score(f"model@{gaze_label(g)}", label,
+                                 _model_producer(models, config, g), True, gaze=g)
+        table1.append(replace(sweep[config.table1_gaze], key="model",
+                              label=f"Model ({config.protocol}, g = "
+                                    f"{gaze_label(config.table1_gaze)})"))
+    if vae_models is not None:
+        with torch.inference_mode():
+            table1.append(score("vae", "VAE (reconstruction)", _vae_producer(vae_models), True))
+    table2 = [sweep[g] for g in config.gaze] if models is not None else []
+
+    result = Evaluation(table1, table2, len(windows), len(dataset), int(speaking.sum()))
+    result.paths = write_outputs(out, result, config, shards, run, features, windows, speaking)
+    return result
+
+
+def _caption1(ev: Evaluation, config: EvalConfig, shards: Path) -> str:
+    if ev.available_windows > config.windows:
+        count = f"{ev.num_windows} of {ev.available_windows} {config.split} windows (evenly spaced)"
+    elif ev.available_windows < config.windows:
+        count = (f"{ev.num_windows} {config.split} windows (all the split has; {config.windows} "
+                 f"requested)")
+    else:
+        count = f"{ev.num_windows} {config.split} windows"
+    scale = ev.table1[0].table.display_scale if ev.table1 else MetricsConfig().display_scale
+    return (f"Table 1: comparison on {count} of T = {config.window} frames ({config.window / FPS:.1f} s) "
+            f"from {shards}. C = causal, R = real-time (FPS >= {FPS}). "
+            f"S = speaking ({ev.num_speaking} seq.), NS = non-speaking "
+            f"({ev.num_windows - ev.num_speaking} seq.). FGD in cm² shown ÷{scale['fgd']:g}, "
+            f"FGD_acc in (cm/s²)² shown ÷{scale['fgd_acc']:g}, Wrist Var = mean wrist speed in "
+            f"cm/s. FGD Avg = mean over batches of {config.batch_clips} clips; NS/S pooled. "
+            f"Model: {config.protocol} protocol, {config.steps} midpoint steps, cfg "
+            f"{config.cfg_scale:g}, seed {config.seed}.")
+
+
+def write_outputs(out: Path, ev: Evaluation, config: EvalConfig, shards: Path, run: Path | None,
+                  features: str, windows: TestWindows, speaking: np.ndarray) -> list[Path]:
+    """table1/2 .md and .json, windows.json and the plots."""
+    out.mkdir(parents=True, exist_ok=True)
+    settings = {**asdict(config), "run": None if run is None else str(run), "shards": str(shards),
+                "features": features}
+    common = {"window_frames": config.window, "num_windows": ev.num_windows,
+              "available_windows": ev.available_windows, "requested_windows": config.windows,
+              "num_speaking": ev.num_speaking,
+              "num_non_speaking": ev.num_windows - ev.num_speaking, "settings": settings}
+    paths = []
+    if ev.table1:
+        caption = _caption1(ev, config, shards)
+        atomic_write_text(out / "table1.md", table1_markdown(ev.table1, caption))
+        write_json(out / "table1.json", {"caption": caption, **common,
+                                          "display_scale": ev.table1[0].table.display_scale,
+                                          "units": ev.table1[0].table.units,
+                                          "rows": [r.to_dict() for r in ev.table1]})
+        paths += [out / "table1.md", out / "table1.json"]
+        paths += plot_metric_bars(out / "plots", ev.table1)
+    gt = next((r for r in ev.table1 if r.reference), None)
+    gt_head = None if gt is None else gt.shown()["head_angle/avg"]
+    if ev.table2:
+        caption = (f"Table 2: effect of gaze control on motion ({ev.num_windows} {config.split} "
+                   f"windows of {config.window} frames). ∅ = gaze control disabled. Values shown "
+                   f"as in Table 1 (Avg)." + ("" if gt_head is None else
+                                              f" GT Head Ang. = {gt_head:.2f}."))
+        atomic_write_text(out / "table2.md", table2_markdown(ev.table2, caption))
+        write_json(out / "table2.json", {"caption": caption, **common,
+                                          "gt_head_angle": gt_head,
+                                          "rows": [r.to_dict() for r in ev.table2]})
+        paths += [out / "table2.md", out / "table2.json"]
+        paths.append(plot_gaze_control(out / "plots" / "gaze_control.png", ev.table2, gt_head))
+    listing = []
+    for i in range(len(windows)):
+        sequence, agent, start = windows.dataset.locate(int(windows.indices[i]))
+        persons = windows.dataset.shards.entry(sequence).persons
+        listing.append({"sequence": sequence, "agent": persons[agent], "start": start,
+                        "speaking": bool(speaking[i])})
+    write_json(out / "windows.json", {**common, "windows": listing})
+    paths.append(out / "windows.json")
+    return paths

@@ -1,0 +1,187 @@
+"""Table 1 and Table 2 of the paper as markdown and JSON rows, and their plots.
+
+Columns come from the metric registry (``metrics/spec.py``): label, arrow, display scale,
+decimals and value range are each metric's own.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from sarah_data.atomic import atomic_write_text
+from sarah_data.constants import FPS
+
+from ..generation.plots import save_figure
+from .metrics import MetricsTable, registered
+
+
+@dataclass
+class MethodResult:
+    """One table row: a method's metrics and speed."""
+
+    key: str  # "gt", "random", "nn", "model" or "model@<gaze>"
+    label: str  # shown in the table
+    causal: bool | None  # None: not applicable (GT)
+    fps: float | None
+    table: MetricsTable
+    gaze: float | None = None
+    reference: bool = False  # GT: FGD is "-"
+
+    @property
+    def realtime(self) -> bool | None:
+        return None if self.fps is None else self.fps >= FPS
+
+    def shown(self) -> dict[str, float | None]:
+        """Displayed values (scaled), None where the table shows '-'."""
+        row = self.table.to_row(scale=True)
+        out = {k: (None if math.isnan(v) else float(v)) for k, v in row.items()}
+        if self.reference:
+            for key in out:
+                if key.startswith("fgd"):
+                    out[key] = None
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"key": self.key, "method": self.label, "causal": self.causal,
+                "realtime": self.realtime, "fps": self.fps, "gaze": self.gaze,
+                "shown": self.shown(), "raw": self.table.to_dict()}
+
+
+def fps_of(seconds: Sequence[float], frames: int) -> float | None:
+    return frames / max(statistics.median(seconds), 1e-12) if seconds else None
+
+
+def gaze_label(g: float | None) -> str:
+    return "∅" if g is None else f"{g:.1f}"
+
+
+# --------------------------------------------------------------------------- formatting
+
+
+def number(value: float | None, decimals: int) -> str:
+    return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.{decimals}f}"
+
+
+def _mark(flag: bool | None) -> str:
+    return "-" if flag is None else ("✓" if flag else "✗")
+
+
+def _scale_note(scale: float) -> str:
+    if scale == 1.0:
+        return ""
+    exponent = math.log10(scale)
+    return f" (×10^{int(round(exponent))})" if abs(exponent - round(exponent)) < 1e-9 else f" (×{scale:g})"
+
+
+def metric_header(name: str, scale: float) -> str:
+    metric = next(m for m in registered() if m.name == name)
+    return f"{metric.label} {metric.arrow}{_scale_note(scale)}{metric.value_range}"
+
+
+def table1_markdown(rows: Sequence[MethodResult], caption: str) -> str:
+    """Table 1 as markdown: Method, C, R, FPS, then every metric as Avg and NS/S."""
+    scale = rows[0].table.display_scale
+    head = ["Method", "C", "R", "FPS"]
+    for metric in registered():
+        head += [f"{metric_header(metric.name, scale[metric.name])} Avg", "NS/S"]
+    lines = [f"**{caption}**", "", "| " + " | ".join(head) + " |",
+             "|" + "|".join([":---"] + [":---:"] * (len(head) - 1)) + "|"]
+    for row in rows:
+        shown = row.shown()
+        cells = [row.label, _mark(row.causal), _mark(row.realtime),
+                 "-" if row.fps is None else f"{row.fps:.0f}"]
+        for metric in registered():
+            name, d = metric.name, metric.decimals
+            cells += [number(shown[f"{name}/avg"], d),
+                      f"{number(shown[f'{name}/ns'], d)}/{number(shown[f'{name}/s'], d)}"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def table2_markdown(rows: Sequence[MethodResult], caption: str) -> str:
+    """Table 2 as markdown: one row per gaze target g with every metric's Avg."""
+    scale = rows[0].table.display_scale
+    head = ["g"] + [metric_header(m.name, scale[m.name]) for m in registered()]
+    lines = [f"**{caption}**", "", "| " + " | ".join(head) + " |",
+             "|" + "|".join([":---"] + [":---:"] * (len(head) - 1)) + "|"]
+    for row in rows:
+        shown = row.shown()
+        lines.append("| " + " | ".join([gaze_label(row.gaze)] + [
+            number(shown[f"{m.name}/avg"], m.decimals) for m in registered()]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_json(path: Path, data: Any) -> None:
+    atomic_write_text(path, json.dumps(data, indent=2, ensure_ascii=False, allow_nan=False) + "\n")
+
+
+# --------------------------------------------------------------------------- plots
+
+
+def plot_metric_bars(folder: Path, rows: Sequence[MethodResult]) -> list[Path]:
+    """One PNG per metric: Avg, NS and S of every method (displayed units); GT's Avg dashed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    scale = rows[0].table.display_scale
+    for name in (m.name for m in registered()):
+        fig, ax = plt.subplots(figsize=(1.6 + 1.3 * len(rows), 3.6))
+        x = np.arange(len(rows))
+        for k, (column, colour) in enumerate((("avg", "tab:blue"), ("ns", "tab:gray"),
+                                              ("s", "tab:orange"))):
+            values = [row.shown()[f"{name}/{column}"] for row in rows]
+            heights = [np.nan if v is None else v for v in values]
+            ax.bar(x + (k - 1) * 0.27, heights, width=0.27, color=colour,
+                   label={"avg": "Avg", "ns": "NS", "s": "S"}[column])
+        gt = next((r for r in rows if r.reference), None)
+        if gt is not None and gt.shown()[f"{name}/avg"] is not None:
+            ax.axhline(gt.shown()[f"{name}/avg"], color="k", ls="--", lw=1, label="GT Avg")
+        ax.set_xticks(x, [row.label for row in rows], rotation=20, ha="right")
+        ax.set_title(metric_header(name, scale[name]))
+        ax.legend(fontsize=7)
+        ax.grid(axis="y", alpha=0.3)
+        fig.tight_layout()
+        paths.append(save_figure(fig, folder / f"metric_{name}.png"))
+    return paths
+
+
+def plot_gaze_control(path: Path, sweep: Sequence[MethodResult], gt_head: float | None) -> Path:
+    """Target gaze g (x) against achieved Head Ang. Avg (y); GT dashed, ∅ dotted, y = x faint."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(4.8, 4.0))
+    points = sorted((r.gaze, r.shown()["head_angle/avg"]) for r in sweep if r.gaze is not None)
+    if points:
+        ax.plot([p[0] for p in points], [p[1] for p in points], "o-", color="tab:red",
+                label="model (gaze control)")
+    none = next((r for r in sweep if r.gaze is None), None)
+    if none is not None:
+        ax.axhline(none.shown()["head_angle/avg"], color="tab:red", ls=":", lw=1.2,
+                   label="model, no gaze control (∅)")
+    if gt_head is not None:
+        ax.axhline(gt_head, color="k", ls="--", lw=1.2, label="GT")
+    ax.plot([-1, 1], [-1, 1], color="0.8", lw=0.8, zorder=0, label="achieved = target")
+    ax.set_xlim(-0.05, 1.05)
+    ax.set_xlabel("target gaze score g")
+    ax.set_ylabel("achieved Head Ang. (Avg)")
+    ax.set_title("Gaze control (Table 2)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+

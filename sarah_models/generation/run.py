@@ -1,0 +1,187 @@
+"""The library behind ``sarah-generate``: load a run, read inputs (``inputs.py``: a shard
+window or raw files), generate (streaming or offline), write motion and plots (``outputs.py``,
+``plots.py``).
+
+Outputs in ``out``: ``motion.npz`` (see ``write_motion``), ``topview.png``, ``skeleton.gif``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from sarah_data import icosahedron
+from sarah_data.constants import FPS, JOINT, JOINT_PARENTS, SAMPLES_PER_FRAME
+from sarah_data.skeleton import HEAD, MotionLayout
+
+from ..config import StreamConfig, check_gaze
+from ..sampling.stream import StreamingGenerator, StreamingSession, generate_offline
+from ..training.checkpoint import LoadedModels, load_models
+from .inputs import (
+    DEFAULT_FRAMES,
+    GenerateError,
+    Inputs,
+    make_extractor,
+    raw_inputs,
+    shard_inputs,
+)
+from .outputs import Result, Summary, head_gaze, write_motion
+
+# --------------------------------------------------------------------------- checkpoint
+
+
+def load_run(run: str | Path, checkpoint: str | Path | None = None,
+             device: str | None = None, need_flow: bool = True) -> tuple[LoadedModels, Path]:
+    """The flow-stage models of a run (``run/flow.pt`` unless ``checkpoint`` is given);
+    ``need_flow=False`` also accepts a VAE-stage checkpoint."""
+    run = Path(run)
+    if not run.is_dir():
+        raise GenerateError(f"{run}: run folder does not exist")
+    if checkpoint is None:
+        path = run / "flow.pt"
+    else:
+        path = Path(checkpoint)
+        if not path.is_file() and (run / path).is_file():
+            path = run / path
+    if not path.is_file():
+        raise GenerateError(f"{path}: no such checkpoint (train the flow stage first, or pass "
+                            f"--checkpoint)")
+    try:
+        models = load_models(path, device=device)
+    except (ValueError, KeyError, RuntimeError) as exc:
+        raise GenerateError(f"{path}: cannot load checkpoint ({exc})") from None
+    if need_flow and models.flow is None:
+        raise GenerateError(f"{path}: a {models.stage}-stage checkpoint; generation needs the "
+                            f"flow stage (flow.pt)")
+    return models, path
+
+
+def generate(models: LoadedModels, inputs: Inputs, config: StreamConfig, offline: bool = False,
+             extractor=None) -> Result:
+    """Run the streaming generator chunk by chunk (or the offline protocol) on ``inputs``."""
+    vae, flow, normalizer = models.vae, models.flow, models.normalizer
+    s, count = vae.stride, inputs.frames
+    if inputs.agent_audio is None:
+        extractor = extractor or make_extractor(models.features)
+        if extractor.dim != flow.audio_dim:
+            raise GenerateError(f"mismatched feature extractor: {extractor.name!r} gives "
+                                f"{extractor.dim} channels, the checkpoint expects {flow.audio_dim}")
+    if offline:
+        if inputs.agent_audio is None:
+            a, b = (extractor.extract(w, count) for w in (inputs.agent_wave, inputs.user_wave))
+        else:
+            a, b = inputs.agent_audio, inputs.user_audio
+        tick = time.perf_counter()
+        motion = generate_offline(vae, flow, normalizer, inputs.user_head, a, b, config,
+                                  inputs.anchor)
+        _synchronize(flow)
+        return Result(motion, a, b, seconds=time.perf_counter() - tick)
+
+    generator = StreamingGenerator(vae, flow, normalizer, config, inputs.anchor)
+    chunks, latencies = [], []
+    if inputs.agent_audio is not None:
+        a, b = inputs.agent_audio, inputs.user_audio
+        for i in range(0, count, s):
+            tick = time.perf_counter()
+            chunks.append(generator.step(inputs.user_head[i:i + s], a[i:i + s], b[i:i + s]))
+            _synchronize(flow)
+            latencies.append(time.perf_counter() - tick)
+    else:
+        session = StreamingSession(generator, extractor)
+        n = s * SAMPLES_PER_FRAME
+        for i in range(0, count, s):
+            k = i * SAMPLES_PER_FRAME
+            tick = time.perf_counter()
+            chunks.append(session.push(inputs.user_head[i:i + s], inputs.agent_wave[k:k + n],
+                                       inputs.user_wave[k:k + n]))
+            _synchronize(flow)
+            latencies.append(time.perf_counter() - tick)
+        a, b = session.features("agent"), session.features("user")
+    motion = np.concatenate(chunks)
+    if motion.shape[0] != count:
+        raise RuntimeError(f"streaming produced {motion.shape[0]} of {count} frames")
+    return Result(motion, a, b, latencies, seconds=float(sum(latencies)))
+
+
+def _synchronize(module: torch.nn.Module) -> None:
+    device = next(module.parameters()).device
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
+        checkpoint: str | Path | None = None, device: str | None = None,
+        shards: str | Path | None = None, split: str = "test", sequence: str | None = None,
+        agent: str | None = None, start: int | None = None, frames: int | None = None,
+        trajectory: str | Path | None = None, agent_audio: str | Path | None = None,
+        user_audio: str | Path | None = None,
+        agent_start: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        feature_options: dict[str, Any] | None = None, offline: bool = False,
+        animation: bool = True, speed: str = "fp32", echo: Callable[[str], None] = print) -> Summary:
+    """Everything ``sarah-generate`` does: load, read inputs, generate, write, plot.
+
+    speed: the inference fast path of ``accel.optimize_for_inference`` ("fp32" is exact; "int8"
+    stays within 1 mm of it and is the real-time setting on a CPU; "none" the plain models)."""
+    from ..accel import optimize_for_inference
+    from .plots import animate_skeleton, plot_topview
+
+    try:
+        check_gaze(config.gaze)
+    except ValueError as exc:
+        raise GenerateError(str(exc)) from None
+    models, ckpt = load_run(run_dir, checkpoint, device)
+    if speed != "none":
+        models = optimize_for_inference(models, mode=speed, stream_config=config)
+    stride = models.vae.stride
+    if shards is not None:
+        if trajectory is not None or agent_audio is not None or user_audio is not None:
+            raise GenerateError("give either --shards (with --sequence and --agent) or the raw "
+                                "files, not both")
+        inputs = shard_inputs(shards, split, sequence, agent, models.features,
+                              models.flow.audio_dim, stride, start,
+                              DEFAULT_FRAMES if frames is None else frames)
+        extractor = None
+    else:
+        if trajectory is None or agent_audio is None or user_audio is None:
+            raise GenerateError("give --shards/--sequence/--agent, or --user-trajectory with "
+                                "--agent-audio and --user-audio")
+        inputs = raw_inputs(trajectory, agent_audio, user_audio, stride, frames, agent_start)
+        extractor = make_extractor(models.features, feature_options)
+    where = (f"{inputs.source['sequence']} (agent {inputs.source['agent']}, from frame "
+             f"{inputs.source['start']})" if shards is not None else "raw files")
+    echo(f"checkpoint {ckpt} (step {models.step}, features {models.features!r}) on "
+         f"{next(models.flow.parameters()).device}; {inputs.frames} frames of {where}")
+    result = generate(models, inputs, config, offline, extractor)
+
+    positions, rotations = icosahedron.decode(MotionLayout.from_width(result.motion.shape[-1])
+                                              .split(result.motion)[0])
+    gaze = head_gaze(positions, rotations, inputs.user_head)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    settings = {"run": str(run_dir), "checkpoint": str(ckpt), "step": models.step,
+                "features": models.features, "offline": offline, "stream": asdict(config)}
+    paths = [write_motion(out / "motion.npz", result, inputs, config, positions, rotations,
+                          gaze, settings)]
+    head = JOINT[HEAD]
+    facing = rotations[:, head, :, 2][:, [0, 2]]
+    target = "none" if config.gaze is None else f"{config.gaze:g}"
+    paths.append(plot_topview(out / "topview.png", positions[:, head][:, [0, 2]], facing,
+                              inputs.user_head, FPS,
+                              title=f"gaze target {target}, mean gaze score {gaze.mean():.2f}"))
+    if animation:
+        paths.append(animate_skeleton(out / "skeleton.gif", positions, JOINT_PARENTS,
+                                      inputs.user_head, inputs.agent_speaking,
+                                      inputs.user_speaking, FPS))
+    lat = np.asarray(result.latencies) * 1000.0
+    summary = Summary(inputs.frames, result.fps,
+                      float(np.percentile(lat, 50)) if lat.size else None,
+                      float(np.percentile(lat, 99)) if lat.size else None,
+                      int(lat.size), float(gaze.mean()), paths)
+    for line in summary.lines(config, offline):
+        echo(line)
+    return summary

@@ -1,0 +1,202 @@
+"""Causal transformer VAE with latent tokens interleaved at stride s (paper 3.2, eq. 2-3).
+
+Shapes: motion x (B, T, Dx) with T = K*s; latents mu, logvar, z (B, K, Dz).
+
+Encoder sequence, K*(s+2) tokens in this order (eq. 2)::
+
+    x_1 .. x_s, mu_1, sigma_1, x_s+1 .. x_2s, mu_2, sigma_2, ...
+
+Decoder sequence, K*(s+1) tokens: block k is the latent token z_k followed by s learned
+query tokens whose outputs are the frames of block k::
+
+    z_1, q_1 .. q_s, z_2, q_1 .. q_s, ...
+
+Both masks are the plain lower triangle over that interleaved order (token i attends to tokens
+j <= i). Picture for s = 2, K = 2 (# = attend, . = masked)::
+
+    encoder   x1 x2 m1 s1 x3 x4 m2 s2        decoder   z1 q1 q2 z2 q3 q4
+         x1   #  .  .  .  .  .  .  .              z1   #  .  .  .  .  .
+         x2   #  #  .  .  .  .  .  .              q1   #  #  .  .  .  .
+         m1   #  #  #  .  .  .  .  .              q2   #  #  #  .  .  .
+         s1   #  #  #  #  .  .  .  .              z2   #  #  #  #  .  .
+         x3   #  #  #  #  #  .  .  .              q3   #  #  #  #  #  .
+         x4   #  #  #  #  #  #  .  .              q4   #  #  #  #  #  #
+         m2   #  #  #  #  #  #  #  .
+         s2   #  #  #  #  #  #  #  #
+
+So a frame token sees past and current frames and the latent tokens of earlier blocks; mu_k and
+sigma_k see every frame up to the end of block k and the earlier latent tokens (sigma_k also sees
+mu_k); decoded frames of block k depend on z_1..z_k only. The posterior of block k therefore
+depends on x_1..x_ks: encoding then decoding looks ahead at most s-1 frames, the streaming
+latency of one block.
+
+Positions: RoPE over the index of each token in its interleaved sequence. The loss is the mean
+squared error per motion element plus beta times the KL per latent element (both means, so
+beta = 1e-4 keeps its paper meaning of "a small KL weight" independent of T, Dx and Dz), plus
+``velocity_weight`` times the mean squared error of frame-to-frame differences (0 in the paper).
+``latent_noise`` > 0 adds noise to the decoder's input latents in training (0 in the paper).
+The planted-foot term (``contact_weight``) needs the motion layout and metres, so the training
+objective adds it (``training.objectives.VAEObjective``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor, nn
+
+from ..config import VAEConfig
+from .layers import KVCache, TransformerBlock, causal_mask
+
+
+def encoder_layout(num_blocks: int, stride: int) -> list[tuple[str, int, int]]:
+    """(kind, block, frame) for every encoder token; kind is 'x', 'mu' or 'sigma', frame is -1
+    for latent tokens. Used by the tests to check the mask semantics."""
+    layout = []
+    for k in range(num_blocks):
+        layout += [("x", k, k * stride + i) for i in range(stride)]
+        layout += [("mu", k, -1), ("sigma", k, -1)]
+    return layout
+
+
+def decoder_layout(num_blocks: int, stride: int) -> list[tuple[str, int, int]]:
+    """(kind, block, frame) for every decoder token; kind is 'z' or 'q'."""
+    layout = []
+    for k in range(num_blocks):
+        layout += [("z", k, -1)] + [("q", k, k * stride + i) for i in range(stride)]
+    return layout
+
+
+@dataclass
+class DecoderCache:
+    """State of the incremental decoder: one KV cache per layer and the next token position."""
+
+    layers: list[KVCache]
+    position: int = 0
+    blocks: int = field(default=0)
+
+
+class CausalVAE(nn.Module):
+    def __init__(self, config: VAEConfig, motion_dim: int) -> None:
+        super().__init__()
+        self.config = config
+        self.motion_dim = motion_dim
+        h, s = config.hidden, config.stride
+
+        def blocks(n: int) -> nn.ModuleList:
+            return nn.ModuleList(TransformerBlock(h, config.heads, config.mlp_ratio,
+                                                  config.rope_base) for _ in range(n))
+
+        self.frame_in = nn.Linear(motion_dim, h)
+        self.mu_token = nn.Parameter(torch.randn(h) * 0.02)
+        self.sigma_token = nn.Parameter(torch.randn(h) * 0.02)
+        self.encoder = blocks(config.encoder_layers)
+        self.encoder_norm = nn.LayerNorm(h)
+        self.mu_out = nn.Linear(h, config.latent_dim)
+        self.logvar_out = nn.Linear(h, config.latent_dim)
+
+        self.latent_in = nn.Linear(config.latent_dim, h)
+        self.queries = nn.Parameter(torch.randn(s, h) * 0.02)
+        self.decoder = blocks(config.decoder_layers)
+        self.decoder_norm = nn.LayerNorm(h)
+        self.frame_out = nn.Linear(h, motion_dim)
+
+    @property
+    def stride(self) -> int:
+        return self.config.stride
+
+    def num_blocks(self, num_frames: int) -> int:
+        if num_frames % self.stride:
+            raise ValueError(f"motion length {num_frames} is not a multiple of the stride "
+                             f"{self.stride}")
+        return num_frames // self.stride
+
+    def encode(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """x (B, T, Dx) standardized motion -> mu, logvar (B, K, Dz)."""
+        b, t, _ = x.shape
+        k, s, h = self.num_blocks(t), self.stride, self.config.hidden
+        frames = self.frame_in(x).view(b, k, s, h)
+        latent = torch.stack((self.mu_token, self.sigma_token)).to(frames.dtype)
+        tokens = torch.cat((frames, latent.expand(b, k, 2, h)), dim=2).reshape(b, k * (s + 2), h)
+        n = tokens.shape[1]
+        mask, positions = causal_mask(n, device=x.device), torch.arange(n, device=x.device)
+        for block in self.encoder:
+            tokens = block(tokens, mask, positions)
+        out = self.encoder_norm(tokens).view(b, k, s + 2, h)
+        logvar = self.logvar_out(out[:, :, s + 1]).clamp(-30.0, 20.0)
+        return self.mu_out(out[:, :, s]), logvar
+
+    def encoder_modules(self) -> list[nn.Module | nn.Parameter]:
+        """Everything ``encode`` uses (frozen by ``train.freeze_encoder``)."""
+        return [self.frame_in, self.mu_token, self.sigma_token, self.encoder, self.encoder_norm,
+                self.mu_out, self.logvar_out]
+
+    def _decoder_tokens(self, z: Tensor) -> Tensor:
+        b, k, _ = z.shape
+        s, h = self.stride, self.config.hidden
+        latent = self.latent_in(z)[:, :, None]
+        queries = self.queries.to(latent.dtype).expand(b, k, s, h)
+        return torch.cat((latent, queries), dim=2).reshape(b, k * (s + 1), h)
+
+    def _decoder_frames(self, tokens: Tensor) -> Tensor:
+        b, n, h = tokens.shape
+        s = self.stride
+        out = self.decoder_norm(tokens).view(b, n // (s + 1), s + 1, h)[:, :, 1:]
+        return self.frame_out(out).reshape(b, -1, self.motion_dim)
+
+    def decode(self, z: Tensor) -> Tensor:
+        """z (B, K, Dz) -> x_hat (B, K*s, Dx)."""
+        tokens = self._decoder_tokens(z)
+        n = tokens.shape[1]
+        mask, positions = causal_mask(n, device=z.device), torch.arange(n, device=z.device)
+        for block in self.decoder:
+            tokens = block(tokens, mask, positions)
+        return self._decoder_frames(tokens)
+
+    def new_decoder_cache(self, max_blocks: int | None = None) -> DecoderCache:
+        """A fresh streaming-decoder state. ``max_blocks`` bounds memory by attending only to the
+        latest blocks (outputs then differ from ``decode`` once older blocks are dropped)."""
+        max_tokens = None if max_blocks is None else max_blocks * (self.stride + 1)
+        return DecoderCache([KVCache(max_tokens) for _ in self.decoder])
+
+    def decoder_step(self, z_k: Tensor, cache: DecoderCache) -> Tensor:
+        """Decode one block: z_k (B, Dz) -> its s frames (B, s, Dx); updates ``cache``.
+
+        Calling this for k = 1..K reproduces ``decode(z)`` (without ``max_blocks``)."""
+        tokens = self._decoder_tokens(z_k[:, None])
+        n = tokens.shape[1]
+        positions = torch.arange(cache.position, cache.position + n, device=z_k.device)
+        mask = causal_mask(n, len(cache.layers[0]) + n, device=z_k.device)
+        for block, layer_cache in zip(self.decoder, cache.layers):
+            tokens = block(tokens, mask, positions, layer_cache)
+        cache.position += n
+        cache.blocks += 1
+        return self._decoder_frames(tokens)
+
+    @staticmethod
+    def kl(mu: Tensor, logvar: Tensor) -> Tensor:
+        """KL(N(mu, exp(logvar)) || N(0, I)) per latent element, averaged."""
+        return 0.5 * (mu.square() + logvar.exp() - 1.0 - logvar).mean()
+
+    def forward(self, x: Tensor, generator: torch.Generator | None = None) -> dict[str, Tensor]:
+        """Reconstruct x through a sampled latent; returns loss, recon, kl, x_hat, mu, logvar."""
+        mu, logvar = self.encode(x)
+        noise = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
+        z = mu + noise * (0.5 * logvar).exp()
+        if self.config.latent_noise > 0:
+            spread = mu.detach().flatten(0, 1).std(0)
+            z = z + self.config.latent_noise * spread * torch.randn(
+                mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
+        x_hat = self.decode(z)
+        terms = self.loss_terms(x_hat, x)
+        kl = self.kl(mu.float(), logvar.float())
+        loss = terms["recon"] + self.config.beta * kl + self.config.velocity_weight * terms["velocity"]
+        return {"loss": loss, **terms, "kl": kl, "x_hat": x_hat, "mu": mu, "logvar": logvar}
+
+    @staticmethod
+    def loss_terms(x_hat: Tensor, x: Tensor) -> dict[str, Tensor]:
+        """Reconstruction MSE and the MSE of frame-to-frame differences (velocity error)."""
+        error = x_hat.float() - x.float()
+        return {"recon": error.square().mean(),
+                "velocity": (error[:, 1:] - error[:, :-1]).square().mean()}

@@ -1,0 +1,50 @@
+"""Classifier-free guidance (3.4): which modalities each branch drops, and how branches combine.
+
+Training drops each modality of ``MODALITIES`` independently with probability ``drop_prob``
+(``sample_drop_mask``); a dropped modality's encoding becomes its learned null vector. At
+inference the conditional pass sees c = [p_y; a; b; g] with g the target gaze score on every
+frame; the unconditional pass is the same with the modalities of ``StreamConfig.guide`` dropped
+(default: only g -- the paper drops g for gaze guidance; "g dropped, rest kept" is a trained
+condition, while "everything dropped" occurs with p = 0.05^4 only). Then
+
+    x1 = x1_uncond + w (x1_cond - x1_uncond),     w = cfg_scale (1.3)
+
+Both passes run as one batch of 2. At fixed tau and z_tau the velocity is affine in x1 with the
+same offset for both passes, so guiding x1 or guiding v is the same thing. ``gaze=None`` drops g
+in the conditional pass too (the paper's row "no gaze"): with guide = ("gaze",) both passes are
+then identical, guidance is a no-op and only one pass is run.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..nn.flow import MODALITIES
+
+
+def sample_drop_mask(batch_size: int, drop_prob: float, generator: torch.Generator | None = None,
+                     device: torch.device | str | None = None) -> Tensor:
+    """(B, 4) bool: each modality dropped independently with probability ``drop_prob``."""
+    u = torch.rand(batch_size, len(MODALITIES), generator=generator, device=device)
+    return u < drop_prob
+
+
+def drop_masks(gaze: float | None, guide: tuple[str, ...], cfg_scale: float) -> Tensor:
+    """(B, 4) bool drop masks in MODALITIES order: row 0 conditional, row 1 unconditional.
+    B = 1 when the unconditional pass would equal the conditional one (or w = 1)."""
+    cond = torch.tensor([name == "gaze" and gaze is None for name in MODALITIES])
+    uncond = cond | torch.tensor([name in guide for name in MODALITIES])
+    if cfg_scale == 1.0 or torch.equal(cond, uncond):
+        return cond[None]
+    return torch.stack((cond, uncond))
+
+
+def guided(cond: Tensor, uncond: Tensor, cfg_scale: float) -> Tensor:
+    """x1 = x1_uncond + w (x1_cond - x1_uncond)."""
+    return uncond + cfg_scale * (cond - uncond)
+
+
+def combine(x1: Tensor, cfg_scale: float) -> Tensor:
+    """The guided prediction from a batch of branches in ``drop_masks`` order (1 or 2 rows)."""
+    return guided(x1[0], x1[1], cfg_scale) if x1.shape[0] == 2 else x1[0]

@@ -1,0 +1,262 @@
+"""Causal generation of the agent's motion: streaming with imputation, and the offline protocol.
+
+The flow model generates standardized VAE latents, one token per block of s frames (paper 3.3),
+by integrating the flow (``solver.py``) under classifier-free guidance (``guidance.py``).
+
+Streaming vs offline. ``generate_offline`` denoises all K tokens jointly under the causal mask
+(the paper's fps = T / time protocol) with the same per-token noise and guidance. Causality
+makes token 1 identical in both. For later tokens, offline history tokens follow their own
+solver trajectories while streaming substitutes tau z_final + (1 - tau) eps: the two coincide
+exactly when those trajectories are straight, which holds (a) for a single token, (b) for one
+Euler step (the only evaluation is at tau = 0, where both are the noise eps) and (c) whenever
+the network's x1 prediction is constant along the path. In general they differ.
+
+Frames and anchor. The model was trained on windows normalized to the agent's pelvis at the
+window's first frame (origin, facing +z). Latents encode motion in that frame, so a history latent
+is only valid under the anchor it was generated in; re-anchoring while streaming would mean
+re-encoding the history. We use one fixed anchor for the whole stream: the agent's initial pose
+(``anchor``, a WindowTransform from world to the generation frame; identity = agent starts at
+the world origin facing +z). The user's head trajectory is mapped into that frame, the decoded
+motion is mapped back to world. This matches training while the agent stays within the range of
+motion seen in T = 400-frame windows (the paper's setting: conversing agents step and turn but
+stay near their start); streams that wander far from the anchor leave the training distribution.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Mapping
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from sarah_data.frames import WindowTransform
+from sarah_data.skeleton import MotionLayout
+
+from ..config import StreamConfig, check_gaze
+from ..nn.flow import FlowModel
+from ..nn.normalizer import Normalizer
+from ..nn.vae import CausalVAE
+from .guidance import combine, drop_masks
+from .path import velocity_from_x1
+from .solver import imputer, integrate, token_noise
+
+IDENTITY = WindowTransform(0.0, 0.0, 0.0)
+
+
+def solve(flow: FlowModel, cond_tokens: Tensor, noise: Tensor, known: Tensor | None,
+          config: StreamConfig) -> Tensor:
+    """Integrate tau 0 -> 1 for L tokens; returns z (L, Dz).
+
+    cond_tokens (B, L, hidden): B = 1, or 2 for (conditional, unconditional) with guidance, run
+    as one batch. noise (L, Dz): each token's eps. known (m, Dz) or None: final latents of the
+    first m tokens, imputed as tau * known + (1 - tau) * eps before every evaluation."""
+    branches = cond_tokens.shape[0]
+
+    def velocity(z: Tensor, tau: float) -> Tensor:
+        x1 = combine(flow(z[None].expand(branches, -1, -1), tau, cond_tokens=cond_tokens),
+                     config.cfg_scale)
+        return velocity_from_x1(x1, z, tau, flow.config.min_denominator)
+
+    return integrate(velocity, noise, imputer(noise, known), config)
+
+
+def _as_tensor(x, shape_tail: tuple[int, ...], name: str, frames: int | None) -> Tensor:
+    t = torch.as_tensor(np.asarray(x, dtype=np.float32))
+    if t.dim() != 1 + len(shape_tail) or tuple(t.shape[1:]) != shape_tail or (
+            frames is not None and t.shape[0] != frames):
+        want = ("T" if frames is None else str(frames),) + tuple(map(str, shape_tail))
+        raise ValueError(f"{name} has shape {tuple(t.shape)}, expected ({', '.join(want)})")
+    if not torch.isfinite(t).all():
+        raise ValueError(f"{name} contains non-finite values")
+    return t
+
+
+class _Models:
+    """The three modules plus the conversions between world inputs/outputs and model space."""
+
+    def __init__(self, vae: CausalVAE, flow: FlowModel, normalizer: Normalizer,
+                 config: StreamConfig, anchor: WindowTransform | None) -> None:
+        if flow.stride != vae.stride or flow.latent_dim != vae.config.latent_dim:
+            raise ValueError(f"flow (stride {flow.stride}, Dz {flow.latent_dim}) does not match "
+                             f"the VAE (stride {vae.stride}, Dz {vae.config.latent_dim})")
+        if "latent" not in normalizer.keys:
+            raise ValueError("the normalizer has no 'latent' statistics: generation needs a "
+                             "flow-stage checkpoint")
+        MotionLayout.from_width(vae.motion_dim)  # ValueError naming the width if it is not ours
+        self.vae, self.flow, self.normalizer, self.config = vae, flow, normalizer, config
+        self.anchor = IDENTITY if anchor is None else anchor
+        self.device = next(flow.parameters()).device
+        self.stride, self.audio_dim = vae.stride, flow.audio_dim
+        self.audio_keys = {k: normalizer.stats_key(k) for k in ("agent_audio", "user_audio")}
+
+    def condition(self, user_head, agent_audio, user_audio, gaze: float | None,
+                  frames: int | None) -> dict[str, Tensor]:
+        """Standardized model inputs (1, T, .) from world-frame user head and raw features."""
+        head = _as_tensor(user_head, (2,), "user_head", frames)
+        t = head.shape[0]
+        a = _as_tensor(agent_audio, (self.audio_dim,), "agent_audio", t)
+        b = _as_tensor(user_audio, (self.audio_dim,), "user_audio", t)
+        head = torch.from_numpy(self.anchor.apply_floor(head.numpy().astype(np.float64))
+                                .astype(np.float32))
+        nz = self.normalizer
+        cond = {"user_head": nz.normalize("user_head", head.to(self.device)),
+                "agent_audio": nz.normalize(self.audio_keys["agent_audio"], a.to(self.device)),
+                "user_audio": nz.normalize(self.audio_keys["user_audio"], b.to(self.device)),
+                "gaze": torch.full((t, 1), 0.0 if gaze is None else float(gaze),
+                                   device=self.device)}
+        return {k: v[None] for k, v in cond.items()}
+
+    def cond_tokens(self, cond: Mapping[str, Tensor], gaze: float | None) -> Tensor:
+        masks = drop_masks(gaze, self.config.guide, self.config.cfg_scale).to(self.device)
+        batch = {k: v.expand(masks.shape[0], -1, -1) for k, v in cond.items()}
+        return self.flow.encode_condition(batch, masks)
+
+    def to_world(self, motion: Tensor) -> np.ndarray:
+        """Standardized decoder output (T, Dx) -> world-frame motion vector (T, Dx) float32."""
+        x = self.normalizer.denormalize("motion", motion).double().cpu().numpy()
+        points = self.anchor.invert_points(x.reshape(x.shape[0], -1, 3))
+        return points.reshape(x.shape).astype(np.float32)
+
+    def latent_for_decoder(self, z: Tensor) -> Tensor:
+        return self.normalizer.denormalize("latent", z)
+
+
+class StreamingGenerator:
+    """Generates the agent's motion causally, one block of s frames per ``step``.
+
+    Only past and current inputs are used: ``step`` sees the chunk it is given and what earlier
+    calls gave. The flow's context is the last ``history_tokens`` latents plus the new one.
+    """
+
+    def __init__(self, vae: CausalVAE, flow: FlowModel, normalizer: Normalizer,
+                 config: StreamConfig = StreamConfig(),
+                 anchor: WindowTransform | None = None) -> None:
+        self._m = _Models(vae, flow, normalizer, config, anchor)
+        self.config = config
+        self.gaze = config.gaze
+        self.reset()
+
+    @property
+    def stride(self) -> int:
+        return self._m.stride
+
+    @property
+    def audio_dim(self) -> int:
+        return self._m.audio_dim
+
+    @property
+    def motion_dim(self) -> int:
+        return self._m.vae.motion_dim
+
+    @property
+    def anchor(self) -> WindowTransform:
+        return self._m.anchor
+
+    def reset(self) -> None:
+        """Start a new stream (same seed: the same noise again)."""
+        cfg = self.config
+        self._generator = torch.Generator().manual_seed(cfg.seed)
+        keep = None if cfg.history_tokens is None else cfg.history_tokens
+        self._latents: deque[Tensor] = deque(maxlen=keep)  # final z of history tokens
+        self._noise: deque[Tensor] = deque(maxlen=keep)  # their eps
+        window = None if keep is None else keep + 1
+        self._cond: deque[Tensor] = deque(maxlen=window)  # per block (2, 1, hidden), padded
+        self._decoder = self._m.vae.new_decoder_cache(cfg.decoder_blocks)
+        self.frames_generated = 0
+
+    def set_gaze(self, gaze: float | None) -> None:
+        """Change the target gaze score for the blocks that follow (live control)."""
+        check_gaze(gaze)
+        self.gaze = gaze
+
+    @torch.inference_mode()
+    def step(self, user_head, agent_audio, user_audio) -> np.ndarray:
+        """user_head (s, 2) world floor (x, z); agent_audio, user_audio (s, Da) raw features ->
+        the agent's next s frames (s, Dx) as a world-frame motion vector (icosahedra, shell)."""
+        m = self._m
+        cond = m.condition(user_head, agent_audio, user_audio, self.gaze, m.stride)
+        tokens = m.cond_tokens(cond, self.gaze)
+        self._cond.append(tokens)
+        window = list(self._cond)
+        if any(t.shape[0] == 2 for t in window):  # guidance active somewhere in the window
+            window = [t if t.shape[0] == 2 else t.expand(2, -1, -1) for t in window]
+        cond_tokens = torch.cat(window, dim=1)
+
+        eps = token_noise(self._generator, m.flow.latent_dim).to(m.device)
+        noise = torch.stack([*self._noise, eps])
+        known = torch.stack(list(self._latents)) if self._latents else None
+        z = solve(m.flow, cond_tokens, noise, known, self.config)[-1]
+        self._latents.append(z)  # a deque of maxlen 0 keeps nothing: no history
+        self._noise.append(eps)
+        frames = m.vae.decoder_step(m.latent_for_decoder(z)[None], self._decoder)[0]
+        self.frames_generated += m.stride
+        return m.to_world(frames)
+
+
+@torch.inference_mode()
+def generate_offline(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer,
+                     user_head, agent_audio, user_audio, config: StreamConfig = StreamConfig(),
+                     anchor: WindowTransform | None = None) -> np.ndarray:
+    """The paper's offline protocol: all K = T/s tokens denoised jointly (causal mask, same
+    solver, guidance and per-token noise as streaming); returns world motion (T, Dx)."""
+    m = _Models(vae, flow, normalizer, config, anchor)
+    cond = m.condition(user_head, agent_audio, user_audio, config.gaze, None)
+    t = cond["user_head"].shape[1]
+    if t == 0 or t % m.stride:
+        raise ValueError(f"offline generation needs a positive multiple of {m.stride} frames, "
+                         f"got {t}")
+    generator = torch.Generator().manual_seed(config.seed)
+    noise = torch.stack([token_noise(generator, flow.latent_dim)
+                         for _ in range(t // m.stride)]).to(m.device)
+    z = solve(flow, m.cond_tokens(cond, config.gaze), noise, None, config)
+    return m.to_world(vae.decode(m.latent_for_decoder(z)[None])[0])
+
+
+class StreamingSession:
+    """A StreamingGenerator fed with raw 48 kHz audio, chunk by chunk.
+
+    Audio goes through the extractors' causal ``.stream()`` mode (features for completed frames,
+    past audio only); user head positions arrive per frame. Whenever s frames of all three
+    inputs are available, one block is generated.
+    """
+
+    def __init__(self, generator: StreamingGenerator, extractor) -> None:
+        if extractor.dim != generator.audio_dim:
+            raise ValueError(f"audio extractor {extractor.name!r} gives {extractor.dim} channels, "
+                             f"the model expects {generator.audio_dim}")
+        self.generator = generator
+        self._agent = extractor.stream()
+        self._user = extractor.stream()
+        self._buffers: dict[str, list[np.ndarray]] = {"head": [], "agent": [], "user": []}
+        self._used: dict[str, list[np.ndarray]] = {"agent": [], "user": []}
+
+    def _available(self, key: str) -> int:
+        return sum(len(b) for b in self._buffers[key])
+
+    def _take(self, key: str, n: int) -> np.ndarray:
+        data = np.concatenate(self._buffers[key], axis=0)
+        self._buffers[key] = [data[n:]]
+        return data[:n]
+
+    def features(self, person: str) -> np.ndarray:
+        """The audio features of ``person`` ("agent" or "user") used so far, (frames, Da)."""
+        used = self._used[person]
+        return np.concatenate(used) if used else np.zeros((0, self.generator.audio_dim), np.float32)
+
+    def push(self, user_head, agent_samples, user_samples) -> np.ndarray:
+        """Feed new inputs (any lengths); returns the frames generated now, (k*s, Dx)."""
+        head = np.asarray(user_head, dtype=np.float32).reshape(-1, 2)
+        self._buffers["head"].append(head)
+        for key, stream, samples in (("agent", self._agent, agent_samples),
+                                     ("user", self._user, user_samples)):
+            feats = np.asarray(stream.push(np.asarray(samples, dtype=np.float32)), np.float32)
+            self._buffers[key].append(feats.reshape(-1, self.generator.audio_dim))
+        s, out = self.generator.stride, []
+        while min(self._available(k) for k in self._buffers) >= s:
+            head, a, b = (self._take(k, s) for k in ("head", "agent", "user"))
+            self._used["agent"].append(a)
+            self._used["user"].append(b)
+            out.append(self.generator.step(head, a, b))
+        return np.concatenate(out) if out else np.zeros((0, self.generator.motion_dim), np.float32)

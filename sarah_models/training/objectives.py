@@ -1,0 +1,125 @@
+"""Training objectives: a batch of windows in, a dict of scalar losses out ("loss" optimised).
+
+* ``VAEObjective``: standardize the motion, the VAE's reconstruction + KL (``CausalVAE.forward``),
+  plus the planted-foot term (``PlantedFeet``) when ``vae.contact_weight`` > 0.
+* ``FlowObjective``: encode with the frozen VAE, standardize the latents, then
+  ``flow_matching_loss`` (eq. 4-5: x1-prediction on the straight path with CFG dropout).
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import torch
+from torch import Tensor, nn
+
+from sarah_data.constants import FPS
+from sarah_data.skeleton import FEET, MotionLayout
+
+from ..nn.flow import FlowModel
+from ..nn.normalizer import Normalizer
+from ..nn.vae import CausalVAE
+from ..sampling.guidance import sample_drop_mask
+from ..sampling.path import interpolate
+
+
+class VAEObjective(nn.Module):
+    """Standardize the motion of a batch and return the VAE loss dict (plus the planted-foot
+    term when ``vae.config.contact_weight`` > 0)."""
+
+    def __init__(self, vae: CausalVAE, normalizer: Normalizer) -> None:
+        super().__init__()
+        self.vae, self.normalizer = vae, normalizer
+        self.contact = PlantedFeet(vae.motion_dim) if vae.config.contact_weight > 0 else None
+
+    @property
+    def trainable(self) -> nn.Module:
+        return self.vae
+
+    def forward(self, batch: Mapping[str, Tensor], generator: torch.Generator | None = None):
+        device = self.normalizer.motion_mean.device
+        motion = self.normalizer.normalize_batch({"motion": batch["motion"]}, device)["motion"]
+        out = self.vae(motion, generator)
+        if self.contact is None:
+            return out
+        to_metres = lambda x: self.normalizer.denormalize("motion", x.float())  # noqa: E731
+        term = self.contact(to_metres(out["x_hat"]), to_metres(motion))
+        return {**out, "loss": out["loss"] + self.vae.config.contact_weight * term, "contact": term}
+
+
+class PlantedFeet(nn.Module):
+    """Squared error of the decoded feet's horizontal step while the true foot is planted.
+
+    Planted, per foot and frame step: the true foot joint (icosahedron centroid) is below the
+    foot-slide metric's height at both ends of the step and moves less than its speed. The error
+    is in units of that speed's step (``foot_min_speed / FPS``: 1 mm at 30 fps), averaged over
+    planted steps. Inputs: motion in metres, window frame (floor at y = 0), icosahedra first."""
+
+    def __init__(self, motion_dim: int) -> None:
+        super().__init__()
+        from ..evaluation.metrics import MetricsConfig
+
+        try:
+            self.layout = MotionLayout.from_width(motion_dim)
+        except ValueError as error:
+            raise ValueError(f"vae.contact_weight needs the icosahedron motion layout: {error}") from None
+        metric = MetricsConfig()
+        self.max_height, self.step = metric.foot_max_height, metric.foot_min_speed / FPS
+
+    def feet(self, motion: Tensor) -> Tensor:
+        return self.layout.joint_positions(motion, FEET)  # (B, T, feet, 3)
+
+    def forward(self, decoded: Tensor, true: Tensor) -> Tensor:
+        pred, gt = self.feet(decoded), self.feet(true)
+        true_step = gt[:, 1:, :, [0, 2]] - gt[:, :-1, :, [0, 2]]
+        pred_step = pred[:, 1:, :, [0, 2]] - pred[:, :-1, :, [0, 2]]
+        planted = ((torch.maximum(gt[:, 1:, :, 1], gt[:, :-1, :, 1]) < self.max_height)
+                   & (true_step.norm(dim=-1) < self.step)).float()
+        error = (pred_step - true_step).square().sum(-1) / self.step ** 2
+        return (error * planted).sum() / planted.sum().clamp_min(1.0)
+
+
+class FlowObjective(nn.Module):
+    """Encode a batch with the frozen VAE and return the flow-matching loss dict."""
+
+    def __init__(self, flow: FlowModel, vae: CausalVAE, normalizer: Normalizer,
+                 latent: str = "mean") -> None:
+        super().__init__()
+        self.flow, self.vae, self.normalizer, self.latent = flow, vae, normalizer, latent
+        self.vae.requires_grad_(False).eval()
+
+    @property
+    def trainable(self) -> nn.Module:
+        return self.flow
+
+    def train(self, mode: bool = True) -> "FlowObjective":
+        super().train(mode)
+        self.vae.eval()  # frozen: always in inference mode
+        return self
+
+    @torch.no_grad()
+    def latents(self, motion: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """Raw (unstandardized) latents of standardized motion."""
+        mu, logvar = self.vae.encode(motion)
+        if self.latent == "sample":
+            noise = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
+            mu = mu + noise * (0.5 * logvar).exp()
+        return mu.float()
+
+    def forward(self, batch: Mapping[str, Tensor], generator: torch.Generator | None = None):
+        inputs = self.normalizer.normalize_batch(batch, self.normalizer.motion_mean.device)
+        z = self.normalizer.normalize("latent", self.latents(inputs["motion"], generator))
+        return flow_matching_loss(self.flow, z, inputs, generator)
+
+
+def flow_matching_loss(flow: FlowModel, z: Tensor, cond: Mapping[str, Tensor],
+                       generator: torch.Generator | None = None) -> dict[str, Tensor]:
+    """x1-prediction flow-matching loss (eq. 4-5) with tau ~ U[0, 1] and CFG dropout."""
+    b = z.shape[0]
+    tau = torch.rand(b, generator=generator, device=z.device)
+    eps = torch.randn(z.shape, generator=generator, device=z.device, dtype=z.dtype)
+    z_tau = interpolate(eps, z, tau[:, None, None].to(z.dtype))
+    drop = sample_drop_mask(b, flow.config.drop_prob, generator, z.device)
+    z1_pred = flow(z_tau, tau, cond, drop)
+    loss = (z1_pred.float() - z.float()).square().mean()
+    return {"loss": loss, "z1_pred": z1_pred, "drop_rate": drop.float().mean()}

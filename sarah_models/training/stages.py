@@ -1,0 +1,315 @@
+"""Staged training: the causal VAE first, then the flow matcher on the frozen VAE's latents.
+
+Run folder (``out_dir``)::
+
+    config.json        RunConfig, feature widths and audio feature name of the run
+    vae.pt  flow.pt    latest checkpoint of each stage (see checkpoint.py), replaced atomically
+    <stage>_log.jsonl  one JSON line per ``log_every`` steps: step, loss (+ parts), lr, steps/s
+    <stage>_loss.png   loss curve, redrawn at every checkpoint
+
+Determinism: the data order comes from ``DistributedSampler(seed, epoch)`` with a resumable
+offset, and every random draw of step n (VAE noise, flow tau/eps/CFG drops) comes from a
+``torch.Generator`` seeded from (seed, rank, n). A resumed run therefore repeats exactly the
+losses of an uninterrupted one. Flow targets are the frozen encoder's mu (``latent="mean"``:
+deterministic, and it is what the decoder sees at inference) or a posterior sample
+(``latent="sample"``), standardized per channel with statistics of ``latent_stats_batches``
+training batches (stored in the normalizer as ``latent``).
+
+Multi-GPU: launch with ``torchrun`` (``distributed.py``). The pieces: ``objectives.py`` (what
+is minimised), ``batches.py`` (data order), ``loop.py`` (the loop), ``checkpoint.py``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import torch
+import torch.distributed as dist
+from torch.utils.data import Dataset
+
+from sarah_data.atomic import atomic_write_text
+
+from ..config import RunConfig, TrainConfig
+from ..nn.normalizer import Normalizer
+from .batches import EpochBatches
+from .checkpoint import (
+    build_models,
+    capture_rng_state,
+    load_checkpoint,
+    restore_rng_state,
+    save_checkpoint,
+)
+from .distributed import DistInfo, setup_distributed
+from .loop import RunLog, make_optimizer, step_generator, train_loop
+from .objectives import FlowObjective, VAEObjective
+
+STAGES = ("vae", "flow")
+
+
+MIN_EPOCH_BATCHES = 100  # small corpora: draw more random windows per epoch than pairs
+
+
+def load_data(shards_dir: str | Path, config: TrainConfig,
+              world_size: int = 1) -> tuple[Dataset, dict[str, tuple]]:
+    """The training WindowDataset and the model statistics from the shards' stats.h5."""
+    from sarah_data.dataset import WindowDataset
+    from sarah_data.stats import load_stats
+
+    def make(length: int | None) -> Dataset:
+        return WindowDataset(shards_dir, config.split, extractor=config.audio_features,
+                             window=config.window, seed=config.seed, length=length)
+
+    dataset = make(None)
+    wanted = MIN_EPOCH_BATCHES * config.batch_size * world_size
+    if len(dataset) < wanted:  # same windows distribution, just longer epochs
+        dataset = make(wanted)
+    return dataset, model_stats(load_stats(shards_dir), config.audio_features, shards_dir)
+
+
+def model_stats(raw: Mapping[str, Any], features: str,
+                source: str | Path = "stats.h5") -> dict[str, tuple]:
+    """stats.h5's ``motion/mean``, ``user_head/std``, ``audio/<features>/mean`` ... as the
+    Normalizer's {"motion", "user_head", "audio"} -> (mean, std)."""
+    out = {}
+    for key, prefix in (("motion", "motion"), ("user_head", "user_head"),
+                        ("audio", f"audio/{features}")):
+        if f"{prefix}/mean" not in raw or f"{prefix}/std" not in raw:
+            have = sorted({k.rsplit("/", 1)[0] for k in raw})
+            raise ValueError(f"{source}: no statistics {prefix}/mean and /std (has {have}); "
+                             f"were the shards prepared with the {features!r} extractor?")
+        out[key] = (raw[f"{prefix}/mean"], raw[f"{prefix}/std"])
+    return out
+
+
+def feature_dims(dataset: Dataset, window: int) -> dict[str, int]:
+    item = dataset[0]
+    motion, audio = item["motion"], item["agent_audio"]
+    if motion.shape[0] != window:
+        raise ValueError(f"dataset windows have {motion.shape[0]} frames, config.window is {window}")
+    return {"motion": int(motion.shape[-1]), "audio": int(audio.shape[-1])}
+
+
+def _silent(_: str) -> None:
+    pass
+
+
+def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
+    if wanted != stored:
+        raise ValueError(f"{path}: stored {name} config {stored} differs from the requested "
+                         f"{wanted}; resume with the same config or use another --out")
+
+
+# Fields a fine-tune may change: they shape the loss, not the weights.
+LOSS_FIELDS = {"vae": ("beta", "velocity_weight", "contact_weight", "latent_noise"),
+               "flow": ("drop_prob", "min_denominator")}
+
+
+def load_init_source(path: str | Path, stage: str) -> dict[str, Any]:
+    """The checkpoint ``--init-from`` names for ``stage``: a file, or ``<folder>/<stage>.pt``."""
+    path = Path(path)
+    file = path / f"{stage}.pt" if path.is_dir() else path
+    data = load_checkpoint(file)
+    if stage not in data:
+        raise ValueError(f"{file}: a {data['stage']} checkpoint holds no {stage} weights to "
+                         f"initialise the {stage} stage from")
+    return {**data, "path": file}
+
+
+def _check_compatible(source: Mapping[str, Any], stage: str, config: RunConfig,
+                      dims: Mapping[str, int], features: str) -> None:
+    """Refuse an --init-from source whose weights cannot be this stage's, naming the difference."""
+    file = source["path"]
+    wanted, stored = config.to_dict()[stage], source["config"][stage]
+    differ = sorted(k for k in wanted if k not in LOSS_FIELDS[stage] and wanted[k] != stored.get(k))
+    if differ:
+        pairs = ", ".join(f"{k}: {stored.get(k)} there, {wanted[k]} here" for k in differ)
+        raise ValueError(f"{file}: the {stage} architecture differs ({pairs}); --init-from needs "
+                         f"the same sizes (use the same --config and --set)")
+    if stage == "flow":
+        for key in ("latent_dim", "stride"):
+            if source["config"]["vae"][key] != config.to_dict()["vae"][key]:
+                raise ValueError(f"{file}: its VAE has {key} {source['config']['vae'][key]}, "
+                                 f"this run's has {config.to_dict()['vae'][key]}")
+    if dict(source["dims"]) != dict(dims):
+        raise ValueError(f"{file}: feature widths {dict(source['dims'])} differ from this "
+                         f"data's {dict(dims)}")
+    if source["features"] != features:
+        raise ValueError(f"{file}: trained on audio features {source['features']!r}, this run "
+                         f"uses {features!r}")
+
+
+def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir: str | Path,
+          resume: bool = False, device: str | torch.device | None = None, *,
+          init_from: str | Path | None = None,
+          dataset: Dataset | None = None, stats: Mapping[str, Any] | None = None,
+          progress: bool = True, echo: Callable[[str], None] = print) -> Path:
+    """Train one stage into ``out_dir`` and return its checkpoint path.
+
+    ``dataset``/``stats`` default to the shards' WindowDataset and stats.h5. The flow stage
+    needs ``out_dir/vae.pt`` and takes the VAE's config, widths and data statistics from it.
+    Without ``resume`` an existing checkpoint of the stage is an error, never overwritten.
+
+    ``init_from`` (a checkpoint, or a run folder holding ``<stage>.pt``) fine-tunes: the stage's
+    weights start from it, while step count, optimizer and LR schedule start afresh, so loss
+    weights, dropout and schedule may differ from the source run (the architecture may not).
+    A VAE keeps the source's data statistics; a flow refits its latent statistics on this run's
+    VAE. The checkpoint records the source as ``init_from``."""
+    if stage not in STAGES:
+        raise ValueError(f"unknown stage {stage!r}; choose from {STAGES}")
+    if init_from is not None and resume:
+        raise ValueError("--init-from starts a new run from another run's weights; --resume "
+                         "continues this run: use one of them")
+    info = setup_distributed(device)
+    out_dir = Path(out_dir)
+    tcfg = config.train
+    if dataset is None or stats is None:
+        if shards_dir is None:
+            raise ValueError("train: give shards_dir or both dataset and stats")
+        loaded_dataset, loaded_stats = load_data(shards_dir, tcfg, info.world_size)
+        dataset = dataset if dataset is not None else loaded_dataset
+        stats = stats if stats is not None else loaded_stats
+    ckpt_path = out_dir / f"{stage}.pt"
+    total = tcfg.vae_steps if stage == "vae" else tcfg.flow_steps
+    previous = None
+    if ckpt_path.exists():
+        if not resume:
+            raise FileExistsError(f"{ckpt_path} exists: pass resume=True (--resume) to continue, "
+                                  f"or choose another output folder")
+        previous = load_checkpoint(ckpt_path)
+    source = None if init_from is None else load_init_source(init_from, stage)
+
+    # Initial weights are a function of the seed (resumed runs load theirs over them).
+    torch.manual_seed(tcfg.seed + STAGES.index(stage))
+    if stage == "vae":
+        dims = feature_dims(dataset, tcfg.window)
+        if previous is not None:
+            _check_same("vae", config.to_dict()["vae"], previous["config"]["vae"], ckpt_path)
+            normalizer = Normalizer.from_state_dict(previous["normalizer"])
+        elif source is not None:
+            _check_compatible(source, "vae", config, dims, tcfg.audio_features)
+            normalizer = Normalizer.from_state_dict(source["normalizer"])
+        else:
+            normalizer = Normalizer(stats)
+        vae, _ = build_models(config, dims)
+        if previous is not None:
+            vae.load_state_dict(previous["vae"])
+        elif source is not None:
+            vae.load_state_dict(source["vae"])
+        if tcfg.freeze_encoder:
+            for part in vae.encoder_modules():
+                part.requires_grad_(False)
+        run_config, objective = config, VAEObjective(vae, normalizer)
+    else:
+        if not (out_dir / "vae.pt").is_file():
+            raise FileNotFoundError(f"{out_dir / 'vae.pt'}: the flow stage needs a trained VAE; "
+                                    f"run the vae stage first (--stage vae or all)")
+        vae_ckpt = load_checkpoint(out_dir / "vae.pt")
+        if vae_ckpt["features"] != tcfg.audio_features:
+            raise ValueError(f"{out_dir / 'vae.pt'} holds statistics of audio features "
+                             f"{vae_ckpt['features']!r}, the flow stage asks for "
+                             f"{tcfg.audio_features!r}")
+        if vae_ckpt["step"] < vae_ckpt["total_steps"] and info.is_main:
+            echo(f"note: {out_dir / 'vae.pt'} stopped at step {vae_ckpt['step']} of "
+                 f"{vae_ckpt['total_steps']}; the flow trains on that VAE")
+        run_config = RunConfig.from_dict({**config.to_dict(), "vae": vae_ckpt["config"]["vae"]})
+        if tcfg.window % run_config.vae.stride:
+            raise ValueError(f"window {tcfg.window} is not a multiple of the VAE stride "
+                             f"{run_config.vae.stride}")
+        dims = dict(vae_ckpt["dims"])
+        if feature_dims(dataset, tcfg.window) != dims:
+            raise ValueError(f"dataset widths {feature_dims(dataset, tcfg.window)} differ from "
+                             f"the VAE's {dims} in {out_dir / 'vae.pt'}")
+        vae, flow = build_models(run_config, dims)
+        vae.load_state_dict(vae_ckpt["vae"])
+        if previous is not None:
+            _check_same("flow", config.to_dict()["flow"], previous["config"]["flow"], ckpt_path)
+            flow.load_state_dict(previous["flow"])
+            normalizer = Normalizer.from_state_dict(previous["normalizer"])
+        else:
+            if source is not None:
+                _check_compatible(source, "flow", run_config, dims, tcfg.audio_features)
+                flow.load_state_dict(source["flow"])
+            normalizer = Normalizer.from_state_dict(vae_ckpt["normalizer"])
+        objective = FlowObjective(flow, vae, normalizer, tcfg.latent)
+
+    objective.to(info.device)
+    if stage == "flow" and previous is None:
+        _fit_latent_stats(objective, dataset, tcfg, info)
+    optimizer = make_optimizer(objective.trainable, tcfg)
+    start = 0
+    if previous is not None:
+        optimizer.load_state_dict(previous["optimizer"])
+        restore_rng_state(previous["rng"])
+        start = int(previous["step"])
+    if info.is_main:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out_dir / "config.json", json.dumps(
+            {**run_config.to_dict(), "dims": dims, "features": tcfg.audio_features}, indent=2))
+    log = RunLog(out_dir, stage) if info.is_main else None
+    if log is not None:
+        log.truncate(start)
+    if not info.is_main:
+        echo = _silent
+    if start >= total:
+        echo(f"{stage}: already trained to step {start} (>= {total}); nothing to do")
+        return ckpt_path
+    origin = previous.get("init_from") if previous is not None else None
+    if source is not None:
+        origin = {"path": str(source["path"]), "step": int(source["step"])}
+    echo(f"{stage}: steps {start} -> {total} on {info.device} (world size {info.world_size}), "
+         f"{sum(p.numel() for p in objective.trainable.parameters()) / 1e6:.2f}M parameters"
+         + (f" ({sum(p.numel() for p in objective.trainable.parameters() if p.requires_grad) / 1e6:.2f}M "
+            f"trained, encoder frozen)" if stage == "vae" and tcfg.freeze_encoder else "")
+         + (f", initialised from {origin['path']} (step {origin['step']})" if origin else ""))
+
+    model = objective
+    if info.world_size > 1:
+        from torch.nn.parallel import DistributedDataParallel
+
+        model = DistributedDataParallel(
+            objective, device_ids=[info.device.index] if info.device.type == "cuda" else None)
+
+    def save(step: int) -> None:
+        if not info.is_main:
+            return
+        payload = {"stage": stage, "step": step, "total_steps": total,
+                   "config": run_config.to_dict(), "dims": dims, "features": tcfg.audio_features,
+                   "normalizer": normalizer.state_dict(), "vae": vae.state_dict(),
+                   "optimizer": optimizer.state_dict(), "rng": capture_rng_state()}
+        if stage == "flow":
+            payload["flow"] = objective.flow.state_dict()
+        if origin is not None:
+            payload["init_from"] = origin
+        save_checkpoint(ckpt_path, payload)
+
+    loader = EpochBatches(dataset, tcfg, info, start_batch=start)
+    train_loop(model, loader, optimizer, tcfg, total_steps=total, start_step=start,
+               device=info.device, rank=info.rank, log=log, on_checkpoint=save,
+               progress=progress and info.is_main)
+    if info.world_size > 1:
+        dist.barrier()
+    return ckpt_path
+
+
+@torch.no_grad()
+def _fit_latent_stats(objective: FlowObjective, dataset: Dataset, config: TrainConfig,
+                      info: DistInfo) -> None:
+    """Per-channel mean/std of the frozen encoder's latents over the first batches of a fixed
+    order; every rank reads the same batches, so all ranks agree without communicating."""
+    single = DistInfo(0, 1, 0, info.device)
+    loader = EpochBatches(dataset, config, single, seed_offset=1)
+    total = torch.zeros((), dtype=torch.float64, device=info.device)
+    s1 = s2 = None
+    for i, batch in zip(range(config.latent_stats_batches), loader):
+        motion = objective.normalizer.normalize_batch({"motion": batch["motion"]}, info.device)
+        z = objective.latents(motion["motion"], step_generator(info.device, config.seed, 0, i))
+        z = z.reshape(-1, z.shape[-1]).double()
+        s1 = z.sum(0) if s1 is None else s1 + z.sum(0)
+        s2 = z.square().sum(0) if s2 is None else s2 + z.square().sum(0)
+        total += z.shape[0]
+    mean = s1 / total
+    std = (s2 / total - mean.square()).clamp_min(0).sqrt()
+    objective.normalizer.set("latent", mean.float().cpu(), std.float().cpu())
+    objective.normalizer.to(info.device)
