@@ -384,6 +384,8 @@ def _empty_float32(shape: tuple[int, ...], shared: bool = False) -> torch.Tensor
     in a DataLoader worker, so that sending it to the main process does not copy it again)."""
     if not shared:
         return torch.empty(shape)
+    # torch's private allocator of shared storage (checked with torch 2.14.1): the public
+    # share_memory_() would first allocate and then copy 70 MB per batch.
     storage = torch.UntypedStorage._new_shared(math.prod(shape) * 4)
     return torch.empty(0).set_(storage, 0, shape)  # not a view: its rows' `_base` is this tensor
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -28,6 +27,7 @@ import numpy as np
 
 from sarah_data.constants import AUDIO_SAMPLE_RATE, SAMPLES_PER_FRAME, SMPLX_PARAM_WIDTHS
 from sarah_data.loading import DataProblem, load_mask, load_npy, load_wav
+from sarah_data.sequence_names import SequenceName, parse_sequence_name
 
 __all__ = [
     "AUDIO_FOLDERS", "MASK_FOLDER", "PARAM_KEYS", "Corpus", "DataProblem", "PairRecord",
@@ -41,57 +41,6 @@ AUDIO_FOLDERS = ("audio_separated", "separated_audio")
 MASK_FOLDER = "missing"
 # Folder name on disk -> key of the params dict handed to the body model.
 PARAM_KEYS = {folder: folder.removeprefix("smplx_mesh_") for folder in SMPLX_PARAM_WIDTHS}
-
-_NAME = re.compile(
-    r"(?P<session>c--(?P<date>\d{8})--(?P<time>\d{4}))"
-    r"--(?P<a>[A-Za-z0-9]+)--(?P<b>[A-Za-z0-9]+)"
-    r"--pilot--(?P<prior>MotionPrior\d*)"
-    r"--(?P<scene>[A-Za-z0-9_]+)"
-    r"--(?P<start>\d+)-(?P<end>\d+)"
-)
-_NAME_FORMAT = "c--YYYYMMDD--HHMM--<SUBJ>--<SUBJ>--pilot--MotionPrior[N]--<SCENE>--<start>-<end>"
-
-
-# ----------------------------------------------------------------------------- names
-
-@dataclass(frozen=True)
-class SequenceName:
-    """The fields encoded in an Embody 3D sequence name."""
-
-    sequence: str
-    session: str  # c--YYYYMMDD--HHMM: one capture session; split by this, never by subject
-    recorded: datetime  # capture start, local time of the session (minute resolution)
-    named_persons: tuple[str, str]  # in the order the name lists them
-    motion_prior: str
-    scene: str
-    start: int  # first frame (inclusive)
-    end: int  # last frame (inclusive)
-
-    @property
-    def length(self) -> int:
-        return self.end - self.start + 1
-
-
-def parse_sequence_name(sequence: str) -> SequenceName:
-    """Parse `c--YYYYMMDD--HHMM--<SUBJ>--<SUBJ>--pilot--MotionPrior[N]--<SCENE>--<start>-<end>`.
-
-    Raises ValueError with the reason when the name does not follow the format.
-    """
-    m = _NAME.fullmatch(sequence)
-    if m is None:
-        raise ValueError(f"does not match {_NAME_FORMAT}")
-    try:
-        recorded = datetime.strptime(m["date"] + m["time"], "%Y%m%d%H%M")
-    except ValueError:
-        raise ValueError(f"invalid capture date/time {m['date']}--{m['time']}") from None
-    if m["a"] == m["b"]:
-        raise ValueError(f"names the same person twice ({m['a']})")
-    start, end = int(m["start"]), int(m["end"])
-    if end < start:
-        raise ValueError(f"frame range {m['start']}-{m['end']} ends before it starts")
-    return SequenceName(sequence, m["session"], recorded, (m["a"], m["b"]), m["prior"],
-                        m["scene"], start, end)
-
 
 # ----------------------------------------------------------------------------- records
 

@@ -22,13 +22,7 @@ from .nn.flow import FlowModel
 from .nn.normalizer import Normalizer
 from .nn.vae import CausalVAE
 from .sampling.stream import StreamingGenerator
-from .training.checkpoint import build_models
-
-
-def _unpack(models) -> tuple[CausalVAE, FlowModel, Normalizer | None]:
-    if hasattr(models, "vae") and hasattr(models, "flow"):
-        return models.vae, models.flow, getattr(models, "normalizer", None)
-    return models[0], models[1], (models[2] if len(models) == 3 else None)
+from .training.checkpoint import build_models, unpack_models
 
 
 def random_models(size: str = "paper", audio_dim: int = 80, shell_points: int = 256,
@@ -68,14 +62,19 @@ def random_models(size: str = "paper", audio_dim: int = 80, shell_points: int = 
     return vae.eval(), flow.eval(), normalizer
 
 
+def arc_trajectory(frames: int) -> np.ndarray:
+    """A user walking an arc 1.6 m in front of the agent, (frames, 2) float32 floor (x, z)."""
+    angle = np.linspace(-0.8, 0.8, frames)
+    return np.stack([1.6 * np.sin(angle), 1.6 * np.cos(angle)], 1).astype(np.float32)
+
+
 def synthetic_inputs(frames: int, seed: int = 0) -> dict[str, np.ndarray]:
     """A user walking an arc (frames, 2) and two 48 kHz tracks of amplitude-modulated noise."""
     rng = np.random.default_rng(seed)
-    angle = np.linspace(-0.8, 0.8, frames)
     n = frames * SAMPLES_PER_FRAME
     envelope = 0.5 + 0.5 * np.sin(2 * np.pi * 4.5 * np.arange(n) / AUDIO_SAMPLE_RATE)
     return {
-        "user_head": np.stack([1.6 * np.sin(angle), 1.6 * np.cos(angle)], 1).astype(np.float32),
+        "user_head": arc_trajectory(frames),
         "agent_wave": (0.1 * envelope * rng.standard_normal(n)).astype(np.float32),
         "user_wave": (0.05 * rng.standard_normal(n)).astype(np.float32),
     }
@@ -104,17 +103,15 @@ def stream_inputs(frames: int, audio_dim: int, seed: int = 0) -> tuple[np.ndarra
     """Deterministic test inputs: a user walking an arc around the agent and two noise-like
     standardized feature tracks; (frames, 2), (frames, Da), (frames, Da) float32."""
     rng = np.random.default_rng(seed)
-    angle = np.linspace(-0.8, 0.8, frames)
-    head = np.stack([1.6 * np.sin(angle), 1.6 * np.cos(angle)], 1)
     a = rng.normal(size=(frames, audio_dim))
     b = rng.normal(size=(frames, audio_dim))
-    return head.astype(np.float32), a.astype(np.float32), b.astype(np.float32)
+    return arc_trajectory(frames), a.astype(np.float32), b.astype(np.float32)
 
 
 def generate_stream(models, inputs: tuple[np.ndarray, np.ndarray, np.ndarray],
                     config: StreamConfig = StreamConfig()) -> np.ndarray:
     """World motion (T, Dx) streamed chunk by chunk through ``StreamingGenerator``."""
-    vae, flow, normalizer = _unpack(models)
+    vae, flow, normalizer = unpack_models(models)
     generator = StreamingGenerator(vae, flow, normalizer, config)
     head, a, b = inputs
     s = generator.stride
@@ -133,8 +130,8 @@ def stream_deviation(reference, optimized, frames: int = 64, seed: int = 0,
     e.g. fewer solver steps."""
     from .evaluation.metrics import head_angle, wrist_speed
 
-    ref_vae, ref_flow, ref_norm = _unpack(reference)
-    opt_vae, opt_flow, opt_norm = _unpack(optimized)
+    ref_vae, ref_flow, ref_norm = unpack_models(reference)
+    opt_vae, opt_flow, opt_norm = unpack_models(optimized)
     if inputs is None:
         inputs = stream_inputs(frames, ref_flow.audio_dim, seed)
     ref = generate_stream((ref_vae, ref_flow, ref_norm), inputs, config)

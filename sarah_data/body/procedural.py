@@ -29,12 +29,13 @@ from __future__ import annotations
 
 import os
 import zipfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from sarah_data.atomic import atomic_path
+from sarah_data.body.mesh_parts import Part, ellipsoid, smoothstep, tube, unit
 from sarah_data.constants import JOINT, JOINT_NAMES, JOINT_PARENTS, NUM_JOINTS, NUM_VERTICES
 
 SOLE_Y = -1.0  # y of the soles in the rest pose, for every betas
@@ -56,134 +57,6 @@ POSE_CORRECTIVE_AMPLITUDE = 0.003  # metres per unit of a (R - I) entry
 SOLE_RAMP = 0.25  # y displacements grow linearly over this height above the soles
 
 
-@dataclass
-class _Part:
-    """One closed surface of the body, with per-vertex skinning weights and joint regressors."""
-
-    vertices: np.ndarray  # (n, 3)
-    faces: np.ndarray  # (m, 3) local indices
-    weights: np.ndarray  # (n, 55)
-    axis: np.ndarray  # (n, 3) the point on the bone each vertex is measured from (girth)
-    girth: float  # how strongly the girth component acts on this part
-    regress: dict[int, np.ndarray] = field(default_factory=dict)  # joint -> local vertex ids
-
-
-def _smoothstep(edge0: float, edge1: float, x: np.ndarray) -> np.ndarray:
-    t = np.clip((np.asarray(x, dtype=np.float64) - edge0) / (edge1 - edge0), 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-def _ring_faces(first: int, second: int, around: int) -> list[tuple[int, int, int]]:
-    """Two triangles per quad between consecutive rings, wound so normals point outward."""
-    faces = []
-    for k in range(around):
-        a, b = first + k, first + (k + 1) % around
-        c, d = second + (k + 1) % around, second + k
-        faces += [(a, b, c), (a, c, d)]
-    return faces
-
-
-def _tube(points, radii, joints, owners, around, rings, ref, caps, girth=1.0, cap_rings=3) -> _Part:
-    """An elliptic tube along a polyline, closed by rounded caps.
-
-    points (n,3); radii (n,2) as (along u, along w) where u is `ref` made perpendicular to the
-    axis and w = axis x u; joints: the joint centred on each point's ring (or None); owners
-    (n+1): the joint driving the stretch before point 0, each segment, and after the last point;
-    rings (n-1): extra rings inside each segment. Weights change owner at each point, blended
-    smoothly over a zone a third of the shorter neighbouring segment long.
-    """
-    points, radii = np.asarray(points, float), np.asarray(radii, float)
-    seg = np.diff(points, axis=0)
-    seg_len = np.linalg.norm(seg, axis=1)
-    seg_dir = seg / seg_len[:, None]
-    arc = np.concatenate([[0.0], np.cumsum(seg_len)])
-    point_dir = np.vstack([seg_dir[:1], _unit(seg_dir[:-1] + seg_dir[1:]), seg_dir[-1:]])
-
-    # (centre, axis direction, radius pair, arc position, polyline point index or -1)
-    ring_specs = []
-    start_cap, end_cap = caps
-    for i in range(cap_rings, 0, -1):  # start cap, outermost first
-        phi = 0.5 * np.pi * i / (cap_rings + 1)
-        ring_specs.append((points[0] - point_dir[0] * start_cap * np.sin(phi), point_dir[0],
-                           radii[0] * np.cos(phi), -start_cap * np.sin(phi), -1))
-    for k in range(len(points)):
-        ring_specs.append((points[k], point_dir[k], radii[k], arc[k], k))
-        if k < len(seg):
-            for j in range(1, rings[k] + 1):
-                t = j / (rings[k] + 1)
-                ring_specs.append((points[k] + t * seg[k], seg_dir[k],
-                                   (1 - t) * radii[k] + t * radii[k + 1], arc[k] + t * seg_len[k], -1))
-    for i in range(1, cap_rings + 1):
-        phi = 0.5 * np.pi * i / (cap_rings + 1)
-        ring_specs.append((points[-1] + point_dir[-1] * end_cap * np.sin(phi), point_dir[-1],
-                           radii[-1] * np.cos(phi), arc[-1] + end_cap * np.sin(phi), -1))
-
-    theta = 2.0 * np.pi * np.arange(around) / around
-    ref = np.asarray(ref, float)
-    verts = [points[0] - point_dir[0] * start_cap]
-    axis = [verts[0]]
-    arc_of = [-start_cap]
-    regress = {}
-    for centre, direction, (ra, rb), s, k in ring_specs:
-        u = _unit(ref - np.dot(ref, direction) * direction)
-        w = np.cross(direction, u)
-        ring = centre + ra * np.cos(theta)[:, None] * u + rb * np.sin(theta)[:, None] * w
-        if k >= 0 and joints[k] is not None:
-            regress[joints[k]] = np.arange(len(verts), len(verts) + around)
-        verts.extend(ring)
-        axis.extend([centre] * around)
-        arc_of.extend([s] * around)
-    verts.append(points[-1] + point_dir[-1] * end_cap)
-    axis.append(verts[-1])
-    arc_of.append(arc[-1] + end_cap)
-
-    n_rings = len(ring_specs)
-    faces = [(0, 1 + (k + 1) % around, 1 + k) for k in range(around)]
-    for r in range(n_rings - 1):
-        faces += _ring_faces(1 + r * around, 1 + (r + 1) * around, around)
-    last, pole = 1 + (n_rings - 1) * around, 1 + n_rings * around
-    faces += [(last + k, last + (k + 1) % around, pole) for k in range(around)]
-
-    arc_of = np.asarray(arc_of)
-    weights = np.zeros((len(verts), NUM_JOINTS))
-    # Owner changes at each point: nearest point decides which transition a vertex is in.
-    nearest = np.argmin(np.abs(arc_of[:, None] - arc[None, :]), axis=1)
-    for k in range(len(points)):
-        neighbours = [seg_len[j] for j in (k - 1, k) if 0 <= j < len(seg_len)]
-        half = min(neighbours) / 3.0
-        mine = nearest == k
-        after = _smoothstep(arc[k] - half, arc[k] + half, arc_of[mine])
-        weights[mine, owners[k]] += 1.0 - after
-        weights[mine, owners[k + 1]] += after
-    return _Part(np.asarray(verts), np.asarray(faces, dtype=np.int64), weights,
-                 np.asarray(axis), girth, regress)
-
-
-def _ellipsoid(centre, radii, n_lat, n_lon, joint, girth=0.0) -> _Part:
-    """A latitude/longitude ellipsoid about the y axis; every latitude ring is centred on it."""
-    centre, radii = np.asarray(centre, float), np.asarray(radii, float)
-    polar = np.pi * np.arange(1, n_lat + 1) / (n_lat + 1)
-    lon = 2.0 * np.pi * np.arange(n_lon) / n_lon
-    unit = np.stack([np.sin(polar)[:, None] * np.sin(lon)[None, :],
-                     np.repeat(np.cos(polar)[:, None], n_lon, axis=1),
-                     np.sin(polar)[:, None] * np.cos(lon)[None, :]], axis=-1).reshape(-1, 3)
-    verts = np.vstack([centre + [0, radii[1], 0], centre + unit * radii, centre - [0, radii[1], 0]])
-    faces = [(0, 1 + k, 1 + (k + 1) % n_lon) for k in range(n_lon)]
-    for r in range(n_lat - 1):  # rings run downward here, so the quads turn the other way
-        faces += [f[::-1] for f in _ring_faces(1 + r * n_lon, 1 + (r + 1) * n_lon, n_lon)]
-    last, pole = 1 + (n_lat - 1) * n_lon, 1 + n_lat * n_lon
-    faces += [(last + (k + 1) % n_lon, last + k, pole) for k in range(n_lon)]
-    weights = np.zeros((len(verts), NUM_JOINTS))
-    weights[:, joint] = 1.0
-    return _Part(verts, np.asarray(faces, dtype=np.int64), weights,
-                 np.repeat(centre[None], len(verts), axis=0), girth,
-                 {joint: np.arange(len(verts))})
-
-
 # ---- the design, in floor coordinates (soles at y = 0), left side (+x); the right is mirrored ----
 
 _HEAD_CENTRE = (0.0, 1.595, 0.015)
@@ -192,8 +65,8 @@ _HEAD_RESOLUTION = (29, 57)  # latitude rings, longitude samples: chosen so the 
 _JAW_HEIGHT = 1.53  # the jaw joint is the centre of the head ring nearest this height
 
 
-def _central_parts() -> list[_Part]:
-    torso = _tube(
+def _central_parts() -> list[Part]:
+    torso = tube(
         points=[(0, 0.86, 0.0), (0, 0.95, 0.0), (0, 1.07, -0.005), (0, 1.19, -0.01),
                 (0, 1.31, -0.01), (0, 1.44, -0.015)],
         radii=[(0.09, 0.13), (0.11, 0.165), (0.10, 0.15), (0.105, 0.155), (0.11, 0.17), (0.085, 0.16)],
@@ -202,22 +75,22 @@ def _central_parts() -> list[_Part]:
         caps=(0.07, 0.05), cap_rings=4)
     # The upper chest follows the collar bones a little, so shrugs move the shoulders' surface.
     x, y = torso.vertices[:, 0], torso.vertices[:, 1]
-    collar = 0.5 * _smoothstep(1.30, 1.42, y) * _smoothstep(0.06, 0.15, np.abs(x))
+    collar = 0.5 * smoothstep(1.30, 1.42, y) * smoothstep(0.06, 0.15, np.abs(x))
     torso.weights *= (1.0 - collar)[:, None]
     torso.weights[x > 0, JOINT["left_collar"]] += collar[x > 0]
     torso.weights[x < 0, JOINT["right_collar"]] += collar[x < 0]
 
-    neck = _tube(
+    neck = tube(
         points=[(0, 1.40, -0.015), (0, 1.49, -0.015), (0, 1.55, -0.005)],
         radii=[(0.05, 0.055), (0.048, 0.052), (0.05, 0.055)],
         joints=[None, JOINT["neck"], JOINT["head"]], owners=[9, 9, 12, 15], around=28,
         rings=[4, 4], ref=(0, 0, 1), caps=(0.03, 0.04))
 
-    head = _ellipsoid(_HEAD_CENTRE, _HEAD_RADII, *_HEAD_RESOLUTION, joint=JOINT["head"], girth=0.2)
+    head = ellipsoid(_HEAD_CENTRE, _HEAD_RADII, *_HEAD_RESOLUTION, joint=JOINT["head"], girth=0.2)
     del head.regress[JOINT["head"]]  # the head joint is the neck's top ring
     y, z = head.vertices[:, 1], head.vertices[:, 2]
-    neck_share = 1.0 - _smoothstep(1.47, 1.52, y)
-    jaw_share = 0.9 * (1.0 - _smoothstep(1.50, 1.565, y)) * _smoothstep(0.03, 0.08, z) * (1 - neck_share)
+    neck_share = 1.0 - smoothstep(1.47, 1.52, y)
+    jaw_share = 0.9 * (1.0 - smoothstep(1.50, 1.565, y)) * smoothstep(0.03, 0.08, z) * (1 - neck_share)
     head.weights[:, JOINT["head"]] = 1.0 - neck_share - jaw_share
     head.weights[:, JOINT["neck"]] = neck_share
     head.weights[:, JOINT["jaw"]] = jaw_share
@@ -228,31 +101,31 @@ def _central_parts() -> list[_Part]:
     return [torso, neck, head]
 
 
-def _finger(base, direction, lengths, radius, names) -> _Part:
-    direction = _unit(np.asarray(direction, float))
+def _finger(base, direction, lengths, radius, names) -> Part:
+    direction = unit(np.asarray(direction, float))
     points = [np.asarray(base, float)]
     for length in lengths:
         points.append(points[-1] + direction * length)
     joints = [JOINT[n] for n in names] + [None]
     radii = [(radius, radius), (0.95 * radius, 0.95 * radius), (0.9 * radius, 0.9 * radius),
              (0.8 * radius, 0.8 * radius)]
-    return _tube(points, radii, joints, owners=[JOINT["left_wrist"]] + joints[:3] + [joints[2]],
+    return tube(points, radii, joints, owners=[JOINT["left_wrist"]] + joints[:3] + [joints[2]],
                  around=12, rings=[3, 2, 2], ref=(0, 1, 0), caps=(0.006, 0.8 * radius),
                  girth=0.3, cap_rings=2)
 
 
-def _left_parts() -> list[_Part]:
-    leg = _tube(
+def _left_parts() -> list[Part]:
+    leg = tube(
         points=[(0.09, 0.98, 0.0), (0.09, 0.88, 0.0), (0.10, 0.50, 0.015), (0.10, 0.085, -0.01)],
         radii=[(0.085, 0.085), (0.085, 0.08), (0.05, 0.05), (0.035, 0.035)],
         joints=[None, JOINT["left_hip"], JOINT["left_knee"], JOINT["left_ankle"]],
         owners=[0, 0, 1, 4, 7], around=28, rings=[2, 12, 12], ref=(0, 0, 1), caps=(0.04, 0.03))
-    foot = _tube(
+    foot = tube(
         points=[(0.10, 0.045, -0.045), (0.10, 0.032, 0.115), (0.10, 0.025, 0.18)],
         radii=[(0.045, 0.035), (0.032, 0.045), (0.025, 0.04)],
         joints=[None, JOINT["left_foot"], None], owners=[7, 7, 10, 10], around=20,
         rings=[7, 3], ref=(0, 1, 0), caps=(0.035, 0.03), girth=0.3)
-    arm = _tube(
+    arm = tube(
         points=[(0.055, 1.425, -0.02), (0.175, 1.42, -0.025), (0.44, 1.42, -0.03),
                 (0.68, 1.42, -0.025), (0.765, 1.42, -0.02)],
         radii=[(0.045, 0.05), (0.055, 0.055), (0.04, 0.042), (0.024, 0.032), (0.013, 0.042)],
@@ -272,7 +145,7 @@ def _left_parts() -> list[_Part]:
         _finger((0.700, 1.412, 0.030), (0.7, -0.12, 0.7), (0.033, 0.028, 0.022), 0.011,
                 ("left_thumb1", "left_thumb2", "left_thumb3")),
     ]
-    eye = _ellipsoid((0.032, 1.615, 0.098), (0.0125, 0.0125, 0.0125), 5, 8, JOINT["left_eye_smplhf"])
+    eye = ellipsoid((0.032, 1.615, 0.098), (0.0125, 0.0125, 0.0125), 5, 8, JOINT["left_eye_smplhf"])
     return [leg, foot, arm, *fingers, eye]
 
 
@@ -283,11 +156,11 @@ _MIRROR_JOINT = np.array([
 ])
 
 
-def _mirror(part: _Part) -> _Part:
+def _mirror(part: Part) -> Part:
     flip = np.array([-1.0, 1.0, 1.0])
     weights = np.zeros_like(part.weights)
     weights[:, _MIRROR_JOINT] = part.weights
-    return _Part(part.vertices * flip, part.faces[:, ::-1].copy(), weights, part.axis * flip,
+    return Part(part.vertices * flip, part.faces[:, ::-1].copy(), weights, part.axis * flip,
                  part.girth, {int(_MIRROR_JOINT[j]): ids for j, ids in part.regress.items()})
 
 
@@ -359,7 +232,7 @@ def _shapedirs(mesh: _Mesh, rng: np.random.Generator) -> np.ndarray:
     fields = _smooth_fields(rng, v, NUM_SHAPE - 2, wavelength=1.2) * size
     fields[:, 1, :] *= ramp[:, None]  # keep the soles on their plane for every betas
     dirs[:, :, 2:NUM_SHAPE] = fields
-    face = mesh.head * _smoothstep(_HEAD_CENTRE[2] + 0.02, _HEAD_CENTRE[2] + 0.08, v[:, 2])
+    face = mesh.head * smoothstep(_HEAD_CENTRE[2] + 0.02, _HEAD_CENTRE[2] + 0.08, v[:, 2])
     size = EXPRESSION_AMPLITUDE / (1.0 + np.arange(NUM_EXPRESSION) / 10.0)
     dirs[:, :, NUM_SHAPE:] = _smooth_fields(rng, v, NUM_EXPRESSION, 0.15) * size * face[:, None, None]
     return dirs

@@ -92,10 +92,15 @@ class HubertConfig:
             raise ValueError("hubert: max_segment_frames must exceed 2 * segment_context_frames >= 0")
 
 
+def bundle_file_name(architecture: str = "large") -> str:
+    """The file name of torchaudio's bundle weights, e.g. hubert_fairseq_large_ll60k.pth (from
+    the bundle's private ``_path``, checked with torchaudio 2.11.0: it has no public one)."""
+    return Path(_ARCHITECTURES[architecture][1]._path).name
+
+
 def default_weights_path(architecture: str = "large") -> Path:
     """Where torchaudio's bundle keeps the weights once downloaded (torch hub cache)."""
-    bundle = _ARCHITECTURES[architecture][1]
-    return Path(torch.hub.get_dir()) / "checkpoints" / Path(bundle._path).name
+    return Path(torch.hub.get_dir()) / "checkpoints" / bundle_file_name(architecture)
 
 
 def _checkpoint_state_dict(checkpoint: object, path: Path) -> dict[str, torch.Tensor]:
@@ -132,7 +137,7 @@ def load_hubert(weights: str | Path | None, architecture: str = "large") -> torc
     """A torchaudio Wav2Vec2Model (HuBERT) in eval mode on CPU, weights from a local file only."""
     path = Path(weights).expanduser() if weights else default_weights_path(architecture)
     if not path.is_file():
-        bundle_file = Path(_ARCHITECTURES[architecture][1]._path).name
+        bundle_file = bundle_file_name(architecture)
         raise MissingWeightsError(
             f"HuBERT-{architecture} weights not found at {path}: put torchaudio's {bundle_file} there or pass "
             f"--hubert-weights PATH (weights are never downloaded)")

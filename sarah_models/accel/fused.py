@@ -8,9 +8,13 @@ replace the reference modules in an optimized copy (``optimize.py``) and fall ba
 reference forward for anything they do not cover (autograd, per-sample positions, rows with
 different flow times). Only rounding differs (``tests/test_fused.py``).
 
+* Linears are called as plain functions (``linears.linear_function``), the MLP as
+  fc2(gelu(fc1(h))): a module call costs ~10 us of Python, tens of times per evaluation. So
+  build these blocks after the Linears are final (``optimize.py`` does).
 * ``FusedAttention``: q and k rotated in one pass from memoized tables
   (``x * [cos, cos] + roll(x, Dh/2) * [-sin, sin]`` is rotate-half RoPE), one table lookup per
   stack of layers, and ``is_causal=True`` for the square causal case (no cache, no mask given).
+* ``FusedTransformerBlock`` (the VAE decoder's): LayerNorms as functions, fused attention.
 * ``FusedAdaLNZeroBlock``, ``FusedAdaLNZeroOutput``: the AdaLN-Zero modulation folded into the
   LayerNorm affine -- ``LN(x) * (1 + scale) + shift`` is ``layer_norm(x, 1 + scale, shift)``
   when every row shares the conditioning vector, as the solver's rows do (one flow time) -- and
@@ -26,7 +30,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ..nn.layers import AdaLNZeroBlock, AdaLNZeroOutput, Attention, KVCache, causal_mask
+from ..nn.layers import (MLP, AdaLNZeroBlock, AdaLNZeroOutput, Attention, KVCache, TransformerBlock,
+                         causal_mask)
+from .linears import linear_function
 from .memo import RopeTables, TensorMemo
 
 
@@ -43,13 +49,19 @@ class FusedAttention(Attention):
         self.heads = attention.heads
         self.qkv, self.out, self.rope = attention.qkv, attention.out, attention.rope
         self.tables = tables
+        self.project_qkv, self.project_out = linear_function(self.qkv), linear_function(self.out)
 
     def forward(self, x: Tensor, mask: Tensor | None, positions: Tensor,
                 cache: KVCache | None = None, commit: bool = True) -> Tensor:
         if torch.is_grad_enabled() or positions.dim() != 1:
             return super().forward(x, mask, positions, cache, commit)
+        return self.attend(x, mask, positions, cache, commit)
+
+    def attend(self, x: Tensor, mask: Tensor | None, positions: Tensor,
+               cache: KVCache | None = None, commit: bool = True) -> Tensor:
+        """The fused computation (inference, 1-D positions), without the module call."""
         b, n, d = x.shape
-        qkv = self.qkv(x).view(b, n, 3, self.heads, d // self.heads)
+        qkv = self.project_qkv(x).view(b, n, 3, self.heads, d // self.heads)
         cos, sin = self.tables(positions.to(x.device), x.dtype)
         qk = apply_rope(qkv[:, :, :2], cos, sin).transpose(1, 3)  # (B, H, 2, L, Dh)
         q, k, v = qk[:, :, 0], qk[:, :, 1], qkv[:, :, 2].transpose(1, 2)
@@ -61,7 +73,33 @@ class FusedAttention(Attention):
             if mask is None:
                 mask = causal_mask(n, k.shape[2], device=x.device)
             out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
-        return self.out(out.transpose(1, 2).reshape(b, n, d))
+        return self.project_out(out.transpose(1, 2).reshape(b, n, d))
+
+
+def mlp_function(mlp: MLP):
+    """fc2(gelu(fc1(h))) of an ``MLP`` as one plain callable."""
+    fc1, fc2, approximate = linear_function(mlp[0]), linear_function(mlp[2]), mlp[1].approximate
+    return lambda h: fc2(F.gelu(fc1(h), approximate=approximate))
+
+
+class FusedTransformerBlock(TransformerBlock):
+    """The VAE decoder's block: the same residual maths, LayerNorms and MLP as functions."""
+
+    def __init__(self, block: TransformerBlock, tables: RopeTables) -> None:
+        nn.Module.__init__(self)
+        self.norm1, self.norm2, self.mlp = block.norm1, block.norm2, block.mlp
+        self.attn = FusedAttention(block.attn, tables)
+        self.mlp_function = mlp_function(self.mlp)
+
+    def forward(self, x: Tensor, mask: Tensor | None, positions: Tensor,
+                cache: KVCache | None = None, commit: bool = True) -> Tensor:
+        if torch.is_grad_enabled() or positions.dim() != 1:
+            return super().forward(x, mask, positions, cache, commit)
+        d = x.shape[-1]
+        n1, n2 = self.norm1, self.norm2
+        x = x + self.attn.attend(F.layer_norm(x, (d,), n1.weight, n1.bias, n1.eps), mask,
+                                 positions, cache, commit)
+        return x + self.mlp_function(F.layer_norm(x, (d,), n2.weight, n2.bias, n2.eps))
 
 
 @dataclass(frozen=True)
@@ -92,6 +130,7 @@ class FusedAdaLNZeroBlock(AdaLNZeroBlock):
         self.attn = FusedAttention(block.attn, tables)
         self.mlp, self.modulation = block.mlp, block.modulation
         self.folded = TensorMemo(max_entries)
+        self.mlp_function = mlp_function(self.mlp)
 
     def _fold(self, cond: Tensor) -> FoldedModulation | None:
         terms = fold(self.modulation, cond, 6)
@@ -103,13 +142,13 @@ class FusedAdaLNZeroBlock(AdaLNZeroBlock):
     def forward(self, x: Tensor, cond: Tensor, mask: Tensor | None, positions: Tensor,
                 cache: KVCache | None = None, commit: bool = True) -> Tensor:
         terms = None if torch.is_grad_enabled() else self.folded.get(cond, self._fold)
-        if terms is None:
+        if terms is None or positions.dim() != 1:
             return super().forward(x, cond, mask, positions, cache, commit)
         d = x.shape[-1]
         h = F.layer_norm(x, (d,), terms.attn_weight, terms.attn_bias, self.norm1.eps)
-        x = torch.addcmul(x, terms.attn_gate, self.attn(h, mask, positions, cache, commit))
+        x = torch.addcmul(x, terms.attn_gate, self.attn.attend(h, mask, positions, cache, commit))
         h = F.layer_norm(x, (d,), terms.mlp_weight, terms.mlp_bias, self.norm2.eps)
-        return torch.addcmul(x, terms.mlp_gate, self.mlp(h))
+        return torch.addcmul(x, terms.mlp_gate, self.mlp_function(h))
 
 
 class FusedAdaLNZeroOutput(AdaLNZeroOutput):
@@ -117,6 +156,7 @@ class FusedAdaLNZeroOutput(AdaLNZeroOutput):
         nn.Module.__init__(self)
         self.norm, self.modulation, self.proj = output.norm, output.modulation, output.proj
         self.folded = TensorMemo(max_entries)
+        self.project = linear_function(self.proj)
 
     def _fold(self, cond: Tensor) -> tuple[Tensor, Tensor] | None:
         terms = fold(self.modulation, cond, 2)
@@ -127,4 +167,4 @@ class FusedAdaLNZeroOutput(AdaLNZeroOutput):
         if terms is None:
             return super().forward(x, cond)
         weight, bias = terms
-        return self.proj(F.layer_norm(x, x.shape[-1:], weight, bias, self.norm.eps))
+        return self.project(F.layer_norm(x, x.shape[-1:], weight, bias, self.norm.eps))

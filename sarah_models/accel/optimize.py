@@ -48,8 +48,9 @@ from ..nn.flow import FlowModel
 from ..nn.layers import AdaLNZeroBlock, TransformerBlock
 from ..nn.vae import CausalVAE
 from ..sampling.solver import time_grid
+from ..training.checkpoint import unpack_models
 from .cpu import prefer_bf16_decoder
-from .fused import FusedAdaLNZeroBlock, FusedAdaLNZeroOutput, FusedAttention
+from .fused import FusedAdaLNZeroBlock, FusedAdaLNZeroOutput, FusedTransformerBlock
 from .linears import (
     BF16Linear,
     Int8Linear,
@@ -96,13 +97,13 @@ def memoize_flow_rope(flow: FlowModel) -> None:
 
 def table_decoder_rope(vae: CausalVAE, fused: bool) -> None:
     """Every decoder layer's rotary angles from one growing ``RopeTable``; with ``fused`` the
-    decoder's attention becomes ``FusedAttention`` over shared tables."""
+    decoder's blocks become ``FusedTransformerBlock`` over shared rotary tables."""
     table = RopeTable(vae.decoder[0].attn.rope.angles)
     tables = RopeTables(table)
     for block in vae.decoder:
         block.attn.rope.angles = table
-        if fused:
-            block.attn = FusedAttention(block.attn, tables)
+    if fused:
+        vae.decoder = nn.ModuleList(FusedTransformerBlock(block, tables) for block in vae.decoder)
 
 
 def resolve_decoder(decoder: str, mode: str, device: torch.device) -> str:
@@ -142,15 +143,6 @@ def compile_blocks(module: nn.Module) -> nn.Module:
     return module
 
 
-def _unpack(models) -> tuple[CausalVAE, FlowModel | None, object]:
-    if hasattr(models, "vae") and hasattr(models, "flow"):
-        return models.vae, models.flow, getattr(models, "normalizer", None)
-    if isinstance(models, (tuple, list)) and len(models) in (2, 3):
-        return models[0], models[1], (models[2] if len(models) == 3 else None)
-    raise TypeError("optimize_for_inference expects LoadedModels or a (vae, flow[, normalizer]) "
-                    f"tuple, got {type(models).__name__}")
-
-
 def optimize_for_inference(models, mode: str = "int8", *, stream_config: StreamConfig | None = None,
                            threads: int | None = None, compile: bool = False,
                            decoder: str = "auto"):
@@ -167,7 +159,10 @@ def optimize_for_inference(models, mode: str = "int8", *, stream_config: StreamC
         if threads < 1:
             raise ValueError(f"threads must be >= 1, got {threads}")
         torch.set_num_threads(threads)
-    vae, flow, normalizer = _unpack(models)
+    try:
+        vae, flow, normalizer = unpack_models(models)
+    except TypeError as error:
+        raise TypeError(f"optimize_for_inference: {error}") from None
     if flow is None:
         raise ValueError("optimize_for_inference needs a flow model (a flow-stage checkpoint)")
     precision = resolve_decoder(decoder, mode, next(vae.parameters()).device)

@@ -116,3 +116,13 @@ def load_models(path: str | Path, device: str | torch.device | None = None) -> L
             module.to(device).eval()
     return LoadedModels(vae, flow, normalizer, config, dict(data["dims"]), data["features"],
                         int(data["step"]), data["stage"])
+
+
+def unpack_models(models) -> tuple[CausalVAE, FlowModel | None, Normalizer | None]:
+    """(vae, flow, normalizer) from ``LoadedModels`` or a ``(vae, flow[, normalizer])`` tuple."""
+    if isinstance(models, LoadedModels) or (hasattr(models, "vae") and hasattr(models, "flow")):
+        return models.vae, models.flow, getattr(models, "normalizer", None)
+    if isinstance(models, (tuple, list)) and len(models) in (2, 3):
+        return models[0], models[1], (models[2] if len(models) == 3 else None)
+    raise TypeError("expected LoadedModels or a (vae, flow[, normalizer]) tuple, got "
+                    f"{type(models).__name__}")

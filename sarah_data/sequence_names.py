@@ -1,0 +1,58 @@
+"""Embody 3D sequence names: what a name says (session, date, the two subjects, scene, frames).
+
+    c--YYYYMMDD--HHMM--<SUBJ>--<SUBJ>--pilot--MotionPrior[N]--<SCENE>--<start>-<end>
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from datetime import datetime
+
+NAME_PATTERN = re.compile(
+    r"(?P<session>c--(?P<date>\d{8})--(?P<time>\d{4}))"
+    r"--(?P<a>[A-Za-z0-9]+)--(?P<b>[A-Za-z0-9]+)"
+    r"--pilot--(?P<prior>MotionPrior\d*)"
+    r"--(?P<scene>[A-Za-z0-9_]+)"
+    r"--(?P<start>\d+)-(?P<end>\d+)"
+)
+NAME_FORMAT = "c--YYYYMMDD--HHMM--<SUBJ>--<SUBJ>--pilot--MotionPrior[N]--<SCENE>--<start>-<end>"
+
+
+@dataclass(frozen=True)
+class SequenceName:
+    """The fields encoded in an Embody 3D sequence name."""
+
+    sequence: str
+    session: str  # c--YYYYMMDD--HHMM: one capture session; split by this, never by subject
+    recorded: datetime  # capture start, local time of the session (minute resolution)
+    named_persons: tuple[str, str]  # in the order the name lists them
+    motion_prior: str
+    scene: str
+    start: int  # first frame (inclusive)
+    end: int  # last frame (inclusive)
+
+    @property
+    def length(self) -> int:
+        return self.end - self.start + 1
+
+
+def parse_sequence_name(sequence: str) -> SequenceName:
+    """Parse `c--YYYYMMDD--HHMM--<SUBJ>--<SUBJ>--pilot--MotionPrior[N]--<SCENE>--<start>-<end>`.
+
+    Raises ValueError with the reason when the name does not follow the format.
+    """
+    m = NAME_PATTERN.fullmatch(sequence)
+    if m is None:
+        raise ValueError(f"does not match {NAME_FORMAT}")
+    try:
+        recorded = datetime.strptime(m["date"] + m["time"], "%Y%m%d%H%M")
+    except ValueError:
+        raise ValueError(f"invalid capture date/time {m['date']}--{m['time']}") from None
+    if m["a"] == m["b"]:
+        raise ValueError(f"names the same person twice ({m['a']})")
+    start, end = int(m["start"]), int(m["end"])
+    if end < start:
+        raise ValueError(f"frame range {m['start']}-{m['end']} ends before it starts")
+    return SequenceName(sequence, m["session"], recorded, (m["a"], m["b"]), m["prior"],
+                        m["scene"], start, end)
