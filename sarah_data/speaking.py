@@ -65,7 +65,8 @@ class SpeakingConfig:
             )
 
 
-def _as_wave(wave: np.ndarray, what: str) -> np.ndarray:
+def as_mono_wave(wave: np.ndarray, what: str) -> np.ndarray:
+    """``wave`` checked to be a finite mono float waveform; ``what`` names the caller in errors."""
     wave = np.asarray(wave)
     if wave.ndim != 1:
         raise ValueError(f"{what}: expected a mono waveform of shape (N,), got shape {wave.shape}")
@@ -94,7 +95,7 @@ def frame_energy_db(wave: np.ndarray, samples_per_frame: float | Fraction = SAMP
 
     A trailing partial frame is ignored, as the motion has no frame for it.
     """
-    wave = _as_wave(wave, "frame_energy_db")
+    wave = as_mono_wave(wave, "frame_energy_db")
     bounds = frame_bounds(len(wave), samples_per_frame)
     size = int(bounds[1] - bounds[0]) if len(bounds) > 1 else 0
     if len(bounds) > 1 and bounds[-1] == size * (len(bounds) - 1):

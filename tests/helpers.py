@@ -14,6 +14,29 @@ from sarah_data.shards import (MANIFEST_NAME, Manifest, ProcessedSequence, Shard
 from test_generate import SHELL, make_person
 
 
+def shard_attrs(joint_names=JOINT_NAMES, shell_points: int = SHELL,
+                extractors: dict | None = None) -> ShardAttrs:
+    """Root attributes of a test shards folder (procedural body, unit icosahedron)."""
+    return ShardAttrs(toolkit_version="0.1.0", joint_names=tuple(joint_names),
+                      icosahedron_template=icosahedron.TEMPLATE,
+                      icosahedron_radius=icosahedron.DEFAULT_RADIUS,
+                      shell_vertex_ids=np.arange(shell_points), body_model_name="procedural",
+                      body_model_sha256="0" * 64, extractors=extractors or {})
+
+
+def randomize(model, seed: int, scale: float, add: bool = False):
+    """Seeded N(0, scale) weights everywhere (or added to the current ones), in eval mode:
+    zero-initialised gates would otherwise hide any dependence on the inputs."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in model.parameters():
+            noise = torch.randn(p.shape, generator=g) * scale
+            p.add_(noise) if add else p.copy_(noise)
+    return model.eval()
+
+
 def write_split_shards(root: Path, sequences: dict[str, int], frames: int = 40,
                        features: tuple[str, ...] = ("logmel",), seed: int = 0,
                        shell_points: int = SHELL) -> dict[str, list[ProcessedSequence]]:
@@ -23,11 +46,7 @@ def write_split_shards(root: Path, sequences: dict[str, int], frames: int = 40,
     if shell_points != SHELL:
         raise ValueError(f"make_person writes {SHELL} shell points")
     rng = np.random.default_rng(seed)
-    attrs = ShardAttrs(toolkit_version="0.1.0", joint_names=JOINT_NAMES,
-                       icosahedron_template=icosahedron.TEMPLATE,
-                       icosahedron_radius=icosahedron.DEFAULT_RADIUS,
-                       shell_vertex_ids=np.arange(shell_points), body_model_name="procedural",
-                       body_model_sha256="0" * 64, extractors={f: {} for f in features})
+    attrs = shard_attrs(JOINT_NAMES, shell_points, {f: {} for f in features})
     infos, entries, splits, written = [], {}, {}, {}
     for split, count in sequences.items():
         splits[split] = []

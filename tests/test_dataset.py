@@ -16,8 +16,9 @@ from sarah_data.dataset import (WindowDataset, collate_windows, homogeneous_poin
                                 window_motion)
 from sarah_data.frames import WindowTransform, window_transform
 from sarah_data.shards import (MANIFEST_NAME, STATS_NAME, Manifest, ProcessedPerson,
-                               ProcessedSequence, ShardAttrs, ShardError, ShardWriter, write_manifest)
+                               ProcessedSequence, ShardError, ShardWriter, write_manifest)
 from sarah_data.stats import compute_stats, load_stats
+from helpers import shard_attrs
 
 J, V, D = 3, 4, 5
 W = 100  # short windows keep the fixtures small; the default (400) is exercised once
@@ -58,11 +59,7 @@ def make_sequence(rng, name, split, frames, invalid_a=(), invalid_b=(), audio=Tr
 
 
 def write_folder(root: Path, sequences) -> None:
-    attrs = ShardAttrs(toolkit_version="0.1.0", joint_names=JOINT_NAMES[:J],
-                       icosahedron_template=icosahedron.TEMPLATE,
-                       icosahedron_radius=icosahedron.DEFAULT_RADIUS,
-                       shell_vertex_ids=np.arange(V), body_model_name="procedural",
-                       body_model_sha256="0" * 64, extractors={"logmel": {"n_mels": D}})
+    attrs = shard_attrs(JOINT_NAMES[:J], V, {"logmel": {"n_mels": D}})
     infos, entries = [], {}
     for split in ("train", "val", "test"):
         with ShardWriter(root, split, attrs) as writer:

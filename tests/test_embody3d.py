@@ -214,12 +214,18 @@ def test_load_without_audio_and_unknown_person(tmp_path):
         load_person(pair, "NOBODY")
 
 
-def test_check_files_names_missing_files(tmp_path):
+def _one_written_pair(tmp_path):
+    """One real-named sequence of 5 frames written into a section folder: (pair, folder)."""
     folder = tmp_path / "aiagent"
     name = short_real_sequences()[0]
     write_manifest(folder, {name: manifest_entries(name, 5)})
     write_sequence(folder, name)
     pair, = read_corpus(folder).pairs
+    return pair, folder
+
+
+def test_check_files_names_missing_files(tmp_path):
+    pair, folder = _one_written_pair(tmp_path)
     person = pair.persons[0]
     pair.files[person].missing.unlink()
     pair.files[person].audio.unlink()
@@ -361,14 +367,10 @@ def test_file_level_problems_do_not_stop_other_folders(tmp_path):
 
 
 def test_person_files_paths_lists_every_file(tmp_path):
-    folder = tmp_path / "aiagent"
-    name = short_real_sequences()[0]
-    write_manifest(folder, {name: manifest_entries(name, 5)})
-    write_sequence(folder, name)
-    pair, = read_corpus(folder).pairs
+    pair, folder = _one_written_pair(tmp_path)
     for person in pair.persons:
         paths = pair.files[person].paths()
         assert len(paths) == len(SMPLX_PARAM_WIDTHS) + 2
         assert all(p.is_file() for p in paths)
-        assert sorted(paths) == sorted(p for p in (folder / name / person).rglob("*")
+        assert sorted(paths) == sorted(p for p in (folder / pair.sequence / person).rglob("*")
                                        if p.is_file())

@@ -183,22 +183,23 @@ def _expected_at_motion_frames(hidden: torch.Tensor, num_frames: int) -> np.ndar
     return h[low] * (1 - w) + h[high] * w
 
 
-@pytest.fixture(scope="module")
-def hubert_large_file(tmp_path_factory):
-    torch.manual_seed(0)
-    model = torchaudio.models.hubert_large().eval()
-    path = tmp_path_factory.mktemp("hubert") / "large.pth"
+def _saved_hubert(tmp_path_factory, architecture: str, seed: int):
+    """A torchaudio HuBERT with random weights and the state-dict file it was saved to."""
+    torch.manual_seed(seed)
+    model = getattr(torchaudio.models, f"hubert_{architecture}")().eval()
+    path = tmp_path_factory.mktemp("hubert") / f"{architecture}.pth"
     torch.save(model.state_dict(), path)
     return path, model
+
+
+@pytest.fixture(scope="module")
+def hubert_large_file(tmp_path_factory):
+    return _saved_hubert(tmp_path_factory, "large", 0)
 
 
 @pytest.fixture(scope="module")
 def hubert_base_file(tmp_path_factory):
-    torch.manual_seed(1)
-    model = torchaudio.models.hubert_base().eval()
-    path = tmp_path_factory.mktemp("hubert") / "base.pth"
-    torch.save(model.state_dict(), path)
-    return path, model
+    return _saved_hubert(tmp_path_factory, "base", 1)
 
 
 @pytest.fixture(scope="module")

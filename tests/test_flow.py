@@ -2,6 +2,7 @@
 
 import pytest
 import torch
+from helpers import randomize
 
 from sarah_models.config import FlowConfig
 from sarah_models.nn.flow import MODALITIES, FlowModel, build_block_mask
@@ -23,11 +24,7 @@ def make_cond(b: int, g: torch.Generator, frames: int = T) -> dict:
 
 def trained_weights(model: FlowModel, seed: int = 0) -> FlowModel:
     """Perturb the zero-initialised layers so outputs depend on every input."""
-    g = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for p in model.parameters():
-            p.add_(torch.randn(p.shape, generator=g) * 0.1)
-    return model.eval()
+    return randomize(model, seed, 0.1, add=True)
 
 
 @pytest.fixture(scope="module")

@@ -2,6 +2,7 @@
 
 import pytest
 import torch
+from helpers import randomize
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -15,12 +16,7 @@ T = S * K
 
 
 def _randomize(model: torch.nn.Module, seed: int) -> torch.nn.Module:
-    """Non-zero weights everywhere: zero-initialised gates would hide any dependence."""
-    g = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for p in model.parameters():
-            p.copy_(torch.randn(p.shape, generator=g) * 0.2)
-    return model.eval()
+    return randomize(model, seed, 0.2)
 
 
 @pytest.fixture(scope="module")

@@ -415,7 +415,7 @@ def _write_shards(root: Path) -> None:
     from sarah_data import icosahedron
     from sarah_data.constants import JOINT_NAMES
     from sarah_data.shards import (MANIFEST_NAME, Manifest, ProcessedPerson, ProcessedSequence,
-                                   ShardAttrs, ShardWriter, write_manifest)
+                                   ShardWriter, write_manifest)
     from sarah_data.stats import compute_stats
 
     joints, shell, frames = 2, 3, 120
@@ -435,11 +435,9 @@ def _write_shards(root: Path) -> None:
             root_position=root.astype(np.float32), root_rotation=yaw.astype(np.float32),
             audio={"logmel": rng.normal(size=(frames, DA)).astype(np.float32)})
 
-    attrs = ShardAttrs(toolkit_version="0.1.0", joint_names=JOINT_NAMES[:joints],
-                       icosahedron_template=icosahedron.TEMPLATE,
-                       icosahedron_radius=icosahedron.DEFAULT_RADIUS,
-                       shell_vertex_ids=np.arange(shell), body_model_name="procedural",
-                       body_model_sha256="0" * 64, extractors={"logmel": {"n_mels": DA}})
+    from helpers import shard_attrs
+
+    attrs = shard_attrs(JOINT_NAMES[:joints], shell, {"logmel": {"n_mels": DA}})
     infos, entries = [], {}
     for split in ("train", "val", "test"):
         with ShardWriter(root, split, attrs) as writer:

@@ -18,6 +18,7 @@ from typing import Any, ClassVar, TypeVar
 import numpy as np
 
 from sarah_data.constants import SAMPLES_PER_FRAME
+from sarah_data.speaking import as_mono_wave
 
 _REGISTRY: dict[str, type["AudioFeatureExtractor"]] = {}
 
@@ -26,16 +27,9 @@ E = TypeVar("E", bound=type["AudioFeatureExtractor"])
 
 def fit_to_frames(wave: np.ndarray, num_frames: int) -> np.ndarray:
     """``wave`` as float32 of exactly ``num_frames * 1600`` samples (cut or zero-padded at the end)."""
-    wave = np.asarray(wave)
-    if wave.ndim != 1:
-        raise ValueError(f"audio features: expected a mono waveform of shape (N,), got shape {wave.shape}")
-    if not np.issubdtype(wave.dtype, np.floating):
-        raise TypeError(f"audio features: expected float samples in [-1, 1], got dtype {wave.dtype}")
+    wave = as_mono_wave(wave, "audio features").astype(np.float32, copy=False)
     if num_frames < 0:
         raise ValueError(f"audio features: num_frames must be >= 0, got {num_frames}")
-    wave = wave.astype(np.float32, copy=False)
-    if not np.all(np.isfinite(wave)):
-        raise ValueError("audio features: waveform contains NaN or infinite samples")
     target = num_frames * SAMPLES_PER_FRAME
     if len(wave) >= target:
         return wave[:target]
