@@ -62,7 +62,9 @@ class NaiveStreamer:
                 "user_audio": nz.normalize(self.audio_keys["user_audio"], b)[None],
                 "gaze": torch.full((1, frames, 1), 0.0 if cfg.gaze is None else float(cfg.gaze))}
         masks = drop_masks(cfg.gaze, cfg.guide, cfg.cfg_scale)
-        branches = [flow.encode_condition(cond, masks[i:i + 1]) for i in range(masks.shape[0])]
+        first = len(self._latents) - len(history)  # the stream index of the window's first block
+        branches = [flow.encode_condition(cond, masks[i:i + 1], first_token=first)
+                    for i in range(masks.shape[0])]
         eps = token_noise(self._generator, flow.latent_dim)
         noise = torch.stack([self._noise[i] for i in history] + [eps])
         known = torch.stack([self._latents[i] for i in history]) if history else None

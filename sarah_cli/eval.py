@@ -70,8 +70,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--steps", type=int, default=d.steps, help="midpoint solver steps")
     parser.add_argument("--cfg", type=float, default=d.cfg_scale, help="guidance scale w")
     parser.add_argument("--protocol", choices=("offline", "stream"), default=d.protocol,
-                        help="offline: all T frames at once (causal mask), as the paper times "
-                             "FPS; stream: 4 frames per step")
+                        help="stream: 4 frames per step, as users run it; offline: all T frames "
+                             "at once (causal mask), as the paper times FPS")
     parser.add_argument("--features", default=None,
                         help="audio features for the baselines when no model is evaluated "
                              "(default: logmel; with a model: the checkpoint's)")

@@ -27,6 +27,7 @@ SOLVERS = ("midpoint", "euler")
 SOLVER_STEPS = 4
 GAZE_RANGE = (-1.0, 1.0)  # the gaze score is a cosine: targets outside cannot be reached
 HISTORY_TOKENS = 2  # latents of history the streaming flow sees beside the new one (A.3)
+TINY_WINDOW = 64  # the CPU preset's training window
 
 
 def check_gaze(gaze: float | None) -> None:
@@ -107,6 +108,12 @@ class FlowConfig:
     drop_prob: float = 0.05  # CFG: each modality dropped independently per sample
     min_denominator: float = 0.05  # velocity = (z1 - z_tau) / max(1 - tau, this)
     rope_base: float = 10_000.0
+    # A learned embedding of each token's index in the stream (the paper's learned positional
+    # encoding): RoPE is relative only, so without it the first token (the agent at the window
+    # origin) looks like any other. Indices past ``position_tokens`` share the last embedding,
+    # so streams far longer than a training window see what offline generation sees.
+    position_embedding: bool = True
+    position_tokens: int = WINDOW // STRIDE  # T / s: the tokens of one training window
 
     @classmethod
     def paper(cls) -> "FlowConfig":
@@ -114,7 +121,8 @@ class FlowConfig:
 
     @classmethod
     def tiny(cls) -> "FlowConfig":
-        return cls(hidden=128, heads=4, layers=2, cond_dim=64, time_dim=64)
+        return cls(hidden=128, heads=4, layers=2, cond_dim=64, time_dim=64,
+                   position_tokens=TINY_WINDOW // STRIDE)
 
 
 LR_SCHEDULES = ("constant", "linear", "cosine")
@@ -163,7 +171,7 @@ class TrainConfig:
 
     @classmethod
     def tiny(cls) -> "TrainConfig":
-        return cls(window=64, batch_size=8, lr=3e-4, warmup_steps=50, vae_steps=400,
+        return cls(window=TINY_WINDOW, batch_size=8, lr=3e-4, warmup_steps=50, vae_steps=400,
                    flow_steps=400, latent_stats_batches=8, log_every=10, checkpoint_every=100,
                    num_workers=0, audio_features="logmel")
 
@@ -191,7 +199,10 @@ class RunConfig:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Mapping[str, Any]]) -> "RunConfig":
-        return cls(from_dict(VAEConfig, data["vae"]), from_dict(FlowConfig, data["flow"]),
+        flow = dict(data["flow"])
+        # Runs saved before the position embedding existed were trained without one.
+        flow.setdefault("position_embedding", False)
+        return cls(from_dict(VAEConfig, data["vae"]), from_dict(FlowConfig, flow),
                    from_dict(TrainConfig, data["train"]))
 
     def with_overrides(self, assignments: Sequence[str]) -> "RunConfig":
@@ -250,7 +261,10 @@ class StreamConfig:
     solver: str = SOLVER
     cfg_scale: float = CFG_SCALE  # w in x1 = x1_u + w (x1_c - x1_u)
     gaze: float | None = 0.8  # target gaze score on every frame; None drops g
-    guide: tuple[str, ...] = ("gaze",)  # modalities dropped in the unconditional pass
+    # Modalities dropped in the unconditional pass: all of them (the paper's w = 1.3 guides the
+    # conditioning as a whole; guiding the gaze alone was a no-op for g = None), or ("gaze",)
+    # to guide gaze control only.
+    guide: tuple[str, ...] = ("user_head", "agent_audio", "user_audio", "gaze")
     seed: int = 0
     decoder_blocks: int | None = WINDOW // STRIDE  # decoder attention context in blocks (T / s)
 

@@ -5,17 +5,23 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from hypothesis import HealthCheck, given, settings, strategies as st
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from sarah_data import icosahedron
 from sarah_data.constants import NUM_JOINTS, SAMPLES_PER_FRAME
 from sarah_data.frames import rotation_about_y, window_transform
-from sarah_models.testing import random_models
-from sarah_models.config import RunConfig
-from sarah_models.config import StreamConfig
+from sarah_models.config import RunConfig, StreamConfig
+from sarah_models.nn.flow import MODALITIES
 from sarah_models.sampling.guidance import drop_masks
 from sarah_models.sampling.solver import imputer, integrate
-from sarah_models.sampling.stream import (StreamingGenerator, StreamingSession, generate_offline, solve)
+from sarah_models.sampling.stream import (
+    StreamingGenerator,
+    StreamingSession,
+    generate_offline,
+    solve,
+)
+from sarah_models.testing import random_models
 
 SHELL = 4
 S = 4  # stride of the tiny VAE
@@ -101,20 +107,65 @@ def test_gaze_target_changes_the_motion(models):
 
 
 def test_guidance_formula_end_points(models):
-    """x1 = x1_u + w (x1_c - x1_u): w = 0 is the gaze-dropped model (gaze=None), and w = 1 is
-    the conditional model alone (one pass)."""
+    """x1 = x1_u + w (x1_c - x1_u): with gaze-only guidance w = 0 is the gaze-dropped model
+    (gaze=None), and w = 1 is the conditional model alone (one pass)."""
     inputs = make_inputs(12)
-    dropped = stream(models, inputs, StreamConfig(gaze=None))
-    np.testing.assert_allclose(stream(models, inputs, StreamConfig(gaze=0.8, cfg_scale=0.0)),
+    gaze_only = ("gaze",)
+    dropped = stream(models, inputs, StreamConfig(gaze=None, guide=gaze_only))
+    np.testing.assert_allclose(stream(models, inputs, StreamConfig(gaze=0.8, cfg_scale=0.0,
+                                                                   guide=gaze_only)),
                                dropped, atol=1e-5)
     assert drop_masks(0.8, ("gaze",), 1.0).shape == (1, 4)
     assert drop_masks(None, ("gaze",), 1.3).shape == (1, 4)  # both passes equal: one pass
     masks = drop_masks(0.8, ("gaze",), 1.3)
     assert masks.tolist() == [[False] * 4, [False, False, False, True]]
     conditional = stream(models, inputs, StreamConfig(gaze=0.8, cfg_scale=1.0))
-    guided = stream(models, inputs, StreamConfig(gaze=0.8, cfg_scale=1.3))
+    guided = stream(models, inputs, StreamConfig(gaze=0.8, cfg_scale=1.3, guide=gaze_only))
     # Guidance extrapolates past the conditional model, away from the gaze-dropped one.
     assert np.abs(guided - dropped).mean() > np.abs(conditional - dropped).mean()
+
+
+def test_default_guidance_guides_the_whole_conditioning(models):
+    """The default unconditional pass drops every modality, so w = 1.3 acts for g = None too
+    (with gaze-only guidance both passes were the same there and nothing was guided)."""
+    everything = StreamConfig().guide
+    assert set(everything) == set(MODALITIES)
+    assert drop_masks(None, everything, 1.3).tolist() == [[False, False, False, True], [True] * 4]
+    inputs = make_inputs(12)
+    unguided = stream(models, inputs, StreamConfig(gaze=None, cfg_scale=1.0))
+    guided = stream(models, inputs, StreamConfig(gaze=None))
+    assert np.abs(guided - unguided).max() > 1e-4
+
+
+def test_position_embedding_gives_streaming_the_offline_indices(models):
+    """Token k of a stream gets the position embedding offline generation gives it, also past
+    the training window's tokens (they share the last one), and the first token is told apart
+    from the others when every input is the same."""
+    _, flow, _ = models
+    n = flow.config.position_tokens + 3
+    same = {"user_head": torch.ones(1, n * S, 2), "agent_audio": torch.ones(1, n * S, 8),
+            "user_audio": torch.ones(1, n * S, 8), "gaze": torch.zeros(1, n * S, 1)}
+    with torch.no_grad():
+        offline = flow.encode_condition(same)
+        for k in range(n):
+            block = {key: value[:, k * S:(k + 1) * S] for key, value in same.items()}
+            torch.testing.assert_close(flow.encode_condition(block, first_token=k)[:, 0],
+                                       offline[:, k])
+    assert not torch.allclose(offline[:, 0], offline[:, 1])
+    assert torch.equal(offline[:, -1], offline[:, flow.config.position_tokens - 1])
+    with pytest.raises(ValueError, match="first_token"):
+        flow.encode_condition(same, first_token=-1)
+
+
+def test_runs_saved_before_the_position_embedding_load_without_one():
+    stored = RunConfig.preset("tiny").to_dict()
+    del stored["flow"]["position_embedding"]
+    config = RunConfig.from_dict(stored)
+    assert config.flow.position_embedding is False
+    from sarah_models.training.checkpoint import build_models
+
+    _, flow = build_models(config, {"motion": 1992, "audio": 8})
+    assert not hasattr(flow, "token_positions")
 
 
 def test_solve_keeps_history_tokens_exactly(models):

@@ -2,13 +2,15 @@
 
 One token per latent block k (s frames). Token input::
 
-    h_k = W_z z_tau_k + W_c [e_py(k); e_a(k); e_b(k); e_g(k)] + bias
+    h_k = W_z z_tau_k + W_c [e_py(k); e_a(k); e_b(k); e_g(k)] + bias + P[min(k, K_train - 1)]
 
 which is exactly a Linear over the channel concatenation [z_tau_k; c_k] (split into two matrices
 so the tau-independent half can be cached). Each modality m in ``MODALITIES`` has its own encoder
 e_m: the s frames of block k are stacked, (K, s*D_m), and mapped by Linear -> SiLU -> Linear to
 ``cond_dim`` (the frame's place inside the block is its place in the stacked vector; time across
-blocks is RoPE over the block index). Flow time tau enters every block via AdaLN-Zero, from a
+blocks is RoPE over the block index, relative only, so P, a learned embedding of the token's
+index in the stream, tells the first token -- the agent at the window origin -- from the rest;
+streaming passes each block's stream index, so it sees what offline generation sees). Flow time tau enters every block via AdaLN-Zero, from a
 sinusoidal embedding and an MLP. Attention over blocks is causal (``build_block_mask``).
 
 Classifier-free guidance: ``drop_mask`` (B, 4) bool, True = modality dropped for that sample.
@@ -80,6 +82,9 @@ class FlowModel(nn.Module):
         self.nulls = nn.ParameterDict({name: nn.Parameter(torch.randn(c) * 0.02)
                                        for name in MODALITIES})
         self.cond_in = nn.Linear(len(MODALITIES) * c, h)
+        if config.position_embedding:
+            self.token_positions = nn.Embedding(config.position_tokens, h)
+            nn.init.normal_(self.token_positions.weight, std=0.02)
         self.latent_in = nn.Linear(latent_dim, h, bias=False)
         self.time_embedding = TimestepEmbedding(config.time_dim)
         self.time_mlp = nn.Sequential(nn.Linear(config.time_dim, h), nn.SiLU(), nn.Linear(h, h))
@@ -101,11 +106,14 @@ class FlowModel(nn.Module):
         return value.reshape(b, t // self.stride, self.stride * d)
 
     def encode_condition(self, cond: Mapping[str, Tensor], drop_mask: Tensor | None = None,
-                         num_blocks: int | None = None) -> Tensor:
+                         num_blocks: int | None = None, first_token: int = 0,
+                         positions: Tensor | None = None) -> Tensor:
         """Per-block conditioning contribution (B, K, hidden); independent of tau and z_tau.
 
         cond: user_head (B,T,2), agent_audio and user_audio (B,T,Da), gaze (B,T) or (B,T,1),
-        all standardized; T = K*s. drop_mask (B, 4) bool in ``MODALITIES`` order."""
+        all standardized; T = K*s. drop_mask (B, 4) bool in ``MODALITIES`` order.
+        first_token: the stream index of the first block (its position embedding; dropping
+        modalities never drops the position), or ``positions`` (K,) every block's index."""
         missing = [m for m in MODALITIES if m not in cond]
         if missing:
             raise KeyError(f"conditioning is missing {missing}")
@@ -115,7 +123,22 @@ class FlowModel(nn.Module):
             if drop_mask is not None:
                 enc = torch.where(drop_mask[:, i, None, None], self.nulls[name].to(enc.dtype), enc)
             parts.append(enc)
-        return self.cond_in(torch.cat(parts, dim=-1))
+        tokens = self.cond_in(torch.cat(parts, dim=-1))
+        if self.config.position_embedding:
+            if positions is None:
+                positions = self.token_index(first_token, tokens.shape[1], tokens.device)
+            else:
+                positions = positions.to(tokens.device).clamp(0, self.config.position_tokens - 1)
+            tokens = tokens + self.token_positions(positions)
+        return tokens
+
+    def token_index(self, first_token: int, count: int, device: torch.device | None = None) -> Tensor:
+        """Position-embedding indices of ``count`` tokens from stream index ``first_token``:
+        the index itself, the last embedding for every token past ``position_tokens``."""
+        if first_token < 0:
+            raise ValueError(f"first_token must be >= 0, got {first_token}")
+        index = torch.arange(first_token, first_token + count, device=device)
+        return index.clamp_max(self.config.position_tokens - 1)
 
     def forward(self, z_tau: Tensor, tau: Tensor | float, cond: Mapping[str, Tensor] | None = None,
                 drop_mask: Tensor | None = None, *, cond_tokens: Tensor | None = None,
@@ -129,13 +152,14 @@ class FlowModel(nn.Module):
         (one KVCache per block), z_tau holds only the new tokens; ``commit=False`` leaves the
         caches untouched."""
         b, k, _ = z_tau.shape
-        if cond_tokens is None:
-            if cond is None:
-                raise ValueError("FlowModel.forward needs cond or cond_tokens")
-            cond_tokens = self.encode_condition(cond, drop_mask, num_blocks=k)
         past = 0 if caches is None else len(caches[0])
         if positions is None:
             positions = torch.arange(past, past + k, device=z_tau.device)
+        if cond_tokens is None:
+            if cond is None:
+                raise ValueError("FlowModel.forward needs cond or cond_tokens")
+            cond_tokens = self.encode_condition(cond, drop_mask, num_blocks=k,
+                                                positions=positions if positions.dim() == 1 else None)
         tau = torch.as_tensor(tau, device=z_tau.device, dtype=torch.float32)
         if tau.dim() == 0:
             tau = tau.expand(b)

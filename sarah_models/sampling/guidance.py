@@ -4,15 +4,16 @@ Training drops each modality of ``MODALITIES`` independently with probability ``
 (``sample_drop_mask``); a dropped modality's encoding becomes its learned null vector. At
 inference the conditional pass sees c = [p_y; a; b; g] with g the target gaze score on every
 frame; the unconditional pass is the same with the modalities of ``StreamConfig.guide`` dropped
-(default: only g -- the paper drops g for gaze guidance; "g dropped, rest kept" is a trained
-condition, while "everything dropped" occurs with p = 0.05^4 only). Then
+(default: all four, so w = 1.3 guides the conditioning as a whole, as in the paper; with
+("gaze",) only gaze control is guided, and for g = None both passes would be identical, so no
+guidance at all was applied -- the former default). Then
 
     x1 = x1_uncond + w (x1_cond - x1_uncond),     w = cfg_scale (1.3)
 
 Both passes run as one batch of 2. At fixed tau and z_tau the velocity is affine in x1 with the
 same offset for both passes, so guiding x1 or guiding v is the same thing. ``gaze=None`` drops g
-in the conditional pass too (the paper's row "no gaze"): with guide = ("gaze",) both passes are
-then identical, guidance is a no-op and only one pass is run.
+in the conditional pass too (the paper's row "no gaze"); whenever both passes would be
+identical (or w = 1) only one pass is run.
 """
 
 from __future__ import annotations

@@ -108,10 +108,11 @@ class _Models:
                                    device=self.device)}
         return {k: v[None] for k, v in cond.items()}
 
-    def cond_tokens(self, cond: Mapping[str, Tensor], gaze: float | None) -> Tensor:
+    def cond_tokens(self, cond: Mapping[str, Tensor], gaze: float | None,
+                    first_token: int = 0) -> Tensor:
         masks = drop_masks(gaze, self.config.guide, self.config.cfg_scale).to(self.device)
         batch = {k: v.expand(masks.shape[0], -1, -1) for k, v in cond.items()}
-        return self.flow.encode_condition(batch, masks)
+        return self.flow.encode_condition(batch, masks, first_token=first_token)
 
     def to_world(self, motion: Tensor) -> np.ndarray:
         """Standardized decoder output (T, Dx) -> world-frame motion vector (T, Dx) float32."""
@@ -177,7 +178,7 @@ class StreamingGenerator:
         the agent's next s frames (s, Dx) as a world-frame motion vector (icosahedra, shell)."""
         m = self._m
         cond = m.condition(user_head, agent_audio, user_audio, self.gaze, m.stride)
-        tokens = m.cond_tokens(cond, self.gaze)
+        tokens = m.cond_tokens(cond, self.gaze, first_token=self.frames_generated // m.stride)
         self._cond.append(tokens)
         window = list(self._cond)
         if any(t.shape[0] == 2 for t in window):  # guidance active somewhere in the window
