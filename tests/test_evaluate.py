@@ -60,25 +60,27 @@ def test_table1_markdown_columns_scales_and_dashes():
     assert lines[0] == "**Table 1: caption**"
     header, rule, *rows = lines[2:]
     cells = [c.strip() for c in header.strip("|").split("|")]
-    assert cells[:4] == ["Method", "C", "R", "FPS"] and len(cells) == 4 + 2 * len(METRICS)
-    assert cells[4] == "FGD ↓ (×10^1) Avg" and cells[6] == "FGD_acc ↓ (×10^5) Avg"
-    assert cells[8] == "Foot Slide ↓ ∈ [0, 1] Avg" and cells[12] == "Head Ang. ↑ ∈ [-1, 1] Avg"
-    assert all(c == "NS/S" for c in cells[5::2])
+    # metrics the rows hold, in registry order; the Fréchet ones add a Pooled column
+    assert cells[:4] == ["Method", "C", "R", "FPS"] and len(cells) == 4 + 2 * len(RAW) + 2
+    assert cells[4] == "FGD ↓ (×10^1) Avg (95 %)" and cells[7] == "FGD_acc ↓ (×10^5) Avg (95 %)"
+    assert cells[6] == cells[9] == "Pooled"
+    assert cells[10] == "Foot Slide ↓ ∈ [0, 1] Avg (95 %)" and cells[14] == "Head Ang. ↑ ∈ [-1, 1] Avg (95 %)"
+    assert all(cells[i] == "NS/S" for i in (5, 8, 11, 13, 15))
     assert rule.count("|") == len(cells) + 1
     parse = lambda line: [c.strip() for c in line.strip("|").split("|")]  # noqa: E731
     gt_cells, random_cells, ours_cells = (parse(r) for r in rows)
-    assert gt_cells[:6] == ["GT", "-", "-", "-", "-", "-/-"]  # FGD is not shown for GT
+    assert gt_cells[:7] == ["GT", "-", "-", "-", "-", "-/-", "-"]  # FGD is not shown for GT
     assert random_cells[1:4] == ["✗", "✗", "25"]  # 25 FPS is not real time at 30 fps
     assert ours_cells[1:4] == ["✓", "✓", "312"]
-    assert ours_cells[4:8] == ["1.28", "0.35/0.87", "2.19", "0.01/7.81"]  # raw / 10, raw / 1e5
-    assert ours_cells[8:14] == ["0.01", "0.01/-", "105.0", "90.1/146.2", "0.83", "0.82/0.85"]
+    assert ours_cells[4:10] == ["1.28", "0.35/0.87", "-", "2.19", "0.01/7.81", "-"]  # raw / 10, / 1e5
+    assert ours_cells[10:16] == ["0.01", "0.01/-", "105.0", "90.1/146.2", "0.83", "0.82/0.85"]
 
 
 def test_table2_markdown_rows_per_gaze():
     rows = [MethodResult(f"model@{g}", "m", True, 300.0, table(RAW), gaze=g) for g in (None, 0.0, 1.0)]
     lines = table2_markdown(rows, "Table 2").splitlines()
     header = [c.strip() for c in lines[2].strip("|").split("|")]
-    assert header[0] == "g" and header[1] == "FGD ↓ (×10^1)" and len(header) == 1 + len(METRICS)
+    assert header[0] == "g" and header[1] == "FGD ↓ (×10^1)" and len(header) == 1 + len(RAW)
     assert [line.split("|")[1].strip() for line in lines[4:]] == ["∅", "0.0", "1.0"]
     assert lines[4].split("|")[2].strip() == "1.28"
 
@@ -107,13 +109,20 @@ def test_end_to_end_tables_plots_and_determinism(tiny, tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "Table 1" in printed and "Table 2" in printed
     t1 = json.loads((out / "table1.json").read_text())
-    assert [r["key"] for r in t1["rows"]] == ["gt", "random", "nn", "model"]
+    assert [r["key"] for r in t1["rows"]] == ["gt", "real", "random", "nn", "model"]
     assert t1["num_windows"] == 6 and t1["available_windows"] == 8
     assert t1["num_speaking"] + t1["num_non_speaking"] == 6
     assert "6 of 8 test windows" in t1["caption"] and f"T = {WINDOW} frames" in t1["caption"]
     assert f"S = speaking ({t1['num_speaking']} seq.)" in t1["caption"]
-    gt, random, nn, model = t1["rows"]
+    gt, real, random, nn, model = t1["rows"]
     assert gt["shown"]["fgd/avg"] is None and gt["fps"] is None
+    # The floor row: real clips of other windows, scored like a method, untimed.
+    assert real["fps"] is None and real["shown"]["fgd/avg"] > 0 and real["shown"]["fgd/pooled"] > 0
+    assert real["shown"]["frame0_offset/avg"] >= 0 and real["shown"]["bone_length/avg"] >= 0
+    for row in (real, random, nn, model):
+        for name in METRICS:  # every Avg comes with a 95 % interval around it
+            low, avg, high = (row["shown"][f"{name}/{k}"] for k in ("low", "avg", "high"))
+            assert low <= avg + 1e-9 and avg <= high + 1e-9
     assert gt["shown"]["head_angle/avg"] is not None and -1 <= gt["shown"]["head_angle/avg"] <= 1
     for row in (random, nn, model):
         assert row["fps"] > 0 and row["shown"]["fgd/avg"] > 0
@@ -125,7 +134,9 @@ def test_end_to_end_tables_plots_and_determinism(tiny, tmp_path, capsys):
     assert t2["rows"][0]["shown"] == model["shown"]  # Table 1's model row is the ∅ run
     assert t2["gt_head_angle"] == gt["shown"]["head_angle/avg"]
     md = (out / "table1.md").read_text().splitlines()
-    assert [line.split("|")[1].strip() for line in md[4:]][:3] == ["GT", "Random", "NN"]
+    assert [line.split("|")[1].strip() for line in md[4:]][:4] == ["GT", "Real (other windows)",
+                                                                   "Random", "NN"]
+    assert "Avg (95 %)" in md[2] and "Pooled" in md[2]
     listing = json.loads((out / "windows.json").read_text())["windows"]
     assert len(listing) == 6 and {w["start"] for w in listing} <= {0, 16}
     assert sum(w["speaking"] for w in listing) == t1["num_speaking"]

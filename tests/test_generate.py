@@ -74,6 +74,7 @@ def test_raw_files_end_to_end(run_dir, raw, tmp_path, capsys):
     assert main(raw_args(run_dir, raw, out, "--gaze", "0.8", "--seed", "0")) == 0
     printed = capsys.readouterr().out
     assert "frames/s" in printed and "p50" in printed and "p99" in printed
+    assert "generated motion: gaze score" in printed and "ground truth" not in printed  # raw
     data = np.load(out / "motion.npz", allow_pickle=False)
     assert data["icosahedra"].shape == (FRAMES, NUM_JOINTS, 12, 3)
     assert data["shell"].shape == (FRAMES, SHELL, 3)
@@ -198,12 +199,18 @@ def shard_args(run, root, out, *extra):
             "--no-animation", *extra]
 
 
-def test_shard_window_end_to_end(run_dir, shards, tmp_path):
+def test_shard_window_end_to_end(run_dir, shards, tmp_path, capsys):
     root, seq = shards
     agent, user = seq.persons[1], seq.persons[0]
     out = tmp_path / "out"
     assert main(shard_args(run_dir, root, out, "--sequence", "seq-one", "--agent", "BBB222",
                            "--start", "4", "--frames", "18")) == 0
+    # The real agent of the same window is measured beside the generated one.
+    line = next(line for line in capsys.readouterr().out.splitlines()
+                if line.startswith("generated motion:"))
+    for name in ("gaze score", "foot slide", "wrist speed", "bone length"):
+        assert name in line
+    assert line.count("(ground truth") == 4
     data = np.load(out / "motion.npz")
     assert data["icosahedra"].shape[0] == 16  # rounded down to whole blocks of 4
     np.testing.assert_array_equal(data["user_head"], user.head[4:20])

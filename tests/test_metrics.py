@@ -292,7 +292,7 @@ def test_evaluate_is_invariant_to_world_placement_of_clips():
     window = evaluate(generated, ground_truth, speaking, batch_clips=2)
     world = evaluate([to_world(c, i) for i, c in enumerate(generated)],
                      [to_world(c, 10 + i) for i, c in enumerate(ground_truth)], speaking, batch_clips=2)
-    for name in metrics.METRICS:
+    for name in (m.name for m in metrics.registered() if not m.window_frame):
         for column in ("avg", "ns", "s"):
             assert getattr(world.values[name], column) == pytest.approx(
                 getattr(window.values[name], column), rel=1e-6, abs=1e-6), (name, column)
@@ -307,3 +307,50 @@ def test_evaluate_rejects_mismatched_inputs():
         evaluate(clips, [clips[0], _random_clip(rng, frames_=13)], [True, False])
     with pytest.raises(ValueError, match="batch_clips"):
         evaluate(clips, clips, [True, False], config=MetricsConfig(batch_clips=0))
+
+
+def _rigid_skeleton(frames: int, rng) -> np.ndarray:
+    """Joint positions (T, 55, 3) of a skeleton with fixed bone lengths, turning and walking."""
+    from scipy.spatial.transform import Rotation as R
+
+    from sarah_data.constants import JOINT_PARENTS
+
+    offsets = rng.normal(0, 0.1, (NUM_JOINTS, 3))
+    positions = np.zeros((frames, NUM_JOINTS, 3))
+    turn = R.from_euler("y", np.linspace(0, 2.0, frames)[:, None]).as_matrix()
+    positions[:, 0] = np.stack([np.linspace(0, 1, frames), np.full(frames, 0.9), np.zeros(frames)], 1)
+    for j in range(1, NUM_JOINTS):
+        positions[:, j] = positions[:, JOINT_PARENTS[j]] + turn @ offsets[j]
+    return positions
+
+
+def test_bone_length_error_is_zero_for_a_rigid_skeleton_and_measures_stretch():
+    from sarah_models.evaluation.metrics.bone_length import bone_length_error
+
+    rng = np.random.default_rng(0)
+    rigid = _rigid_skeleton(30, rng)
+    assert bone_length_error(rigid) == pytest.approx(0.0, abs=1e-9)
+    stretched = rigid.copy()
+    wrist, elbow = JOINT["left_wrist"], JOINT["left_elbow"]
+    # the forearm 10 % longer in every third frame: the median keeps the true length
+    stretched[::3, wrist] = rigid[::3, elbow] + 1.1 * (rigid[::3, wrist] - rigid[::3, elbow])
+    assert bone_length_error(stretched, percentile=100) == pytest.approx(10.0, rel=1e-6)
+
+
+def test_frame0_offset_and_root_relative_samples():
+    from sarah_models.evaluation.metrics.fgd_local import root_relative_points
+    from sarah_models.evaluation.metrics.frame0_offset import frame0_offset
+
+    rng = np.random.default_rng(1)
+    joints = _rigid_skeleton(10, rng)
+    assert frame0_offset(joints) == pytest.approx(0.0)  # the pelvis starts at x = z = 0
+    joints[:, :, [0, 2]] += [0.3, 0.4]
+    assert frame0_offset(joints) == pytest.approx(0.5)
+    # Root-relative points do not change when the whole body walks and turns together.
+    points = rng.normal(0, 0.3, (1, 7, 3))
+    yaw = np.array([0.0, 0.7, -2.0])
+    rot = Rotation.from_euler("y", yaw[:, None]).as_matrix()
+    root = np.array([[0, 0.9, 0], [1.0, 0.9, -2.0], [-3.0, 0.9, 0.5]])
+    moved = np.einsum("tij,nj->tni", rot, points[0]) + root[:, None]
+    local = root_relative_points(moved, root, rot)
+    np.testing.assert_allclose(local, np.repeat(points.reshape(1, -1), 3, 0), atol=1e-12)

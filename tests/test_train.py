@@ -157,6 +157,28 @@ def test_vae_objective_adds_the_weighted_contact_term():
     assert objective.vae.frame_out.weight.grad.abs().sum() > 0
 
 
+def test_vae_loss_in_metres_weights_channels_by_their_variance():
+    """recon_units="metres": the reconstruction term is the squared error in metres over the
+    mean channel variance, so a millimetre costs the same on every axis."""
+    from sarah_models.nn.normalizer import Normalizer
+    from sarah_models.nn.vae import CausalVAE
+
+    dx, frames = 6, 8
+    std = np.array([1.0, 0.035, 1.0, 0.5, 0.035, 0.5])
+    stats = {"motion": (np.zeros(dx), std)}
+    motion = torch.randn(2, frames, dx, generator=torch.Generator().manual_seed(0)) * torch.tensor(std)
+    config = replace(tiny_config(1).vae, hidden=32, latent_dim=8, encoder_layers=1,
+                     decoder_layers=1, recon_units="metres")
+    torch.manual_seed(0)
+    objective = VAEObjective(CausalVAE(config, dx), Normalizer(stats))
+    out = objective({"motion": motion}, torch.Generator().manual_seed(0))
+    error_m = (out["x_hat"].detach() - motion / torch.tensor(std).float()) * torch.tensor(std).float()
+    expected = error_m.square().mean() / float(np.mean(std ** 2))
+    assert out["recon"].item() == pytest.approx(expected.item(), rel=1e-5)
+    with pytest.raises(ValueError, match="recon_units"):
+        replace(config, recon_units="inches")
+
+
 def test_config_round_trip_and_overrides():
     cfg = RunConfig.preset("paper")
     assert cfg.vae == VAEConfig() and cfg.flow == FlowConfig() and cfg.train == TrainConfig()

@@ -60,8 +60,9 @@ from .tables import (
 )
 from .windows import MethodClips, TestWindows, gt_clips, select_windows
 
-METHODS = ("gt", "random", "nn", "model", "vae")
-PAPER_METHODS = ("gt", "random", "nn", "model")  # Table 1's rows; "vae" is opt-in
+METHODS = ("gt", "real", "random", "nn", "model", "vae")
+# Table 1's rows: the paper's four and the real-vs-real floor; "vae" is opt-in
+PAPER_METHODS = ("gt", "real", "random", "nn", "model")
 PROTOCOLS = ("offline", "stream")
 
 class EvalError(Exception):
@@ -267,13 +268,15 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
          f"{config.split!r} ({int(speaking.sum())} S, {int((~speaking).sum())} NS), features "
          f"{features!r}")
 
-    metrics_config = MetricsConfig(batch_clips=config.batch_clips)
+    # Windows are in their window frame already: re-normalizing to a decoded frame-0 pelvis
+    # would rotate a whole clip by that frame's yaw error.
+    metrics_config = MetricsConfig(batch_clips=config.batch_clips, normalize_window=False)
     train_windows = None
     if "random" in config.methods or "nn" in config.methods:
         train_windows = _training_windows(shards, features, config)
 
     def score(key: str, label: str, produce, causal: bool | None, gaze=None,
-              reference: bool = False) -> MethodResult:
+              reference: bool = False, timed: bool = True) -> MethodResult:
         with tqdm(total=len(windows), desc=label, unit="window", disable=not progress,
                   leave=False) as bar:
             clips = MethodClips(windows, produce, bar)
@@ -290,7 +293,7 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
                 if ridged:
                     echo(f"{label}: {len(ridged)} Fréchet distance(s) needed a covariance ridge "
                          f"(near-singular covariances; see metrics.frechet_distance_from_moments)")
-        fps = None if reference else fps_of(clips.seconds, config.window)
+        fps = fps_of(clips.seconds, config.window) if timed and not reference else None
         result = MethodResult(key, label, causal, fps, table, gaze, reference)
         shown = result.shown()
         echo(f"{label}: " + ", ".join(f"{m.label} {number(shown[f'{m.name}/avg'], m.decimals)}"
@@ -301,6 +304,13 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
     table1: list[MethodResult] = []
     if "gt" in config.methods:
         table1.append(score("gt", "GT", lambda item, _: item["motion"], None, reference=True))
+    if "real" in config.methods:
+        # The floor: real motion of the other half of the windows scored like a method, so
+        # every figure has the value two disjoint sets of real clips give.
+        half = len(windows) // 2
+        table1.append(score("real", "Real (other windows)",
+                            lambda _, i: windows[(i + half) % len(windows)]["motion"], None,
+                            timed=False))
     if "random" in config.methods:
         from .baselines import RandomBaseline
 

@@ -85,22 +85,40 @@ def metric_header(name: str, scale: float) -> str:
     return f"{metric.label} {metric.arrow}{_scale_note(scale)}{metric.value_range}"
 
 
+def scored(rows: Sequence[MethodResult]) -> list:
+    """The registered metrics the rows hold values of, in column order."""
+    return [m for m in registered() if m.name in rows[0].table.values]
+
+
+def interval(shown: dict, name: str, decimals: int) -> str:
+    """Avg with its 95 % bootstrap interval, "0.58 (0.55-0.61)"; "-" where there is none."""
+    avg, low, high = (shown.get(f"{name}/{k}") for k in ("avg", "low", "high"))
+    if low is None or high is None:
+        return number(avg, decimals)
+    return f"{number(avg, decimals)} ({number(low, decimals)}-{number(high, decimals)})"
+
+
 def table1_markdown(rows: Sequence[MethodResult], caption: str) -> str:
-    """Table 1 as markdown: Method, C, R, FPS, then every metric as Avg and NS/S."""
-    scale = rows[0].table.display_scale
+    """Table 1 as markdown: Method, C, R, FPS, then every metric as Avg (95 % interval) and
+    NS/S, and for the Fréchet metrics the distance over all clips pooled."""
+    scale, metrics = rows[0].table.display_scale, scored(rows)
     head = ["Method", "C", "R", "FPS"]
-    for metric in registered():
-        head += [f"{metric_header(metric.name, scale[metric.name])} Avg", "NS/S"]
+    for metric in metrics:
+        head += [f"{metric_header(metric.name, scale[metric.name])} Avg (95 %)", "NS/S"]
+        if metric.kind == "frechet":
+            head.append("Pooled")
     lines = [f"**{caption}**", "", "| " + " | ".join(head) + " |",
              "|" + "|".join([":---"] + [":---:"] * (len(head) - 1)) + "|"]
     for row in rows:
         shown = row.shown()
         cells = [row.label, _mark(row.causal), _mark(row.realtime),
                  "-" if row.fps is None else f"{row.fps:.0f}"]
-        for metric in registered():
+        for metric in metrics:
             name, d = metric.name, metric.decimals
-            cells += [number(shown[f"{name}/avg"], d),
+            cells += [interval(shown, name, d),
                       f"{number(shown[f'{name}/ns'], d)}/{number(shown[f'{name}/s'], d)}"]
+            if metric.kind == "frechet":
+                cells.append(number(shown[f"{name}/pooled"], d))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
@@ -108,13 +126,13 @@ def table1_markdown(rows: Sequence[MethodResult], caption: str) -> str:
 def table2_markdown(rows: Sequence[MethodResult], caption: str) -> str:
     """Table 2 as markdown: one row per gaze target g with every metric's Avg."""
     scale = rows[0].table.display_scale
-    head = ["g"] + [metric_header(m.name, scale[m.name]) for m in registered()]
+    head = ["g"] + [metric_header(m.name, scale[m.name]) for m in scored(rows)]
     lines = [f"**{caption}**", "", "| " + " | ".join(head) + " |",
              "|" + "|".join([":---"] + [":---:"] * (len(head) - 1)) + "|"]
     for row in rows:
         shown = row.shown()
         lines.append("| " + " | ".join([gaze_label(row.gaze)] + [
-            number(shown[f"{m.name}/avg"], m.decimals) for m in registered()]) + " |")
+            number(shown[f"{m.name}/avg"], m.decimals) for m in scored(rows)]) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -135,7 +153,7 @@ def plot_metric_bars(folder: Path, rows: Sequence[MethodResult]) -> list[Path]:
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
     scale = rows[0].table.display_scale
-    for name in (m.name for m in registered()):
+    for name in (m.name for m in scored(rows)):
         fig, ax = plt.subplots(figsize=(1.6 + 1.3 * len(rows), 3.6))
         x = np.arange(len(rows))
         for k, (column, colour) in enumerate((("avg", "tab:blue"), ("ns", "tab:gray"),

@@ -44,6 +44,7 @@ class Inputs:
     agent_audio: np.ndarray | None = None  # (T, D) features (shard input)
     user_audio: np.ndarray | None = None
     agent_wave: np.ndarray | None = None  # (N,) float32 at 48 kHz (raw input)
+    reference_icosahedra: np.ndarray | None = None  # (T, J, 12, 3) the real agent (shard input)
     user_wave: np.ndarray | None = None
 
     @property
@@ -157,6 +158,7 @@ def shard_inputs(shards_dir: str | Path, split: str, sequence: str | None, agent
             anchor=anchor,
             agent_audio=a["audio"][features][window].astype(np.float32),
             user_audio=u["audio"][features][window].astype(np.float32),
+            reference_icosahedra=a["icosahedra"][window].astype(np.float32),
             source={"kind": "shard", "shards": str(shards_dir), "split": split,
                     "sequence": sequence, "agent": agent, "user": user,
                     "start": int(start), "reference_gaze": a["gaze"][window].astype(np.float32)},

@@ -68,6 +68,22 @@ def write_motion(path: Path, result: Result, inputs: Inputs, config: StreamConfi
     return path
 
 
+def motion_figures(positions: np.ndarray, rotations: np.ndarray,
+                   user_head: np.ndarray) -> dict[str, float]:
+    """What a person sees first in a clip, by the evaluation's own metrics: the mean gaze score
+    toward the user, foot slide, wrist speed (cm/s) and bone-length error (p95, %)."""
+    from ..evaluation.metrics import foot_slide, wrist_speed
+    from ..evaluation.metrics.bone_length import bone_length_error
+
+    return {"gaze score": float(head_gaze(positions, rotations, user_head).mean()),
+            "foot slide": foot_slide(positions), "wrist speed": wrist_speed(positions) * 100.0,
+            "bone length": bone_length_error(positions)}
+
+
+FIGURE_FORMATS = {"gaze score": "{:.3f}", "foot slide": "{:.3f}", "wrist speed": "{:.1f} cm/s",
+                  "bone length": "{:.1f} % (p95)"}
+
+
 @dataclass
 class Summary:
     frames: int
@@ -77,6 +93,8 @@ class Summary:
     chunks: int
     mean_gaze: float
     paths: list[Path]
+    figures: dict[str, float] = field(default_factory=dict)
+    reference_figures: dict[str, float] | None = None  # the real agent of the same window
 
     def lines(self, config: StreamConfig, offline: bool) -> list[str]:
         seconds = self.frames / FPS
@@ -89,5 +107,13 @@ class Summary:
                        f"{self.latency_p99_ms:.1f} ms over {self.chunks} chunks")
         target = "none" if config.gaze is None else f"{config.gaze:g}"
         out.append(f"mean gaze score {self.mean_gaze:.3f} (target {target})")
+        if self.figures:
+            parts = []
+            for name, value in self.figures.items():
+                text = f"{name} {FIGURE_FORMATS[name].format(value)}"
+                if self.reference_figures is not None:
+                    text += f" (ground truth {FIGURE_FORMATS[name].format(self.reference_figures[name])})"
+                parts.append(text)
+            out.append("generated motion: " + ", ".join(parts))
         out.append("wrote " + ", ".join(str(p) for p in self.paths))
         return out

@@ -30,7 +30,7 @@ from .inputs import (
     raw_inputs,
     shard_inputs,
 )
-from .outputs import Result, Summary, head_gaze, write_motion
+from .outputs import Result, Summary, head_gaze, motion_figures, write_motion
 
 # --------------------------------------------------------------------------- checkpoint
 
@@ -178,10 +178,15 @@ def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
                                       inputs.user_head, inputs.agent_speaking,
                                       inputs.user_speaking, FPS))
     lat = np.asarray(result.latencies) * 1000.0
+    reference = None
+    if inputs.reference_icosahedra is not None:
+        reference = motion_figures(*icosahedron.decode(inputs.reference_icosahedra.astype(np.float64)),
+                                   inputs.user_head)
     summary = Summary(inputs.frames, result.fps,
                       float(np.percentile(lat, 50)) if lat.size else None,
                       float(np.percentile(lat, 99)) if lat.size else None,
-                      int(lat.size), float(gaze.mean()), paths)
+                      int(lat.size), float(gaze.mean()), paths,
+                      motion_figures(positions, rotations, inputs.user_head), reference)
     for line in summary.lines(config, offline):
         echo(line)
     return summary

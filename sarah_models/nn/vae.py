@@ -35,6 +35,8 @@ squared error per motion element plus beta times the KL per latent element (both
 beta = 1e-4 keeps its paper meaning of "a small KL weight" independent of T, Dx and Dz), plus
 ``velocity_weight`` times the mean squared error of frame-to-frame differences (0 in the paper).
 ``latent_noise`` > 0 adds noise to the decoder's input latents in training (0 in the paper).
+``recon_units="metres"`` weights each channel's squared error by its variance (the objective
+passes ``channel_weight``), so the loss counts a millimetre the same on every axis.
 The planted-foot term (``contact_weight``) needs the motion layout and metres, so the training
 objective adds it (``training.objectives.VAEObjective``).
 """
@@ -179,8 +181,10 @@ class CausalVAE(nn.Module):
         """KL(N(mu, exp(logvar)) || N(0, I)) per latent element, averaged."""
         return 0.5 * (mu.square() + logvar.exp() - 1.0 - logvar).mean()
 
-    def forward(self, x: Tensor, generator: torch.Generator | None = None) -> dict[str, Tensor]:
-        """Reconstruct x through a sampled latent; returns loss, recon, kl, x_hat, mu, logvar."""
+    def forward(self, x: Tensor, generator: torch.Generator | None = None,
+                channel_weight: Tensor | None = None) -> dict[str, Tensor]:
+        """Reconstruct x through a sampled latent; returns loss, recon, kl, x_hat, mu, logvar.
+        ``channel_weight`` (Dx,) weights each channel's squared error (see ``loss_terms``)."""
         mu, logvar = self.encode(x)
         noise = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
         z = mu + noise * (0.5 * logvar).exp()
@@ -189,14 +193,19 @@ class CausalVAE(nn.Module):
             z = z + self.config.latent_noise * spread * torch.randn(
                 mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
         x_hat = self.decode(z)
-        terms = self.loss_terms(x_hat, x)
+        terms = self.loss_terms(x_hat, x, channel_weight)
         kl = self.kl(mu.float(), logvar.float())
         loss = terms["recon"] + self.config.beta * kl + self.config.velocity_weight * terms["velocity"]
         return {"loss": loss, **terms, "kl": kl, "x_hat": x_hat, "mu": mu, "logvar": logvar}
 
     @staticmethod
-    def loss_terms(x_hat: Tensor, x: Tensor) -> dict[str, Tensor]:
-        """Reconstruction MSE and the MSE of frame-to-frame differences (velocity error)."""
+    def loss_terms(x_hat: Tensor, x: Tensor, channel_weight: Tensor | None = None
+                   ) -> dict[str, Tensor]:
+        """Reconstruction MSE and the MSE of frame-to-frame differences (velocity error), each
+        channel's squared error times ``channel_weight`` when given (mean 1 keeps the scale)."""
         error = x_hat.float() - x.float()
-        return {"recon": error.square().mean(),
-                "velocity": (error[:, 1:] - error[:, :-1]).square().mean()}
+        step = error[:, 1:] - error[:, :-1]
+        if channel_weight is None:
+            return {"recon": error.square().mean(), "velocity": step.square().mean()}
+        return {"recon": (error.square() * channel_weight).mean(),
+                "velocity": (step.square() * channel_weight).mean()}

@@ -31,6 +31,11 @@ class VAEObjective(nn.Module):
         super().__init__()
         self.vae, self.normalizer = vae, normalizer
         self.contact = PlantedFeet(vae.motion_dim) if vae.config.contact_weight > 0 else None
+        weight = None
+        if vae.config.recon_units == "metres":
+            variance = normalizer.motion_std.float().square()
+            weight = variance / variance.mean()
+        self.register_buffer("channel_weight", weight, persistent=False)
 
     @property
     def trainable(self) -> nn.Module:
@@ -39,7 +44,7 @@ class VAEObjective(nn.Module):
     def forward(self, batch: Mapping[str, Tensor], generator: torch.Generator | None = None):
         device = self.normalizer.motion_mean.device
         motion = self.normalizer.normalize_batch({"motion": batch["motion"]}, device)["motion"]
-        out = self.vae(motion, generator)
+        out = self.vae(motion, generator, self.channel_weight)
         if self.contact is None:
             return out
         to_metres = lambda x: self.normalizer.denormalize("motion", x.float())  # noqa: E731

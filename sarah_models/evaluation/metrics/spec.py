@@ -37,6 +37,7 @@ class Metric:
     decimals: int = 2
     better: str = "lower"  # "lower" or "higher": the table's arrow
     value_range: str = ""  # shown in the header, e.g. " ∈ [0, 1]"
+    window_frame: bool = False  # defined for clips in their window frame only (not world clips)
 
     def __post_init__(self) -> None:
         if self.kind not in ("frechet", "clip"):
