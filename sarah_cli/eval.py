@@ -57,13 +57,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--table1-gaze", type=lambda t: _gazes(t)[0], default="none",
                         help="gaze target of the model's Table 1 row (the paper: none)")
     parser.add_argument("--methods", type=_methods, default=",".join(d.methods),
-                        help="comma-separated subset of gt,random,nn,model (the paper's Table "
-                             "1) and vae (the run's VAE reconstructing the ground truth: the "
+                        help="comma-separated subset of gt,real,random,nn,model (the paper's "
+                             "Table 1 and the real-vs-real floor: other windows' ground truth) and vae (the run's VAE reconstructing the ground truth: the "
                              "floor under any flow sample; needs only vae.pt)")
     parser.add_argument("--batch-clips", type=int, default=d.batch_clips,
                         help="clips per batch of the FGD / FGD_acc Avg column")
     parser.add_argument("--library-size", type=int, default=d.library_size,
                         help="training windows in the NN library and the Random pool")
+    parser.add_argument("--library-shards", type=Path, default=None,
+                        help="shards folder whose training split the Random pool and NN library "
+                             "come from (default: --shards); for a test corpus the model never "
+                             "saw, its training shards")
     parser.add_argument("--seed", type=int, default=d.seed,
                         help="seed of the baselines' draws and the model's noise")
     parser.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
@@ -90,6 +94,8 @@ def main(argv: list[str] | None = None) -> int:
                             batch_clips=args.batch_clips, seed=args.seed, steps=args.steps,
                             cfg_scale=args.cfg, protocol=args.protocol,
                             library_size=args.library_size, features=args.features,
+                            library_shards=(None if args.library_shards is None
+                                            else str(args.library_shards)),
                             device=args.device)
         result = run_evaluation(args.run, args.shards, args.out, config,
                                 progress=not args.no_progress)

@@ -211,7 +211,8 @@ def _read_manifest(folder: Path, manifest: Path, problems: list[Problem]
         problems.append(Problem(manifest, "missing dataset.json"))
         return None
     try:
-        top = json.loads(manifest.read_bytes().decode("utf-8"), object_pairs_hook=_Pairs)
+        # utf-8-sig: a manifest saved with a byte-order mark is still the same JSON
+        top = json.loads(manifest.read_bytes().decode("utf-8-sig"), object_pairs_hook=_Pairs)
     except UnicodeDecodeError as err:
         problems.append(Problem(manifest, f"not UTF-8 text ({err.reason} at byte {err.start})"))
         return None
@@ -270,6 +271,9 @@ def _make_pair(folder: Path, sequence: str, listed: list[tuple[str, object]],
         name = parse_sequence_name(sequence)
     except ValueError as err:
         raise _SkipSequence("malformed-name", f"malformed sequence name: {err}") from None
+    if len(name.named_persons) != 2:
+        raise _SkipSequence("not-two-persons", f"the name names {len(name.named_persons)} "
+                                               f"persons ({', '.join(name.named_persons)}); need 2")
     subjects = [s for s, _ in listed]
     twice = sorted({s for s in subjects if subjects.count(s) > 1})
     if twice:

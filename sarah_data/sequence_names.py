@@ -9,11 +9,13 @@ import re
 from dataclasses import dataclass
 from datetime import datetime
 
+# Two or more subjects (the dyadic section has two; other sections name three or four), and
+# scenes whose words may be joined by single hyphens ("..._High-Stakes_Heist_...").
 NAME_PATTERN = re.compile(
     r"(?P<session>c--(?P<date>\d{8})--(?P<time>\d{4}))"
-    r"--(?P<a>[A-Za-z0-9]+)--(?P<b>[A-Za-z0-9]+)"
+    r"(?P<subjects>(?:--[A-Za-z0-9]+){2,}?)"
     r"--pilot--(?P<prior>MotionPrior\d*)"
-    r"--(?P<scene>[A-Za-z0-9_]+)"
+    r"--(?P<scene>[A-Za-z0-9_]+(?:-[A-Za-z0-9_]+)*)"
     r"--(?P<start>\d+)-(?P<end>\d+)"
 )
 NAME_FORMAT = "c--YYYYMMDD--HHMM--<SUBJ>--<SUBJ>--pilot--MotionPrior[N]--<SCENE>--<start>-<end>"
@@ -26,7 +28,7 @@ class SequenceName:
     sequence: str
     session: str  # c--YYYYMMDD--HHMM: one capture session; split by this, never by subject
     recorded: datetime  # capture start, local time of the session (minute resolution)
-    named_persons: tuple[str, str]  # in the order the name lists them
+    named_persons: tuple[str, ...]  # in the order the name lists them (two in a dyad)
     motion_prior: str
     scene: str
     start: int  # first frame (inclusive)
@@ -49,10 +51,12 @@ def parse_sequence_name(sequence: str) -> SequenceName:
         recorded = datetime.strptime(m["date"] + m["time"], "%Y%m%d%H%M")
     except ValueError:
         raise ValueError(f"invalid capture date/time {m['date']}--{m['time']}") from None
-    if m["a"] == m["b"]:
-        raise ValueError(f"names the same person twice ({m['a']})")
+    persons = tuple(m["subjects"].split("--")[1:])
+    twice = sorted({p for p in persons if persons.count(p) > 1})
+    if twice:
+        raise ValueError(f"names the same person twice ({', '.join(twice)})")
     start, end = int(m["start"]), int(m["end"])
     if end < start:
         raise ValueError(f"frame range {m['start']}-{m['end']} ends before it starts")
-    return SequenceName(sequence, m["session"], recorded, (m["a"], m["b"]), m["prior"],
-                        m["scene"], start, end)
+    return SequenceName(sequence, m["session"], recorded, persons, m["prior"], m["scene"],
+                        start, end)

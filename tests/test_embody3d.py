@@ -288,6 +288,13 @@ def test_every_skip_reason(tmp_path):
     e = manifest_entries(variant(12), 10)
     e["AAA111"]["multiperson"] = []
     case("not-two-persons", "AAA111 lists 1 person", variant(12), e)
+    # Three- and four-person sequences of the other sections: their names parse (issue #19).
+    for n, extra in ((13, ["CCC333"]), (14, ["CCC333", "DDD444"])):
+        crowd = variant(n).replace("--BBB222--", "--BBB222--" + "--".join(extra) + "--")
+        people = ["AAA111", "BBB222", *extra]
+        entries = {p: {"length": 10, "id": 1, "text": "", "audio": None,
+                       "multiperson": [q for q in people if q != p]} for p in people}
+        case("not-two-persons", f"the name names {len(people)} persons", crowd, entries)
 
     first, second = tmp_path / "one", tmp_path / "two"
     manifest = write_manifest(first, {good: manifest_entries(good, 10),
@@ -374,3 +381,24 @@ def test_person_files_paths_lists_every_file(tmp_path):
         assert all(p.is_file() for p in paths)
         assert sorted(paths) == sorted(p for p in (folder / pair.sequence / person).rglob("*")
                                        if p.is_file())
+
+
+def test_a_manifest_with_a_byte_order_mark_is_read(tmp_path):
+    """Issue #19: a dataset.json saved with a UTF-8 BOM lost its whole section."""
+    folder = tmp_path / "aiagent"
+    name = variant(0)
+    manifest = write_manifest(folder, {name: manifest_entries(name, 10)})
+    manifest.write_bytes(b"\xef\xbb\xbf" + manifest.read_bytes())
+    corpus = read_corpus(folder, require_audio=False)
+    assert corpus.problems == [] and [p.sequence for p in corpus.pairs] == [name]
+
+
+def test_scene_names_with_hyphens_parse():
+    """Issue #19: a real dyad's scene is ..._Participating_in_a_High-Stakes_Heist_..."""
+    name = BASE.replace("AIAGENT_scene_009",
+                        "ACTING_Participating_in_a_High-Stakes_Heist_scene_001")
+    parsed = parse_sequence_name(name)
+    assert parsed.scene == "ACTING_Participating_in_a_High-Stakes_Heist_scene_001"
+    assert parsed.named_persons == ("AAA111", "BBB222") and parsed.length == 10
+    with pytest.raises(ValueError, match="does not match"):
+        parse_sequence_name(BASE.replace("AIAGENT_scene_009", "bad--scene"))

@@ -162,6 +162,23 @@ def test_streaming_protocol_and_subset_of_methods(tiny, tmp_path):
     assert t1["rows"][1]["gaze"] == 0.8 and "stream" in t1["rows"][1]["method"]
 
 
+def test_baselines_can_draw_from_another_corpus(tiny, tmp_path, capsys):
+    """--library-shards: Random and NN retrieve from a training corpus other than the evaluated
+    one (for test fixtures the model never saw); the evaluated windows stay the same."""
+    other = tmp_path / "other"
+    write_split_shards(other, {"train": 3, "test": 1}, frames=40, seed=5)
+    runs = {}
+    for name, extra in (("own", ()), ("other", ("--library-shards", str(other)))):
+        out = tmp_path / name
+        assert main(eval_args(tiny, out, "--methods", "gt,random,nn", *extra)) == 0
+        runs[name] = {r["key"]: r for r in json.loads((out / "table1.json").read_text())["rows"]}
+    assert runs["own"]["gt"]["shown"] == runs["other"]["gt"]["shown"]
+    assert runs["own"]["random"]["shown"]["fgd/avg"] != runs["other"]["random"]["shown"]["fgd/avg"]
+    capsys.readouterr()
+    assert "nope" in _error(capsys, eval_args(tiny, tmp_path / "x", "--methods", "gt,random",
+                                              "--library-shards", str(tmp_path / "nope")))
+
+
 def test_vae_reconstruction_row_is_opt_in_and_needs_only_the_vae(tiny, tmp_path):
     out = tmp_path / "out"
     assert main(eval_args(tiny, out, "--methods", "gt,model,vae", "--gaze", "none",

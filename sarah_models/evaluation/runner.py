@@ -86,6 +86,9 @@ class EvalConfig:
     protocol: str = "stream"  # what users run; "offline" is the paper's fps protocol
     library_size: int = 2048  # NN library and Random pool of training windows
     train_split: str = "train"
+    # The shards the Random pool and NN library are drawn from (default: the evaluated ones).
+    # Evaluating on a corpus the model never saw, point this at its training shards.
+    library_shards: str | None = None
     features: str | None = None  # audio extractor when no model is evaluated (else the run's)
     device: str | None = None
 
@@ -273,7 +276,8 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
     metrics_config = MetricsConfig(batch_clips=config.batch_clips, normalize_window=False)
     train_windows = None
     if "random" in config.methods or "nn" in config.methods:
-        train_windows = _training_windows(shards, features, config)
+        library = shards if config.library_shards is None else Path(config.library_shards)
+        train_windows = _training_windows(library, features, config)
 
     def score(key: str, label: str, produce, causal: bool | None, gaze=None,
               reference: bool = False, timed: bool = True) -> MethodResult:
