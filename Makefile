@@ -5,7 +5,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 DEMO ?= demo
 
-.PHONY: demo test setup clean
+.PHONY: demo test setup clean distclean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -23,8 +23,12 @@ test: setup
 demo: setup
 	$(BIN)/sarah-fixtures $(DEMO)/raw --sessions 5 --seconds 60 --seed 0
 	$(BIN)/sarah-prep $(DEMO)/raw $(DEMO)/shards
-	$(BIN)/sarah-train --stage all --config tiny --shards $(DEMO)/shards --out $(DEMO)/runs/tiny
+	$(BIN)/sarah-train --stage all --config tiny --shards $(DEMO)/shards --out $(DEMO)/runs/tiny --resume
 	$(BIN)/sarah-generate --run $(DEMO)/runs/tiny --shards $(DEMO)/shards --split test --gaze 0.8 --out $(DEMO)/generated
 
+# The demo's outputs only; the virtual environment (several GB) stays: `make distclean` removes it.
 clean:
-	rm -rf $(VENV) $(DEMO)
+	rm -rf $(DEMO)
+
+distclean: clean
+	rm -rf $(VENV)

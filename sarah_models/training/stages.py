@@ -175,8 +175,8 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
     previous = None
     if ckpt_path.exists():
         if not resume:
-            raise FileExistsError(f"{ckpt_path} exists: pass resume=True (--resume) to continue, "
-                                  f"or choose another output folder")
+            raise FileExistsError(f"{ckpt_path} exists: add --resume to continue that run (a "
+                                  f"finished one is left as it is), or choose another --out")
         previous = load_checkpoint(ckpt_path)
     source = None if init_from is None else load_init_source(init_from, stage)
 
