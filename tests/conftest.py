@@ -40,7 +40,7 @@ FIXTURE_RAW_ARGS = dict(sessions=2, sequences_per_session=2, seconds=8.0, seed=0
 @_pytest_for_fixture_raw_dir.fixture(scope="session")
 def fixture_raw_dir(tmp_path_factory):
     """A generated Embody 3D tree (`sarah-fixtures OUT` with FIXTURE_RAW_ARGS): OUT/aiagent/,
-    OUT/body_models/procedural_body_model.npz, OUT/fixture_truth.json + .npz. Read-only."""
+    OUT/body_models/SMPLX_PROCEDURAL.npz, OUT/fixture_truth.json + .npz. Read-only."""
     from sarah_data.fixtures.dyads import make_fixtures
 
     out = tmp_path_factory.mktemp("fixture_raw")

@@ -13,6 +13,7 @@ import torch
 
 from sarah_data.constants import NUM_BETAS
 from sarah_data.embody3d import load_person, read_corpus
+from sarah_data.fixtures.layout import BODY_MODEL_FILE
 
 
 def _truth(raw):
@@ -53,9 +54,10 @@ def test_gaze_scores_match_the_truth_facing_geometry(prepared_shards, prep_raw_d
 
 def test_head_trajectories_are_the_smplx_eye_midpoints(prepared_shards, prep_raw_dir):
     corpus = read_corpus(prep_raw_dir / "aiagent")
-    model = smplx.SMPLX(model_path=str(prep_raw_dir / "body_models" / "procedural_body_model.npz"),
-                        num_betas=NUM_BETAS, use_pca=False, flat_hand_mean=True, gender="neutral", ext="npz",
-                        batch_size=8)
+    # smplx.create takes the model type from the file name, as it does for SMPLX_NEUTRAL.npz
+    model = smplx.create(str(prep_raw_dir / "body_models" / BODY_MODEL_FILE), num_betas=NUM_BETAS,
+                         use_pca=False, flat_hand_mean=True, gender="neutral", batch_size=8)
+    assert isinstance(model, smplx.SMPLX)
     shards = {(s, p): a for s, p, a in _shard_people(prepared_shards)}
     checked = 0
     for pair in corpus.pairs:
