@@ -47,13 +47,28 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _error(message: str) -> int:
+    print(f"sarah-prep: error: {message}", file=sys.stderr)
+    return EXIT_USAGE
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.verify or args.info:
+        missing = [str(p) for p in args.paths if not p.is_dir()]
+        if missing:
+            return _error(f"{', '.join(missing)}: no such shards folder")
         return _inspect(args)
     if len(args.paths) < 2:
-        print("sarah-prep: error: give the input folder(s) and then the output folder", file=sys.stderr)
-        return EXIT_USAGE
+        return _error("give the input folder(s) and then the output folder")
+    out = args.paths[-1]
+    if out.exists() and not out.is_dir():
+        return _error(f"{out}: the output must be a folder, this is a file")
+    missing = [str(p) for p in args.paths[:-1] if not p.exists()]
+    if missing:
+        return _error(f"{', '.join(missing)}: no such input folder")
+    if args.jobs < 1:
+        return _error(f"-j/--jobs must be at least 1, got {args.jobs}")
     from sarah_data.prep import PrepError, prepare
 
     device = args.device
@@ -64,6 +79,9 @@ def main(argv: list[str] | None = None) -> int:
                         hubert_weights=args.hubert_weights, shell_points=args.shell_points,
                         split_seed=args.split_seed, max_shard_bytes=int(args.max_shard_mb * 2**20),
                         device=device)
+    problems = config.problems()
+    if problems:
+        return _error(problems[0] + (f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""))
     try:
         result = prepare(args.paths[:-1], args.paths[-1], config, body_model=args.body_model,
                          jobs=args.jobs, executor=args.executor, ray_address=args.ray_address,

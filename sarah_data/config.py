@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from .icosahedron import DEFAULT_RADIUS
 from .speaking import SpeakingConfig
@@ -21,7 +22,56 @@ class PrepConfig:
     device: str = "cpu"
     body_batch_frames: int = 4096  # frames per body-model batch (bounds memory, not results)
 
+    def problems(self) -> list[str]:
+        """What makes this configuration unusable, one line each, checked before any work
+        starts (a bad setting used to surface per sequence, after all the work)."""
+        from .features import available_extractors
+        from .features.hubert import default_weights_path
+
+        found = []
+        known = available_extractors()
+        if not self.extractors:
+            found.append(f"--extractors: none given; choose from {', '.join(known)}")
+        for name in self.extractors:
+            if name not in known:
+                found.append(f"--extractors: unknown extractor {name!r}; choose from "
+                             f"{', '.join(known)}")
+        if "hubert-large" in self.extractors:
+            weights = Path(self.hubert_weights).expanduser() if self.hubert_weights else \
+                default_weights_path("large")
+            if not weights.is_file():
+                found.append(f"--hubert-weights: {weights}: no such file (hubert-large needs a "
+                             f"local HuBERT-Large checkpoint; nothing is ever downloaded)")
+        if self.shell_points < 1:
+            found.append(f"--shell-points must be at least 1, got {self.shell_points}")
+        if self.max_shard_bytes <= 0:
+            found.append(f"--max-shard-mb must be positive, got {self.max_shard_bytes / 2**20:g}")
+        if len(self.split_fractions) != 3 or min(self.split_fractions) < 0 or \
+                abs(sum(self.split_fractions) - 1.0) > 1e-9:
+            found.append(f"split fractions must be three non-negative numbers summing to 1, got "
+                         f"{self.split_fractions}")
+        found += device_problems(self.device)
+        return found
+
     def extractor_options(self, name: str) -> dict:
         if name == "hubert-large" and self.hubert_weights:
             return {"weights": self.hubert_weights}
         return {}
+
+
+def device_problems(device: str) -> list[str]:
+    """Why ``device`` cannot be used here ("cpu", "cuda" or "cuda:N"), or nothing."""
+    import torch
+
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, TypeError):
+        return [f"--device: {device!r} is not a device; use cpu, cuda or cuda:N"]
+    if parsed.type == "cuda":
+        if not torch.cuda.is_available():
+            return [f"--device {device}: no CUDA GPU is available here; use --device cpu"]
+        if parsed.index is not None and parsed.index >= torch.cuda.device_count():
+            return [f"--device {device}: this machine has {torch.cuda.device_count()} GPU(s)"]
+    elif parsed.type != "cpu":
+        return [f"--device {device}: use cpu, cuda or cuda:N"]
+    return []

@@ -100,6 +100,9 @@ def prepare(inputs: list[Path] | Path, out_dir: Path, config: PrepConfig = PrepC
     from .shards import Manifest, SourceFile, write_manifest
     from .stats import merge_moments, write_stats
 
+    problems = config.problems()
+    if problems:  # before any work: a bad setting used to surface per sequence, at the end
+        raise PrepError("; ".join(problems))
     started = time.perf_counter()
     inputs = [Path(p) for p in ([inputs] if isinstance(inputs, (str, Path)) else inputs)]
     out_dir = Path(out_dir)

@@ -263,3 +263,38 @@ def test_local_pool_shares_work_between_this_process_and_a_worker():
         assert pool.submit(pow, 2, 10).result(timeout=120) == 1024
     finally:
         pool.shutdown()
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--extractors", "bogus"], "unknown extractor 'bogus'"),
+    (["--extractors", "hubert-large", "--hubert-weights", "/nowhere/hubert.pt"], "no such file"),
+    (["--shell-points", "0"], "--shell-points must be at least 1"),
+    (["--max-shard-mb", "0"], "--max-shard-mb must be positive"),
+    (["-j", "0"], "at least 1"),
+    (["-j", "-3"], "at least 1"),
+    (["--device", "gpu"], "not a device"),
+])
+def test_settings_are_checked_before_any_work(tmp_path, capsys, extra, message):
+    """Issue #19 items 10-12: one line naming the setting, exit 2, nothing written."""
+    raw, out = tmp_path / "raw", tmp_path / "out"
+    raw.mkdir()
+    assert prep_main([str(raw), str(out), "--no-progress", *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("sarah-prep: error:") and message in err[0], err
+    assert not out.exists()
+
+
+def test_paths_are_checked_before_any_work(tmp_path, capsys):
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    a_file = tmp_path / "file"
+    a_file.write_text("not a folder")
+    cases = [([str(raw), str(a_file)], "must be a folder"),
+             ([str(tmp_path / "missing"), str(tmp_path / "out")], "no such input folder"),
+             (["--info", str(tmp_path / "missing")], "no such shards folder"),
+             (["--verify", str(tmp_path / "missing")], "no such shards folder")]
+    for argv, message in cases:
+        assert prep_main([*argv, "--no-progress"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], (argv, err)
+    assert a_file.read_text() == "not a folder" and not (tmp_path / "out").exists()
