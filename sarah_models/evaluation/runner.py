@@ -281,7 +281,7 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
         train_windows = _training_windows(library, features, config)
 
     def score(key: str, label: str, produce, causal: bool | None, gaze=None,
-              reference: bool = False, timed: bool = True) -> MethodResult:
+              reference: bool = False, timed: bool = True, pooled: bool = True) -> MethodResult:
         with tqdm(total=len(windows), desc=label, unit="window", disable=not progress,
                   leave=False) as bar:
             clips = MethodClips(windows, produce, bar)
@@ -298,6 +298,10 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
                 if ridged:
                     echo(f"{label}: {len(ridged)} Fréchet distance(s) needed a covariance ridge "
                          f"(near-singular covariances; see metrics.frechet_distance_from_moments)")
+        if not pooled:  # a row whose clips are the ground truth's own, permuted
+            for metric in registered():
+                if metric.kind == "frechet":
+                    table.values[metric.name].pooled = math.nan
         fps = fps_of(clips.seconds, config.window) if timed and not reference else None
         result = MethodResult(key, label, causal, fps, table, gaze, reference)
         shown = result.shown()
@@ -313,12 +317,10 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
         # The floor: real motion of the other half of the windows scored like a method, so
         # every figure has the value two disjoint sets of real clips give.
         half = len(windows) // 2
-        real = score("real", "Real (other windows)",
-                     lambda _, i: windows[(i + half) % len(windows)]["motion"], None, timed=False)
-        for metric in registered():  # pooled over all windows it is the same set: 0 by design
-            if metric.kind == "frechet":
-                real.table.values[metric.name].pooled = math.nan
-        table1.append(real)
+        # Pooled over all windows, "other windows" are the same set permuted: 0 by design.
+        table1.append(score("real", "Real (other windows)",
+                            lambda _, i: windows[(i + half) % len(windows)]["motion"], None,
+                            timed=False, pooled=False))
     if "random" in config.methods:
         from .baselines import RandomBaseline
 

@@ -68,14 +68,17 @@ def write_motion(path: Path, result: Result, inputs: Inputs, config: StreamConfi
     return path
 
 
-def motion_figures(positions: np.ndarray, rotations: np.ndarray,
-                   user_head: np.ndarray) -> dict[str, float]:
+def motion_figures(positions: np.ndarray, rotations: np.ndarray, user_head: np.ndarray,
+                   gaze: np.ndarray | None = None) -> dict[str, float]:
     """What a person sees first in a clip, by the evaluation's own metrics: the mean gaze score
-    toward the user, foot slide, wrist speed (cm/s) and bone-length error (p95, %)."""
+    toward the user (``gaze``, the per-frame scores, when already computed), foot slide, wrist
+    speed (cm/s) and bone-length error (p95, %)."""
     from ..evaluation.metrics import foot_slide, wrist_speed
     from ..evaluation.metrics.bone_length import bone_length_error
 
-    return {"gaze score": float(head_gaze(positions, rotations, user_head).mean()),
+    if gaze is None:
+        gaze = head_gaze(positions, rotations, user_head)
+    return {"gaze score": float(gaze.mean()),
             "foot slide": foot_slide(positions), "wrist speed": wrist_speed(positions) * 100.0,
             "bone length": bone_length_error(positions)}
 

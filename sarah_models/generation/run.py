@@ -186,7 +186,7 @@ def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
                       float(np.percentile(lat, 50)) if lat.size else None,
                       float(np.percentile(lat, 99)) if lat.size else None,
                       int(lat.size), float(gaze.mean()), paths,
-                      motion_figures(positions, rotations, inputs.user_head), reference)
+                      motion_figures(positions, rotations, inputs.user_head, gaze), reference)
     for line in summary.lines(config, offline):
         echo(line)
     return summary

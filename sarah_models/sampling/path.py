@@ -12,6 +12,7 @@ and a midpoint solver on the grid 0, 1/n, ... never evaluates tau = 1). Training
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 
 
@@ -23,8 +24,6 @@ def interpolate(noise: Tensor, data: Tensor, tau: Tensor | float) -> Tensor:
 def velocity_from_x1(x1: Tensor, z_tau: Tensor, tau: Tensor | float,
                      min_denominator: float) -> Tensor:
     """The velocity implied by an x1 prediction, with 1 - tau floored at ``min_denominator``."""
-    import torch
-
     tau = torch.as_tensor(tau, device=z_tau.device, dtype=z_tau.dtype)
     while tau.dim() < z_tau.dim():
         tau = tau[..., None]

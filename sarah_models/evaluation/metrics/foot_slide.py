@@ -10,11 +10,11 @@ from sarah_data.constants import FPS, JOINT
 from sarah_data.skeleton import FEET
 
 from .clips import as_numpy
-from .spec import Metric
+from .spec import FOOT_MAX_HEIGHT, FOOT_MIN_SPEED, Metric
 
 
-def foot_slide(joint_positions, fps: float = FPS, max_height: float = 0.05, min_speed: float = 0.03,
-               foot_joints: Sequence[str] = FEET) -> float:
+def foot_slide(joint_positions, fps: float = FPS, max_height: float = FOOT_MAX_HEIGHT,
+               min_speed: float = FOOT_MIN_SPEED, foot_joints: Sequence[str] = FEET) -> float:
     """Fraction of frame steps (t-1 -> t) in which at least one foot slides; in [0, 1].
 
     A foot slides during a step when its joint is below `max_height` (metres above the floor

@@ -24,6 +24,10 @@ from typing import Any, Callable
 from sarah_data.skeleton import FEET, HEAD, ROOT, WRISTS
 
 
+FOOT_MAX_HEIGHT = 0.05  # m: "near the ground (<5 cm)" (paper, foot slide)
+FOOT_MIN_SPEED = 0.03  # m/s: "moving horizontally (>3 cm/s)"
+
+
 @dataclass(frozen=True)
 class Metric:
     name: str  # key in tables and JSON ("fgd")
@@ -73,8 +77,8 @@ class MetricsConfig:
     # per-GPU batch size, and its remark that a batch may hold "too few clips of one category"
     # implies batches of this order.
     batch_clips: int = 16
-    foot_max_height: float = 0.05  # m: "near the ground (<5 cm)"
-    foot_min_speed: float = 0.03  # m/s: "moving horizontally (>3 cm/s)"
+    foot_max_height: float = FOOT_MAX_HEIGHT
+    foot_min_speed: float = FOOT_MIN_SPEED
     foot_joints: tuple[str, ...] = FEET
     wrist_joints: tuple[str, ...] = WRISTS
     head_joint: str = HEAD

@@ -182,7 +182,7 @@ def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
                 moments_distance(everything["gen"], everything["gt"], cfg.fd_ridge) * factor)
         else:
             values[metric.name] = category_means(np.asarray(per_clip[metric.name]) * factor, speaking)
-    return _table(values, cfg, speaking, reference, len(next(iter(batch_values.values()), [])))
+    return _table(values, cfg, speaking, reference, -(-len(generated) // cfg.batch_clips))
 
 
 def _add_clip_values(per_clip: dict[str, list[float]], decoded: DecodedClip,
