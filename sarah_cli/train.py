@@ -75,7 +75,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"sarah-train: error: {exc}", file=sys.stderr)
         return EXIT_ERROR
     from sarah_data.loading import DataProblem
-    from sarah_models.training.distributed import cleanup_distributed
+    from sarah_models.training.distributed import cleanup_distributed, is_main_process
+    from sarah_models.training.model_file import MODEL_FILE, write_model_file
     from sarah_models.training.stages import train
 
     stages = ("vae", "flow") if args.stage == "all" else (args.stage,)
@@ -85,6 +86,9 @@ def main(argv: list[str] | None = None) -> int:
                          device=args.device, init_from=args.init_from,
                          progress=not args.no_progress)
             print(f"{stage}: checkpoint {path}")
+            if stage == "flow" and is_main_process():
+                model = write_model_file(path, Path(args.out) / MODEL_FILE)
+                print(f"model file (for sarah-generate and sharing; loads without pickle): {model}")
     except (DataProblem, ValueError, FileNotFoundError, FileExistsError, KeyError, OSError) as exc:
         print(f"sarah-train: error: {exc}", file=sys.stderr)
         return EXIT_ERROR

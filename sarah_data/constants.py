@@ -9,7 +9,9 @@ AUDIO_SAMPLE_RATE = 48_000
 SAMPLES_PER_FRAME = AUDIO_SAMPLE_RATE // FPS  # 1600: Embody 3D's audio and motion are locked
 NUM_BETAS = 300  # Embody 3D fits SMPL-X with 300 shape coefficients
 
-SHARD_SCHEMA_VERSION = 1
+SHARD_SCHEMA_VERSION = 2  # 2: each person's betas, rest joints and gender (docs/shard-format.md)
+# Schema 1 shards lack only the body shape: they still train and generate; export asks for 2.
+READABLE_SCHEMA_VERSIONS = (1, 2)
 
 # The 55 joints of the SMPL-X kinematic tree, in the model file's order.
 JOINT_NAMES = (

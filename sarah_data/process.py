@@ -111,6 +111,7 @@ def process_pair(pair: PairRecord, body_model_path: str, config: PrepConfig
     posed = [body.forward(p.params, batch_frames=config.body_batch_frames) for p in people]
     heads = [gaze.head_trajectory(b.eye_mid) for b in posed]
     arrays: dict[str, np.ndarray] = {}
+    warnings = [w for p in people for w in p.warnings]
     for i, (person, arrays_in, frames_out) in enumerate(zip(pair.persons, people, posed)):
         partner = 1 - i
         prefix = f"{person}/"
@@ -125,10 +126,28 @@ def process_pair(pair: PairRecord, body_model_path: str, config: PrepConfig
         arrays[prefix + "valid"] = arrays_in.valid.astype(np.uint8)
         arrays[prefix + "root_position"] = frames_out.joints[:, JOINT["pelvis"]].astype(np.float32)
         arrays[prefix + "root_rotation"] = frames_out.rotations[:, JOINT["pelvis"]].astype(np.float32)
+        betas, varies = person_betas(body.shape_betas(arrays_in.params["betas"]), arrays_in.valid)
+        if varies:
+            warnings.append(f"{pair.sequence}/{person}: betas vary over frames (up to {varies:.3g}); "
+                            f"the shards keep their median for export")
+        arrays[prefix + "betas"] = betas.astype(np.float32)
+        arrays[prefix + "rest_joints"] = body.rest_joints(betas).astype(np.float32)
         for name in config.extractors:
             arrays[prefix + f"audio/{name}"] = _extractor(name, config).extract(
                 arrays_in.audio, pair.length).astype(np.float32, copy=False)
-    return arrays, [w for p in people for w in p.warnings]
+    return arrays, warnings
+
+
+def person_betas(betas: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, float]:
+    """One body shape for a person: the betas of the tracked frames when they agree (the usual
+    case: one fit per capture), else their median, with the largest deviation from it (0.0 when
+    they agree)."""
+    betas = np.atleast_2d(betas)
+    rows = betas[np.asarray(valid, bool)] if np.any(valid) else betas
+    if bool((rows == rows[:1]).all()):
+        return rows[0].copy(), 0.0
+    median = np.median(rows, axis=0)
+    return median, float(np.abs(rows - median).max())
 
 
 def fingerprint(pair: PairRecord, split: str, body_model_sha: str, config: PrepConfig) -> str:
@@ -151,8 +170,10 @@ def run_task(pair: PairRecord, split: str, body_model_path: str, body_model_sha:
                           for person in pair.persons for p in pair.files[person].paths()
                           if p.exists()]
         arrays, result.warnings = process_pair(pair, body_model_path, config)
+        gender = _body_model(body_model_path, config).gender
         seq = ProcessedSequence.from_arrays(pair.sequence, session=pair.session, split=split,
-                                            persons=list(pair.persons), arrays=arrays)
+                                            persons=list(pair.persons), arrays=arrays,
+                                            genders={person: gender for person in pair.persons})
         write_work_file(Path(work_dir) / f"{pair.sequence}.h5", seq,
                         shard_attrs(body_model_path, body_model_sha, config))
     except DataProblem as problem:

@@ -29,7 +29,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from sarah_data.constants import SHARD_SCHEMA_VERSION
+from sarah_data.constants import READABLE_SCHEMA_VERSIONS, SHARD_SCHEMA_VERSION
 from sarah_data.moments import Moments
 from sarah_data.dataset import DEFAULT_WINDOW, normalize_window, tracked_runs
 from sarah_data.shards import (MANIFEST_NAME, STATS_NAME, ShardError, ShardSet, atomic_h5, create_dataset,
@@ -154,9 +154,9 @@ def load_stats(shards_dir: Path | str) -> dict[str, np.ndarray]:
     stats: dict[str, np.ndarray] = {}
     try:
         with h5py.File(path, "r") as handle:
-            if int(handle.attrs.get("schema_version", -1)) != SHARD_SCHEMA_VERSION:
+            if int(handle.attrs.get("schema_version", -1)) not in READABLE_SCHEMA_VERSIONS:
                 raise ShardError(path, f"schema version {handle.attrs.get('schema_version')}, "
-                                       f"expected {SHARD_SCHEMA_VERSION}")
+                                       f"expected one of {READABLE_SCHEMA_VERSIONS}")
             handle.visititems(lambda key, obj: stats.__setitem__(key, obj[()])
                               if isinstance(obj, h5py.Dataset) else None)
     except OSError as error:

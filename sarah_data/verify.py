@@ -11,7 +11,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from sarah_data.constants import SHARD_SCHEMA_VERSION
+from sarah_data.constants import READABLE_SCHEMA_VERSIONS
 from sarah_data.shards import (MANIFEST_NAME, PERSON_DATASETS, SEQUENCE_ATTRS, SHARD_FILE_RE, ShardAttrs,
                                ShardError, ShardSet, file_sha256, read_manifest)
 from sarah_data.splits import SPLITS
@@ -35,9 +35,9 @@ def verify_shards(shards_dir: Path | str) -> list[str]:
     except ShardError as error:
         return [str(error)]
     problems: list[str] = []
-    if manifest.schema_version != SHARD_SCHEMA_VERSION:
+    if manifest.schema_version not in READABLE_SCHEMA_VERSIONS:
         problems.append(f"{MANIFEST_NAME}: schema version {manifest.schema_version}, "
-                        f"expected {SHARD_SCHEMA_VERSION}")
+                        f"expected one of {READABLE_SCHEMA_VERSIONS}")
     listed = {info.file for info in manifest.shards}
     for path in sorted(root.iterdir()):
         if SHARD_FILE_RE.match(path.name) and path.name not in listed:
@@ -94,8 +94,9 @@ def _verify_file(path: Path, split: str) -> tuple[list[str], dict | None, dict |
             attrs = ShardAttrs.read(handle.attrs, path)
         except ShardError as error:
             return [error.reason], None, None
-        if attrs.schema_version != SHARD_SCHEMA_VERSION:
-            problems.append(f"schema version {attrs.schema_version}, expected {SHARD_SCHEMA_VERSION}")
+        if attrs.schema_version not in READABLE_SCHEMA_VERSIONS:
+            problems.append(f"schema version {attrs.schema_version}, expected one of "
+                            f"{READABLE_SCHEMA_VERSIONS}")
         if str(handle.attrs["split"]) != split:
             problems.append(f"root split {handle.attrs['split']!r}, manifest says {split!r}")
         sequences = {}

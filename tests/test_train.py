@@ -489,3 +489,12 @@ def test_cli_trains_both_stages_on_real_shards(tmp_path, capsys):
     assert models.features == "logmel" and models.step == 2
     assert json.loads((out / "config.json").read_text())["train"]["window"] == WINDOW
     assert len(losses(out, "flow")) == 2
+    # The shareable model file sits beside the checkpoint, with the same weights.
+    from sarah_models.training.model_file import MODEL_FILE, load_model_file
+
+    assert f"model file (for sarah-generate and sharing; loads without pickle): {out / MODEL_FILE}" \
+        in capsys.readouterr().out
+    shared = load_model_file(out / MODEL_FILE, device="cpu")
+    assert shared.step == 2 and shared.dims == models.dims
+    for name, value in models.flow.state_dict().items():
+        assert torch.equal(value, shared.flow.state_dict()[name]), name

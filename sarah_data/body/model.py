@@ -202,6 +202,27 @@ class BodyModel:
     def num_betas(self) -> int:
         return self._num_betas
 
+    @property
+    def gender(self) -> str:
+        """"female" or "male" for a gendered SMPL-X file (by its name), else "neutral"."""
+        name = self.name.lower()
+        return "female" if "female" in name else "male" if "male" in name else "neutral"
+
+    def shape_betas(self, betas: np.ndarray) -> np.ndarray:
+        """Betas (n,) or (T, n) padded or cut to this model's count (float64, (T, B) or (B,))."""
+        betas = np.asarray(betas, dtype=np.float64)
+        rows = np.atleast_2d(betas)
+        _, prepared = self._prepare({"betas": rows, **{k: np.zeros((len(rows), w))
+                                                        for k, w in POSE_WIDTHS.items()}})
+        return prepared["betas"] if betas.ndim == 2 else prepared["betas"][0]
+
+    def rest_joints(self, betas: np.ndarray) -> np.ndarray:
+        """Joints (55, 3) float64 of the body with ``betas`` (n,) at zero pose and translation:
+        the skeleton that exports (SMPL-X ``trans``, BVH offsets) are built on."""
+        shaped = torch.from_numpy(self.shape_betas(betas)).to(self._joint_dirs.device).double()
+        rest = self._joint_template.double() + (shaped @ self._joint_dirs.double()).reshape(NUM_JOINTS, 3)
+        return rest.cpu().numpy()
+
     def _prepare(self, params: dict[str, np.ndarray]) -> tuple[int, dict[str, np.ndarray]]:
         missing = [k for k in ("betas", *POSE_WIDTHS) if k not in params]
         if missing:

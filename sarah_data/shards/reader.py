@@ -7,11 +7,11 @@ from pathlib import Path
 
 import h5py
 
-from sarah_data.constants import SHARD_SCHEMA_VERSION
+from sarah_data.constants import READABLE_SCHEMA_VERSIONS
 
 from .manifest import SequenceEntry, read_manifest
-from .schema import (MANIFEST_NAME, PERSON_DATASETS, ProcessedPerson, ProcessedSequence, ShardAttrs,
-                     ShardError)
+from .schema import (MANIFEST_NAME, PERSON_BODY_DATASETS, PERSON_DATASETS, ProcessedPerson,
+                     ProcessedSequence, ShardAttrs, ShardError)
 
 
 def read_shard(path: Path | str) -> tuple[ShardAttrs, list[ProcessedSequence]]:
@@ -32,7 +32,9 @@ def _read_sequence(group: h5py.Group) -> ProcessedSequence:
         arrays["speaking"] = arrays["speaking"].astype(bool)
         arrays["valid"] = arrays["valid"].astype(bool)
         audio = {key: g["audio"][key][()] for key in g["audio"]} if "audio" in g else {}
-        persons.append(ProcessedPerson(name=name, audio=audio, **arrays))
+        shape = {key: (g[key][()] if key in g else None) for key in PERSON_BODY_DATASETS}
+        persons.append(ProcessedPerson(name=name, audio=audio, gender=str(g.attrs.get("gender", "neutral")),
+                                       **shape, **arrays))
     return ProcessedSequence(name=group.name.lstrip("/"), session=str(group.attrs["session"]),
                              split=str(group.attrs["split"]), persons=tuple(persons),
                              fps=int(group.attrs["fps"]))
@@ -49,10 +51,10 @@ class ShardSet:
     def __init__(self, shards_dir: Path | str):
         self.root = Path(shards_dir)
         self.manifest = read_manifest(self.root / MANIFEST_NAME)
-        if self.manifest.schema_version != SHARD_SCHEMA_VERSION:
+        if self.manifest.schema_version not in READABLE_SCHEMA_VERSIONS:
             raise ShardError(self.root / MANIFEST_NAME,
                              f"schema version {self.manifest.schema_version}, this toolkit reads "
-                             f"{SHARD_SCHEMA_VERSION}: prepare the shards again")
+                             f"{', '.join(map(str, READABLE_SCHEMA_VERSIONS))}: prepare the shards again")
         self._attrs: ShardAttrs | None = None
         self._handles: dict[str, h5py.File] = {}
         self._pid = os.getpid()

@@ -46,6 +46,13 @@ PERSON_DATASETS = {
     "root_position": (np.float32, (3,)),
     "root_rotation": (np.float32, (3, 3)),
 }
+# Per-person datasets without a time axis (schema 2): the body shape, so motion exports with the
+# right body. "B" is the body model's shape-coefficient count.
+PERSON_BODY_DATASETS = {
+    "betas": (np.float32, ("B",)),
+    "rest_joints": (np.float32, ("J", 3)),  # joints at zero pose and zero translation, these betas
+}
+GENDERS = ("neutral", "female", "male")
 ROOT_ATTRS = ("schema_version", "toolkit_version", "split", "fps", "joint_names",
               "icosahedron_template", "icosahedron_radius", "shell_vertex_ids",
               "body_model_name", "body_model_sha256", "extractors")
@@ -80,10 +87,19 @@ class ProcessedPerson:
     root_position: np.ndarray  # (T, 3) pelvis
     root_rotation: np.ndarray  # (T, 3, 3) pelvis global rotation
     audio: dict[str, np.ndarray] = field(default_factory=dict)
+    # The body shape (schema 2; None in schema 1 shards): betas (B,), rest joints (J, 3) of the
+    # body model with these betas at zero pose, and the body model's gender.
+    betas: np.ndarray | None = None
+    rest_joints: np.ndarray | None = None
+    gender: str = "neutral"
 
     @property
     def frames(self) -> int:
         return int(np.shape(self.valid)[0])
+
+    @property
+    def has_body_shape(self) -> bool:
+        return self.betas is not None and self.rest_joints is not None
 
 
 @dataclass
@@ -106,19 +122,25 @@ class ProcessedSequence:
         for person in self.persons:
             for key in PERSON_DATASETS:
                 arrays[f"{person.name}/{key}"] = np.asarray(getattr(person, key))
+            if person.has_body_shape:
+                for key in PERSON_BODY_DATASETS:
+                    arrays[f"{person.name}/{key}"] = np.asarray(getattr(person, key))
             for extractor, features in person.audio.items():
                 arrays[f"{person.name}/audio/{extractor}"] = np.asarray(features)
         return arrays
 
     @classmethod
     def from_arrays(cls, name: str, session: str, split: str, persons: list[str],
-                    arrays: Mapping[str, np.ndarray], fps: int = FPS) -> "ProcessedSequence":
-        """The inverse of `to_arrays`, given the two person names in order."""
+                    arrays: Mapping[str, np.ndarray], fps: int = FPS,
+                    genders: Mapping[str, str] | None = None) -> "ProcessedSequence":
+        """The inverse of `to_arrays`, given the two person names in order (and their genders,
+        "neutral" when not given)."""
         where = f"sequence {name}"
         expected = {f"{p}/{key}" for p in persons for key in PERSON_DATASETS}
         missing = sorted(expected - set(arrays))
+        body = {f"{p}/{key}" for p in persons for key in PERSON_BODY_DATASETS} & set(arrays)
         audio_keys = {k for k in arrays if any(k.startswith(f"{p}/audio/") for p in persons)}
-        unknown = sorted(set(arrays) - expected - audio_keys)
+        unknown = sorted(set(arrays) - expected - body - audio_keys)
         if missing or unknown:
             raise ShardError(where, f"arrays missing {missing}, unexpected {unknown}")
         people = []
@@ -128,7 +150,9 @@ class ProcessedSequence:
             values["valid"] = np.asarray(values["valid"]).astype(bool)
             prefix = f"{person}/audio/"
             audio = {k[len(prefix):]: arrays[k] for k in sorted(audio_keys) if k.startswith(prefix)}
-            people.append(ProcessedPerson(name=person, audio=audio, **values))
+            shape = {key: arrays.get(f"{person}/{key}") for key in PERSON_BODY_DATASETS}
+            gender = (genders or {}).get(person, "neutral")
+            people.append(ProcessedPerson(name=person, audio=audio, gender=gender, **shape, **values))
         return cls(name=name, session=session, split=split, persons=tuple(people), fps=fps)
 
 
@@ -229,6 +253,20 @@ def _person_arrays(person: ProcessedPerson, attrs: ShardAttrs, frames: int, wher
         if value.shape != expected:
             raise ShardError(where, f"{person.name}/{name} has shape {value.shape}, expected {expected}")
         arrays[name] = _cast(value, dtype, f"{where}: {person.name}/{name}")
+    if (person.betas is None) != (person.rest_joints is None):
+        raise ShardError(where, f"{person.name}: betas and rest_joints go together (both or neither)")
+    if person.has_body_shape:
+        if person.gender not in GENDERS:
+            raise ShardError(where, f"{person.name}: gender {person.gender!r} is not one of {GENDERS}")
+        betas = np.asarray(person.betas)
+        if betas.ndim != 1 or not betas.size:
+            raise ShardError(where, f"{person.name}/betas has shape {betas.shape}, expected (B,)")
+        rest = np.asarray(person.rest_joints)
+        if rest.shape != (sizes["J"], 3):
+            raise ShardError(where, f"{person.name}/rest_joints has shape {rest.shape}, "
+                                    f"expected ({sizes['J']}, 3)")
+        arrays["betas"] = _cast(betas, np.float32, f"{where}: {person.name}/betas")
+        arrays["rest_joints"] = _cast(rest, np.float32, f"{where}: {person.name}/rest_joints")
     for extractor, features in sorted(person.audio.items()):
         value = np.asarray(features)
         if extractor not in attrs.extractors:

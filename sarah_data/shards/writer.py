@@ -37,8 +37,10 @@ def _build_sequence(handle: h5py.File, seq: ProcessedSequence,
     group.attrs["frames"] = np.int64(seq.frames)
     group.attrs["fps"] = np.int64(seq.fps)
     group.attrs["persons"] = [name for name, _ in persons]
-    for name, arrays in persons:
+    for person, (name, arrays) in zip(seq.persons, persons):
         person_group = create_group(group, name)
+        if "betas" in arrays:
+            person_group.attrs["gender"] = person.gender
         if any(key.startswith("audio/") for key in arrays):
             create_group(person_group, "audio")
         for key, array in arrays.items():

@@ -46,6 +46,9 @@ class Inputs:
     agent_wave: np.ndarray | None = None  # (N,) float32 at 48 kHz (raw input)
     reference_icosahedra: np.ndarray | None = None  # (T, J, 12, 3) the real agent (shard input)
     user_wave: np.ndarray | None = None
+    # The agent's body for export: betas (B,), rest_joints (55, 3), gender, source (motion.npz
+    # keys of the same names). Raw inputs have no person: neutral zero betas, no rest joints.
+    body_shape: dict[str, Any] | None = None
 
     @property
     def frames(self) -> int:
@@ -159,6 +162,10 @@ def shard_inputs(shards_dir: str | Path, split: str, sequence: str | None, agent
             agent_audio=a["audio"][features][window].astype(np.float32),
             user_audio=u["audio"][features][window].astype(np.float32),
             reference_icosahedra=a["icosahedra"][window].astype(np.float32),
+            body_shape=({"betas": a["betas"][()], "rest_joints": a["rest_joints"][()],
+                         "gender": str(a.attrs.get("gender", "neutral")),
+                         "body_shape_source": f"agent {agent} of {sequence} in {shards_dir}"}
+                        if "betas" in a else None),
             source={"kind": "shard", "shards": str(shards_dir), "split": split,
                     "sequence": sequence, "agent": agent, "user": user,
                     "start": int(start), "reference_gaze": a["gaze"][window].astype(np.float32)},

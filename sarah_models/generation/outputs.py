@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from sarah_data.atomic import atomic_path
-from sarah_data.constants import FPS, JOINT
+from sarah_data.constants import FPS, JOINT, NUM_BETAS
 from sarah_data.gaze import gaze_score, head_points
 from sarah_data.skeleton import HEAD, MotionLayout
 
@@ -50,7 +50,8 @@ def write_motion(path: Path, result: Result, inputs: Inputs, config: StreamConfi
     joint_rotations (T,J,3,3) global, world frame; gaze_score (T,) achieved; gaze_target
     (scalar, NaN = none); fps; user_head (T,2), agent_audio/user_audio (T,D) features,
     agent_speaking/user_speaking (T,) -- the inputs used; anchor (4,) [yaw, x, z, 0];
-    source_* (where the inputs came from); settings (JSON string)."""
+    source_* (where the inputs came from); settings (JSON string); the agent's body for
+    export: betas (B,), rest_joints (55, 3) (shard inputs only), gender, body_shape_source."""
     ico, shell = MotionLayout.from_width(result.motion.shape[-1]).split(result.motion)
     arrays = {
         "icosahedra": ico, "shell": shell, "joint_positions": positions,
@@ -64,6 +65,10 @@ def write_motion(path: Path, result: Result, inputs: Inputs, config: StreamConfi
     }
     for key, value in inputs.source.items():
         arrays[f"source_{key}"] = np.asarray(value)
+    shape = inputs.body_shape or {"betas": np.zeros(NUM_BETAS, np.float32), "gender": "neutral",
+                                  "body_shape_source": "neutral zero betas (no person: raw inputs "
+                                                       "or shards without body shapes)"}
+    arrays.update({key: np.asarray(value) for key, value in shape.items()})
     _atomic_savez(path, arrays)
     return path
 

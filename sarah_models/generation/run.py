@@ -22,6 +22,7 @@ from sarah_data.skeleton import HEAD, MotionLayout
 from ..config import StreamConfig, check_gaze
 from ..sampling.stream import StreamingGenerator, StreamingSession, generate_offline
 from ..training.checkpoint import LoadedModels, load_models
+from ..training.model_file import MODEL_FILE, load_model_file
 from .inputs import (
     DEFAULT_FRAMES,
     GenerateError,
@@ -37,22 +38,28 @@ from .outputs import Result, Summary, head_gaze, motion_figures, write_motion
 
 def load_run(run: str | Path, checkpoint: str | Path | None = None,
              device: str | None = None, need_flow: bool = True) -> tuple[LoadedModels, Path]:
-    """The flow-stage models of a run (``run/flow.pt`` unless ``checkpoint`` is given);
-    ``need_flow=False`` also accepts a VAE-stage checkpoint."""
+    """The flow-stage models of a run: ``checkpoint`` when given (a training checkpoint or a
+    ``.safetensors`` model file), else ``run/flow.pt``, else the shareable ``run/model.safetensors``
+    (which loads without pickle); ``need_flow=False`` also accepts a VAE-stage checkpoint."""
     run = Path(run)
     if not run.is_dir():
         raise GenerateError(f"{run}: run folder does not exist")
     if checkpoint is None:
         path = run / "flow.pt"
+        if not path.is_file() and (run / MODEL_FILE).is_file():
+            path = run / MODEL_FILE
     else:
         path = Path(checkpoint)
         if not path.is_file() and (run / path).is_file():
             path = run / path
     if not path.is_file():
         raise GenerateError(f"{path}: no such checkpoint (train the flow stage first, or pass "
-                            f"--checkpoint)")
+                            f"--checkpoint; a shared model is {MODEL_FILE})")
     try:
-        models = load_models(path, device=device)
+        if path.suffix == ".safetensors":
+            models = load_model_file(path, device=device)
+        else:
+            models = load_models(path, device=device)
     except (ValueError, KeyError, RuntimeError) as exc:
         raise GenerateError(f"{path}: cannot load checkpoint ({exc})") from None
     if need_flow and models.flow is None:

@@ -50,3 +50,8 @@ def setup_distributed(device: str | torch.device | None = None) -> DistInfo:
 def cleanup_distributed() -> None:
     if dist.is_available() and dist.is_initialized():
         dist.destroy_process_group()
+
+
+def is_main_process() -> bool:
+    """Whether this process is rank 0 (or not launched by torchrun): the one that writes files."""
+    return int(os.environ.get("RANK", "0")) == 0

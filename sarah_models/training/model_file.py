@@ -1,0 +1,85 @@
+"""The shareable inference model: ``model.safetensors``, one file, loaded without pickle.
+
+A training checkpoint (``checkpoint.py``) holds optimizer and RNG state for resuming and is read
+with ``torch.load``; this file holds only what generation needs, as safetensors tensors plus
+string metadata:
+
+    tensors    vae.<name>, flow.<name>, normalizer.<name>  (the modules' state dicts)
+    metadata   format "sarah-model", version "1", stage "flow", step, features,
+               config (RunConfig.to_dict() as JSON), dims (JSON)
+
+``sarah-train`` writes it beside ``flow.pt`` when the flow stage ends; ``sarah-generate --run``
+loads it when the run folder has no ``flow.pt`` (or ``--checkpoint model.safetensors``). The
+weights are the checkpoint's, bit for bit, so the motion generated is identical.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, safe_open, save_file
+
+from sarah_data.atomic import atomic_path
+
+from ..config import RunConfig
+from ..nn.normalizer import Normalizer
+from .checkpoint import LoadedModels, build_models, load_checkpoint
+
+MODEL_FILE = "model.safetensors"
+FORMAT = "sarah-model"
+VERSION = "1"
+PARTS = ("vae", "flow", "normalizer")
+
+
+def write_model_file(checkpoint: str | Path, out: str | Path) -> Path:
+    """``out`` (a .safetensors path) from a flow-stage checkpoint, written atomically."""
+    data = load_checkpoint(checkpoint)
+    if data["stage"] != "flow":
+        raise ValueError(f"{checkpoint}: a {data['stage']}-stage checkpoint; the model file needs "
+                         f"the flow stage")
+    tensors = {f"{part}.{name}": value.contiguous()
+               for part in PARTS for name, value in data[part].items()}
+    metadata = {"format": FORMAT, "version": VERSION, "stage": "flow", "step": str(int(data["step"])),
+                "features": str(data["features"]), "config": json.dumps(data["config"], sort_keys=True),
+                "dims": json.dumps(data["dims"], sort_keys=True)}
+    out = Path(out)
+    with atomic_path(out) as tmp:
+        save_file(tensors, str(tmp), metadata=metadata)
+    return out
+
+
+def load_model_file(path: str | Path, device: str | torch.device | None = None) -> LoadedModels:
+    """Rebuild the models of a model file; ValueError naming the file when it is not ours."""
+    path = Path(path)
+    device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such model file")
+    try:
+        with safe_open(str(path), framework="pt") as handle:
+            metadata = handle.metadata() or {}
+        tensors = load_file(str(path))
+    except (SafetensorError, OSError, ValueError) as error:
+        raise ValueError(f"{path}: not a readable safetensors file ({error})") from None
+    if metadata.get("format") != FORMAT:
+        raise ValueError(f"{path}: not a SARAH model file (safetensors metadata format "
+                         f"{metadata.get('format')!r})")
+    if metadata.get("version") != VERSION:
+        raise ValueError(f"{path}: model file version {metadata.get('version')}, expected {VERSION}")
+    try:
+        config = RunConfig.from_dict(json.loads(metadata["config"]))
+        dims = json.loads(metadata["dims"])
+        parts = {part: {name[len(part) + 1:]: value for name, value in tensors.items()
+                        if name.startswith(part + ".")} for part in PARTS}
+        vae, flow = build_models(config, dims)
+        vae.load_state_dict(parts["vae"])
+        flow.load_state_dict(parts["flow"])
+        normalizer = Normalizer.from_state_dict(parts["normalizer"])
+    except (KeyError, RuntimeError, json.JSONDecodeError, TypeError) as error:
+        raise ValueError(f"{path}: inconsistent model file ({error})") from None
+    for module in (vae, flow, normalizer):
+        module.to(device).eval()
+    return LoadedModels(vae, flow, normalizer, config, dict(dims), metadata["features"],
+                        int(metadata["step"]), "flow")
