@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
-import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +16,6 @@ import torch
 from sarah_cli.export import main
 from sarah_data import icosahedron
 from sarah_data.constants import JOINT_NAMES, NUM_JOINTS
-from sarah_data.export import motion_from_shards
 from sarah_data.export.smplx_params import Y_UP_TO_Z_UP
 from sarah_data.shards import ShardSet
 
