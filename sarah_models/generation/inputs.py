@@ -221,6 +221,13 @@ def read_audio(path: str | Path) -> np.ndarray:
     return np.ascontiguousarray(wave, dtype=np.float32)
 
 
+def agent_anchor(agent_start: tuple[float, float, float]) -> WindowTransform:
+    """The transform that puts an agent at floor (x, z) with heading yaw (degrees, 0 = facing +z)
+    at the origin facing +z: where a generation without a real agent starts."""
+    x, z, yaw_deg = (float(v) for v in agent_start)
+    return window_transform(np.array([x, 0.0, z]), rotation_about_y(math.radians(yaw_deg)))
+
+
 def raw_inputs(trajectory: str | Path, agent_audio: str | Path, user_audio: str | Path,
                stride: int, frames: int | None = None,
                agent_start: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Inputs:
@@ -240,8 +247,7 @@ def raw_inputs(trajectory: str | Path, agent_audio: str | Path, user_audio: str 
                                 f"for {count} frames)")
         waves[name] = wave[: count * SAMPLES_PER_FRAME]
     x, z, yaw_deg = (float(v) for v in agent_start)
-    # The transform that puts a root at (x, z) with heading yaw at the origin facing +z.
-    anchor = window_transform(np.array([x, 0.0, z]), rotation_about_y(math.radians(yaw_deg)))
+    anchor = agent_anchor(agent_start)
     labels = {name: speaking_labels(waves[name], waves[other], SpeakingConfig(),
                                     AUDIO_SAMPLE_RATE)[:count]
               for name, other in (("agent", "user"), ("user", "agent"))}

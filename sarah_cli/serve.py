@@ -1,0 +1,138 @@
+"""sarah-serve: stream a trained run's agent over WebSocket (docs/protocol.md), with a browser
+page at http://HOST:PORT/; or, with --client, stream files through a running server."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+from pathlib import Path
+
+from sarah_models.accel import MODE_HELP, MODES
+
+EXIT_ERROR = 2
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from sarah_models.config import StreamConfig
+    from sarah_models.serving.server import ServeConfig
+
+    d, s = StreamConfig(), ServeConfig()
+    parser = argparse.ArgumentParser(
+        prog="sarah-serve", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        description="Serve a trained run: each WebSocket connection is one streaming session "
+                    "(protocol: docs/protocol.md); http://HOST:PORT/ is a browser page that "
+                    "drives it. With --client URL, stream --user-trajectory, --agent-audio and "
+                    "--user-audio through a running server and write motion.npz to --out.")
+    parser.add_argument("--run", type=Path, help="training run folder (flow.pt or model.safetensors)")
+    parser.add_argument("--checkpoint", type=Path, default=None,
+                        help="checkpoint or model file (default: RUN/flow.pt, else RUN/model.safetensors)")
+    parser.add_argument("--host", default=s.host, help="address to bind; anything but loopback "
+                        "needs --public")
+    parser.add_argument("--public", action="store_true",
+                        help="allow binding a non-loopback address (anyone who reaches it can use the model)")
+    parser.add_argument("--port", type=int, default=s.port, help="TCP port (0: any free port)")
+    parser.add_argument("--max-sessions", type=int, default=s.max_sessions,
+                        help="concurrent sessions; more are refused with close code 1013")
+    parser.add_argument("--workers", type=int, default=s.workers, help="compute threads")
+    parser.add_argument("--send-timeout", type=float, default=s.send_timeout,
+                        help="seconds a send may wait on a client that does not read before it is closed")
+    parser.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
+    parser.add_argument("--speed", choices=MODES, default="fp32",
+                        help="inference fast path: " + "; ".join(f"{k}: {v}" for k, v in MODE_HELP.items()))
+    parser.add_argument("--steps", type=int, default=d.steps, help="default solver steps per chunk")
+    parser.add_argument("--cfg", type=float, default=d.cfg_scale, help="default guidance scale w")
+    client = parser.add_argument_group("client (--client URL)")
+    client.add_argument("--client", metavar="URL", default=None,
+                        help="stream files through the server at URL (ws://127.0.0.1:8765) instead of serving")
+    client.add_argument("--user-trajectory", type=Path, help="(T, 2) floor x, z at 30 fps (.npy or .csv)")
+    client.add_argument("--agent-audio", type=Path, help="agent's audio file")
+    client.add_argument("--user-audio", type=Path, help="user's audio file")
+    client.add_argument("--gaze", default=str(d.gaze), help="target gaze score, or 'none'")
+    client.add_argument("--seed", type=int, default=d.seed)
+    client.add_argument("--chunk-frames", type=int, default=4, help="frames per chunk (a multiple of 4)")
+    client.add_argument("--out", type=Path, help="output folder for motion.npz")
+    return parser
+
+
+def _client(args, parser) -> int:
+    from sarah_cli.generate import _gaze
+    from sarah_data.loading import DataProblem
+    from sarah_models.generation.inputs import GenerateError
+    from sarah_models.serving.client import ServerError, stream_files
+
+    missing = [flag for flag, value in (("--user-trajectory", args.user_trajectory),
+                                        ("--agent-audio", args.agent_audio),
+                                        ("--user-audio", args.user_audio), ("--out", args.out)) if value is None]
+    if missing:
+        parser.error(f"--client needs {', '.join(missing)}")
+    try:
+        gaze = _gaze(args.gaze)
+    except argparse.ArgumentTypeError as error:
+        parser.error(str(error))
+    try:
+        stream_files(args.client, args.user_trajectory, args.agent_audio, args.user_audio, args.out,
+                     gaze=gaze, steps=args.steps, seed=args.seed, cfg_scale=args.cfg,
+                     chunk_frames=args.chunk_frames)
+    except (ServerError, GenerateError, DataProblem) as error:
+        print(f"sarah-serve: error: {error}", file=sys.stderr)
+        return EXIT_ERROR
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.client is not None:
+        return _client(args, parser)
+    from dataclasses import replace
+
+    from sarah_models.config import StreamConfig
+    from sarah_models.generation.inputs import GenerateError
+    from sarah_models.serving.server import LiveServer, ServeConfig, is_loopback, load_server_models
+
+    if args.run is None:
+        parser.error("--run is required to serve (or --client URL to stream files)")
+    if not is_loopback(args.host) and not args.public:
+        parser.error(f"--host {args.host} is not a loopback address; add --public to serve other machines")
+    for flag, value, low in (("--port", args.port, 0), ("--max-sessions", args.max_sessions, 1),
+                             ("--workers", args.workers, 1), ("--steps", args.steps, 1)):
+        if value < low or (flag == "--port" and value > 65535):
+            parser.error(f"{flag} {value} is out of range")
+    if args.send_timeout <= 0:
+        parser.error(f"--send-timeout must be positive, got {args.send_timeout}")
+    try:
+        defaults = replace(StreamConfig(), steps=args.steps, cfg_scale=args.cfg)
+        models, path = load_server_models(args.run, args.checkpoint, args.device, args.speed, defaults)
+    except (GenerateError, ValueError) as error:
+        print(f"sarah-serve: error: {error}", file=sys.stderr)
+        return EXIT_ERROR
+    config = ServeConfig(host=args.host, port=args.port, max_sessions=args.max_sessions,
+                         workers=args.workers, send_timeout=args.send_timeout)
+    server = LiveServer(models, config, defaults)
+    if not is_loopback(args.host):
+        print(f"sarah-serve: warning: serving on {args.host}, reachable from other machines",
+              file=sys.stderr)
+
+    async def run() -> None:
+        ready = asyncio.get_running_loop().create_future()
+        task = asyncio.create_task(server.serve(ready))
+        port = await ready
+        host = f"[{args.host}]" if ":" in args.host else args.host
+        print(f"sarah-serve: {path} (step {models.step}, {args.speed}) on http://{host}:{port}/ "
+              f"(WebSocket ws://{host}:{port}/, protocol v1: docs/protocol.md); Ctrl-C stops",
+              flush=True)
+        await task
+
+    try:
+        asyncio.run(run())
+    except KeyboardInterrupt:
+        print("sarah-serve: stopped", file=sys.stderr)
+    except OSError as error:
+        print(f"sarah-serve: error: cannot listen on {args.host}:{args.port} ({error})", file=sys.stderr)
+        return EXIT_ERROR
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

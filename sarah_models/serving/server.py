@@ -1,0 +1,225 @@
+"""``sarah-serve``: a WebSocket server streaming the agent's motion, and the browser page at ``/``.
+
+One ``LiveSession`` (a ``StreamingSession`` and its own generator state) per connection; the
+models are loaded once and shared read-only. Compute runs in a small thread pool so the event
+loop keeps serving other connections. Each connection is handled in order (receive a chunk,
+generate, send its frames), so nothing queues without bound: websockets stops reading a socket
+whose ``max_queue`` messages are waiting, and a send to a client that stops reading waits at most
+``send_timeout`` seconds before the connection is closed with a reason.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ipaddress
+import json
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, replace
+from importlib import resources
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from sarah_data import icosahedron
+from sarah_data.constants import AUDIO_SAMPLE_RATE, FPS, JOINT_NAMES, JOINT_PARENTS, SAMPLES_PER_FRAME
+from sarah_data.skeleton import MotionLayout
+
+from ..config import StreamConfig
+from ..generation.inputs import agent_anchor, make_extractor
+from ..generation.outputs import head_gaze
+from ..sampling.stream import StreamingGenerator, StreamingSession
+from .protocol import (AUDIO_FORMATS, MAX_CHUNK_FRAMES, VERSION, Chunk, OpenRequest, ProtocolError,
+                       pack, parse_chunk, parse_gaze, parse_open, parse_text)
+
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
+WEB_FILES = {"/": ("index.html", "text/html; charset=utf-8"),
+             "/index.html": ("index.html", "text/html; charset=utf-8"),
+             "/app.js": ("app.js", "text/javascript; charset=utf-8")}
+
+
+@dataclass
+class ServeConfig:
+    host: str = "127.0.0.1"
+    port: int = 8765
+    max_sessions: int = 16
+    workers: int = 1  # compute threads; each step already uses every intra-op thread
+    send_timeout: float = 10.0  # seconds a send may wait on a client that does not read
+    max_message_bytes: int = 4 * 1024 * 1024  # a chunk of MAX_CHUNK_FRAMES f32 frames fits
+    max_queue: int = 4  # messages read ahead per connection before its socket is left unread
+
+
+def is_loopback(host: str) -> bool:
+    if host in LOOPBACK_HOSTS:
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+class LiveSession:
+    """One client's stream: settings from its open message, the generator's state, counters."""
+
+    def __init__(self, models, request: OpenRequest, defaults: StreamConfig, extractor):
+        config = replace(defaults,
+                         gaze=request.gaze if request.gaze_given else defaults.gaze,
+                         steps=request.steps or defaults.steps,
+                         cfg_scale=defaults.cfg_scale if request.cfg_scale is None else request.cfg_scale,
+                         seed=defaults.seed if request.seed is None else request.seed)
+        self.config = config
+        self.request = request
+        generator = StreamingGenerator(models.vae, models.flow, models.normalizer, config,
+                                       agent_anchor(request.agent_start))
+        self.stream = StreamingSession(generator, extractor)
+        self.layout = MotionLayout.from_width(generator.motion_dim)
+        self.expected_seq = 0
+        self.frames_out = 0
+        self._heads = np.zeros((0, 2), np.float32)  # user positions of frames not yet generated
+
+    def push(self, chunk: Chunk) -> tuple[dict, list[np.ndarray]]:
+        """Generate for one chunk; the frames message's header and arrays."""
+        used = len(self.stream.features("agent"))
+        motion = self.stream.push(chunk.head, chunk.agent_audio, chunk.user_audio)
+        positions, rotations = icosahedron.decode(self.layout.split(motion)[0])
+        pending = np.concatenate([self._heads, chunk.head])
+        heads, self._heads = pending[:len(motion)], pending[len(motion):]
+        gaze = head_gaze(positions, rotations, heads) if len(motion) else np.zeros(0, np.float32)
+        parts = {"motion": motion.astype(np.float32),
+                 "joint_positions": positions.astype(np.float32),
+                 "joint_rotations": rotations.astype(np.float32)}
+        if self.request.features:
+            parts["agent_features"] = self.stream.features("agent")[used:]
+            parts["user_features"] = self.stream.features("user")[used:]
+        header = {"type": "frames", "seq": chunk.seq, "first_frame": self.frames_out,
+                  "frames": int(len(motion)), "gaze_score": [float(g) for g in gaze],
+                  "gaze_target": self.stream.generator.gaze,
+                  "arrays": [{"name": k, "shape": list(v.shape), "dtype": "<f4"} for k, v in parts.items()]}
+        self.frames_out += len(motion)
+        return header, list(parts.values())
+
+
+class LiveServer:
+    def __init__(self, models, config: ServeConfig, defaults: StreamConfig = StreamConfig(),
+                 echo: Callable[[str], None] = print):
+        self.models = models
+        self.config = config
+        self.defaults = defaults
+        self.echo = echo
+        self.executor = ThreadPoolExecutor(max_workers=config.workers, thread_name_prefix="sarah-serve")
+        self.sessions = 0
+        self.served = 0
+        self.stride = models.vae.stride
+        make_extractor(models.features)  # fail at start, not at the first connection
+
+    def ready_message(self) -> str:
+        flow = self.models.flow
+        return json.dumps({
+            "type": "ready", "version": VERSION, "fps": FPS, "stride": self.stride,
+            "sample_rate": AUDIO_SAMPLE_RATE, "samples_per_frame": SAMPLES_PER_FRAME,
+            "audio_formats": sorted(AUDIO_FORMATS), "max_chunk_frames": MAX_CHUNK_FRAMES,
+            "motion_width": int(self.models.vae.motion_dim), "audio_dim": int(flow.audio_dim),
+            "features": self.models.features, "joint_names": list(JOINT_NAMES),
+            "joint_parents": list(JOINT_PARENTS)})
+
+    async def _send(self, ws, data) -> None:
+        try:
+            await asyncio.wait_for(ws.send(data), self.config.send_timeout)
+        except asyncio.TimeoutError:
+            await ws.close(1008, f"client not reading: a send waited {self.config.send_timeout:g} s")
+            raise
+
+    async def handler(self, ws) -> None:
+        from websockets.exceptions import ConnectionClosed
+
+        if self.sessions >= self.config.max_sessions:
+            await ws.close(1013, f"server full ({self.config.max_sessions} sessions); try again later")
+            return
+        self.sessions += 1
+        self.served += 1
+        loop = asyncio.get_running_loop()
+        session: LiveSession | None = None
+        try:
+            async for message in ws:
+                try:
+                    if isinstance(message, str):
+                        request = parse_text(message)
+                        kind = request["type"]
+                        if kind == "open":
+                            if session is not None:
+                                raise ProtocolError("already_open", "this connection already has a session")
+                            extractor = make_extractor(self.models.features)
+                            session = LiveSession(self.models, parse_open(request), self.defaults, extractor)
+                            await self._send(ws, self.ready_message())
+                        elif kind == "gaze":
+                            if session is None:
+                                raise ProtocolError("not_open", "send an 'open' message first")
+                            value = parse_gaze(request)
+                            session.stream.generator.set_gaze(value)
+                            await self._send(ws, json.dumps({"type": "gaze_set", "value": value,
+                                                             "from_frame": session.frames_out}))
+                        elif kind == "close":
+                            await ws.close(1000, "closed by the client")
+                            return
+                        else:
+                            raise ProtocolError("unknown_type", f"unknown message type {kind!r}; "
+                                                                f"text messages are open, gaze, close")
+                    else:
+                        if session is None:
+                            raise ProtocolError("not_open", "send an 'open' message first")
+                        chunk = parse_chunk(message, session.request.audio_format, self.stride)
+                        if chunk.seq != session.expected_seq:
+                            raise ProtocolError("bad_seq", f"chunk seq {chunk.seq}, expected "
+                                                           f"{session.expected_seq}", chunk.seq)
+                        tick = time.perf_counter()
+                        header, arrays = await loop.run_in_executor(self.executor, session.push, chunk)
+                        session.expected_seq += 1
+                        header["latency_ms"] = 1000.0 * (time.perf_counter() - tick)
+                        await self._send(ws, pack(header, *arrays))
+                except ProtocolError as error:
+                    await self._send(ws, error.to_message())
+        except (ConnectionClosed, asyncio.TimeoutError):
+            pass
+        finally:
+            self.sessions -= 1
+
+    def process_request(self, connection, request):
+        """Plain HTTP GETs get the browser page; WebSocket upgrades go on to ``handler``."""
+        from websockets.datastructures import Headers
+        from websockets.http11 import Response
+
+        if request.headers.get("Upgrade", "").lower() == "websocket":
+            return None
+        path = request.path.split("?", 1)[0]
+        if path not in WEB_FILES:
+            return connection.respond(404, f"no page {path}; the page is at /\n")
+        name, content_type = WEB_FILES[path]
+        body = resources.files("sarah_models.serving").joinpath("web", name).read_bytes()
+        headers = Headers([("Content-Type", content_type), ("Content-Length", str(len(body))),
+                           ("Cache-Control", "no-store")])
+        return Response(200, "OK", headers, body)
+
+    async def serve(self, ready: asyncio.Future | None = None, stop: asyncio.Future | None = None) -> None:
+        from websockets.asyncio.server import serve
+
+        config = self.config
+        async with serve(self.handler, config.host, config.port, process_request=self.process_request,
+                         max_size=config.max_message_bytes, max_queue=config.max_queue,
+                         close_timeout=2, compression=None) as server:
+            port = server.sockets[0].getsockname()[1]
+            if ready is not None:
+                ready.set_result(port)
+            await (stop if stop is not None else asyncio.get_running_loop().create_future())
+
+
+def load_server_models(run: str | Path, checkpoint=None, device=None, speed: str = "fp32",
+                       stream_config: StreamConfig = StreamConfig()):
+    """The run's models as ``sarah-generate`` loads them (same checkpoint rules, same fast path)."""
+    from ..accel import optimize_for_inference
+    from ..generation.run import load_run
+
+    models, path = load_run(run, checkpoint, device)
+    if speed != "none":
+        models = optimize_for_inference(models, mode=speed, stream_config=stream_config)
+    return models, path

@@ -1,0 +1,277 @@
+"""sarah-serve: the same motion as sarah-generate through the wire, bad input over the wire
+answered without harming other sessions, two server processes, and the browser page in a real
+headless Chromium."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import re
+import shutil
+import socket
+import subprocess
+import sys
+import threading
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pytest
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
+
+from sarah_cli.generate import main as generate
+from sarah_cli.serve import main as serve_main
+from sarah_data.constants import SAMPLES_PER_FRAME
+from sarah_models.serving.client import read_frames
+from sarah_models.serving.protocol import encode_pcm, pack
+from sarah_models.serving.server import LiveServer, ServeConfig, load_server_models
+from test_generate import save_run, write_wav
+
+FRAMES = 60
+
+
+class RunningServer:
+    """A LiveServer on a free loopback port, in a thread with its own event loop."""
+
+    def __init__(self, run: Path, **config):
+        models, _ = load_server_models(run, device="cpu")
+        self.server = LiveServer(models, ServeConfig(port=0, **config), echo=lambda _: None)
+        self.loop = asyncio.new_event_loop()
+        self.ready = self.loop.create_future()
+        self.stop_future = self.loop.create_future()
+        self.thread = threading.Thread(target=self.loop.run_until_complete,
+                                       args=(self.server.serve(self.ready, self.stop_future),), daemon=True)
+        self.thread.start()
+        deadline = time.monotonic() + 30
+        while not self.ready.done():
+            assert time.monotonic() < deadline, "server did not start"
+            time.sleep(0.02)
+        self.url = f"ws://127.0.0.1:{self.ready.result()}/"
+
+    def stop(self):
+        self.loop.call_soon_threadsafe(self.stop_future.set_result, None)
+        self.thread.join(10)
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    return save_run(tmp_path_factory.mktemp("serve") / "run")
+
+
+@pytest.fixture(scope="module")
+def server(run_dir):
+    running = RunningServer(run_dir, send_timeout=1.0, max_sessions=8)
+    yield running
+    running.stop()
+
+
+@pytest.fixture(scope="module")
+def raw(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("serve_raw")
+    write_wav(folder / "agent.wav", FRAMES / 30 + 0.2, 44_100, 220)
+    write_wav(folder / "user.wav", FRAMES / 30 + 0.2, 16_000, 150, seed=1)
+    angle = np.linspace(0, 1.2, FRAMES)
+    np.savetxt(folder / "traj.csv", np.stack([2 * np.sin(angle), 2 * np.cos(angle)], 1),
+               delimiter=",", header="x,z", comments="")
+    return folder
+
+
+def files(raw):
+    return ["--user-trajectory", str(raw / "traj.csv"), "--agent-audio", str(raw / "agent.wav"),
+            "--user-audio", str(raw / "user.wav")]
+
+
+@pytest.mark.parametrize("gaze", ["0.8", "none"])
+def test_streaming_through_the_server_is_sarah_generate(server, run_dir, raw, tmp_path, gaze):
+    assert serve_main(["--client", server.url, *files(raw), "--out", str(tmp_path / "served"),
+                       "--seed", "5", "--gaze", gaze]) == 0
+    assert generate(["--run", str(run_dir), *files(raw), "--out", str(tmp_path / "direct"),
+                     "--seed", "5", "--gaze", gaze, "--no-animation", "--device", "cpu"]) == 0
+    served, direct = (np.load(tmp_path / name / "motion.npz", allow_pickle=False)
+                      for name in ("served", "direct"))
+    assert served["icosahedra"].shape[0] == FRAMES
+    for key in ("icosahedra", "shell", "joint_positions", "joint_rotations", "gaze_score",
+                "agent_audio", "user_audio", "user_head", "agent_speaking", "anchor"):
+        np.testing.assert_array_equal(served[key], direct[key], err_msg=key)
+
+
+@contextmanager
+def open_session(url, **fields):
+    with connect(url, max_size=None, compression=None) as ws:
+        ws.send(json.dumps({"type": "open", "version": 1, "audio_format": "s16le", **fields}))
+        ready = json.loads(ws.recv(timeout=10))
+        assert ready["type"] == "ready" and ready["version"] == 1
+        yield ws, ready
+
+
+def chunk(seq, frames=4, head=None, samples=None, fmt="s16le"):
+    head = [[0.5, 1.5]] * frames if head is None else head
+    n = frames * SAMPLES_PER_FRAME if samples is None else samples
+    wave = 0.1 * np.sin(np.arange(n) / 20.0)
+    return pack({"type": "chunk", "seq": seq, "frames": frames, "head": head}) + \
+        encode_pcm(wave, fmt) + encode_pcm(wave, fmt)
+
+
+def error_of(ws):
+    message = json.loads(ws.recv(timeout=10))
+    assert message["type"] == "error", message
+    return message
+
+
+def test_bad_messages_get_an_error_and_the_session_goes_on(server):
+    with open_session(server.url) as (ws, ready):
+        ws.send(chunk(0, samples=1000))
+        assert error_of(ws)["code"] == "bad_audio"
+        ws.send(chunk(0, head=[[0.0, float("nan")]] * 4))
+        assert "NaN" in error_of(ws)["message"]
+        ws.send(json.dumps({"type": "dance"}))
+        assert error_of(ws)["code"] == "unknown_type"
+        ws.send("{not json")
+        assert error_of(ws)["code"] == "bad_json"
+        ws.send(chunk(3))
+        assert error_of(ws)["code"] == "bad_seq"
+        ws.send(json.dumps({"type": "gaze", "value": 7}))
+        assert error_of(ws)["code"] == "bad_gaze"
+        ws.send(chunk(0, frames=6))
+        assert error_of(ws)["code"] == "bad_chunk"
+        for seq in range(3):  # still usable: frames for every good chunk, in order
+            ws.send(chunk(seq, frames=8))
+            header, arrays = read_frames(ws.recv(timeout=30))
+            assert header["seq"] == seq and header["first_frame"] == 8 * seq
+            assert arrays["motion"].shape == (8, ready["motion_width"])
+            assert arrays["joint_positions"].shape == (8, 55, 3) and np.isfinite(arrays["motion"]).all()
+        ws.send(json.dumps({"type": "gaze", "value": None}))
+        assert json.loads(ws.recv(timeout=10)) == {"type": "gaze_set", "value": None, "from_frame": 24}
+
+
+def test_an_open_with_bad_fields_is_refused_by_name(server):
+    with connect(server.url) as ws:
+        ws.send(json.dumps({"type": "open", "version": 1, "gaze": 3}))
+        assert "gaze" in error_of(ws)["message"]
+        ws.send(json.dumps({"type": "open", "version": 9}))
+        assert error_of(ws)["code"] == "bad_version"
+        ws.send(chunk(0))
+        assert error_of(ws)["code"] == "not_open"
+
+
+def frames_ok(url):
+    with open_session(url) as (ws, _):
+        ws.send(chunk(0))
+        header, _ = read_frames(ws.recv(timeout=30))
+        return header["frames"] == 4
+
+
+def test_oversized_slow_and_vanishing_clients_do_not_hurt_the_others(server):
+    with open_session(server.url) as (bystander, _):
+        # A 100 MB message: the connection is closed with "message too big" (1009).
+        with open_session(server.url) as (big, _):
+            with pytest.raises(ConnectionClosed) as closed:
+                big.send(b"\0" * (100 * 1024 * 1024))
+                big.recv(timeout=10)
+            assert closed.value.rcvd is None or closed.value.rcvd.code == 1009
+        # A client that sends chunks but never reads: closed after the send timeout (1 s here).
+        with open_session(server.url) as (slow, _):
+            with pytest.raises(ConnectionClosed):
+                for seq in range(2000):
+                    slow.send(chunk(seq))
+        # A client that disconnects in the middle of a chunk's generation.
+        with open_session(server.url) as (gone, _):
+            gone.send(chunk(0, frames=40))
+            gone.socket.close()
+        # The bystander's session went on untouched.
+        bystander.send(chunk(0))
+        header, _ = read_frames(bystander.recv(timeout=30))
+        assert header["seq"] == 0 and header["frames"] == 4
+    deadline = time.monotonic() + 20
+    while server.server.sessions and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert server.server.sessions == 0  # every disconnect freed its session
+    assert frames_ok(server.url)
+
+
+def test_loopback_by_default_and_arguments_checked(run_dir, capsys):
+    with pytest.raises(SystemExit):
+        serve_main(["--run", str(run_dir), "--host", "0.0.0.0"])
+    assert "--public" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        serve_main(["--client", "ws://127.0.0.1:1/"])
+    assert "--user-trajectory" in capsys.readouterr().err
+    assert serve_main(["--run", str(run_dir / "missing")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_two_server_processes_share_nothing(run_dir, raw, tmp_path):
+    """Scaling out is N servers behind a WebSocket-aware balancer: two processes here, each
+    serving a client, give the same motion for the same inputs."""
+    procs, urls = [], []
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    try:
+        for _ in range(2):
+            proc = subprocess.Popen([sys.executable, "-m", "sarah_cli.serve", "--run", str(run_dir),
+                                     "--port", "0", "--device", "cpu"], stdout=subprocess.PIPE,
+                                    stderr=subprocess.STDOUT, text=True, env=env)
+            procs.append(proc)
+        for proc in procs:
+            line = proc.stdout.readline()
+            match = re.search(r"ws://127\.0\.0\.1:(\d+)/", line)
+            assert match, line
+            urls.append(f"ws://127.0.0.1:{match.group(1)}/")
+        assert len(set(urls)) == 2
+        for i, url in enumerate(urls):
+            assert serve_main(["--client", url, *files(raw), "--out", str(tmp_path / str(i))]) == 0
+        a, b = (np.load(tmp_path / str(i) / "motion.npz", allow_pickle=False) for i in range(2))
+        np.testing.assert_array_equal(a["icosahedra"], b["icosahedra"])
+    finally:
+        for proc in procs:
+            proc.terminate()
+            proc.wait(10)
+
+
+def chromium_path():
+    for name in ("chromium", "chromium-browser"):
+        path = shutil.which(name)
+        if path:
+            return path
+    return None
+
+
+def test_the_page_in_a_real_browser(server, tmp_path):
+    """Headless Chromium opens the page, starts a session, walks the user with the keyboard and
+    sees frames arrive and get drawn; the screenshot is the one the README shows."""
+    browser_path = chromium_path()
+    if browser_path is None:
+        pytest.skip("Chromium is not installed (.ci/run installs Debian's chromium package)")
+    from playwright.sync_api import sync_playwright
+
+    page_url = server.url.replace("ws://", "http://")
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=browser_path, headless=True,
+                                    args=["--no-sandbox", "--autoplay-policy=no-user-gesture-required"])
+        try:
+            page = browser.new_page(viewport={"width": 960, "height": 700})
+            page.goto(page_url)
+            page.click("#start")
+            page.wait_for_function("window.sarah.framesReceived >= 8", timeout=30_000)
+            before = page.evaluate("[window.sarah.user.x, window.sarah.user.z]")
+            page.keyboard.down("d")
+            page.wait_for_timeout(600)
+            page.keyboard.up("d")
+            after = page.evaluate("[window.sarah.user.x, window.sarah.user.z]")
+            assert after[0] > before[0] + 0.2  # the user walked to the right
+            page.fill("#gaze", "0.2")
+            page.dispatch_event("#gaze", "input")
+            page.wait_for_function("window.sarah.framesReceived >= 40", timeout=30_000)
+            state = page.evaluate("({r: window.sarah.framesReceived, d: window.sarah.framesDrawn})")
+            assert state["d"] > 0 and state["r"] >= 40
+            assert "frames received" in page.inner_text("#status")
+            shot = tmp_path / "sarah-serve-page.png"
+            page.screenshot(path=str(shot))
+            assert shot.stat().st_size > 5000
+            target = os.environ.get("SARAH_SCREENSHOT")
+            if target:  # docs/images/ is refreshed with SARAH_SCREENSHOT=docs/images/sarah-serve-page.png
+                shutil.copy(shot, target)
+        finally:
+            browser.close()
