@@ -5,7 +5,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 DEMO ?= demo
 
-.PHONY: demo test setup clean distclean
+.PHONY: demo test setup serve clean distclean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -25,6 +25,10 @@ demo: setup
 	$(BIN)/sarah-prep $(DEMO)/raw $(DEMO)/shards
 	$(BIN)/sarah-train --stage all --config tiny --shards $(DEMO)/shards --out $(DEMO)/runs/tiny --resume
 	$(BIN)/sarah-generate --run $(DEMO)/runs/tiny --shards $(DEMO)/shards --split test --gaze 0.8 --out $(DEMO)/generated
+
+# The live agent on the demo's trained run: prints the page's URL (Ctrl-C stops).
+serve: setup
+	$(BIN)/sarah-serve --run $(DEMO)/runs/tiny
 
 # The demo's outputs only; the virtual environment (several GB) stays: `make distclean` removes it.
 clean:

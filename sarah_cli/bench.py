@@ -38,13 +38,42 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--history", type=Path, default=None,
                         help="append one row to the history table of this markdown file "
                              "(docs/performance.md)")
+    serve = parser.add_argument_group("the live server (--serve runs this benchmark alone)")
+    serve.add_argument("--serve", action="store_true",
+                       help="sarah-serve under load instead: concurrent sessions holding real time "
+                            "per size, then a soak of the largest tiny count (about 15 minutes)")
+    serve.add_argument("--serve-seconds", type=float, default=15.0, help="seconds per session count")
+    serve.add_argument("--soak-seconds", type=float, default=600.0, help="soak length (0: none)")
     parser.add_argument("--workdir", type=Path, default=None,
                         help="keep fixtures and shards here (default: a temporary folder, removed)")
     return parser
 
 
+def serve_main(args) -> int:
+    from dataclasses import asdict
+
+    from sarah_bench.report import write_json
+    from sarah_bench.serve import ServeBenchConfig, format_serve_report, run_serve_bench
+
+    sizes = tuple(s.strip() for s in args.sizes.split(",") if s.strip())
+    if args.serve_seconds <= 0 or args.soak_seconds < 0 or not set(sizes) <= {"tiny", "paper"}:
+        print("sarah-bench: error: --serve needs --serve-seconds > 0, --soak-seconds >= 0 and "
+              "sizes from tiny, paper", file=sys.stderr)
+        return 2
+    config = ServeBenchConfig(sizes=sizes, level_seconds=args.serve_seconds,
+                              soak_seconds=args.soak_seconds, mode=args.mode, threads=args.threads)
+    result = run_serve_bench(config, log=lambda line: print(f"sarah-bench: {line}", file=sys.stderr, flush=True))
+    print(format_serve_report(result))
+    if args.json is not None:
+        write_json(args.json, asdict(result))
+        print(f"wrote {args.json}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.serve:
+        return serve_main(args)
     from sarah_bench.bench import run_bench
     from sarah_bench.config import BenchConfig
     from sarah_bench.report import append_history, format_report, history_row, write_json
