@@ -27,9 +27,12 @@ def _gaze(text: str) -> float | None:
 def _history(text: str) -> int | None:
     if text.strip().lower() in ("all", "none"):
         return None
-    value = int(text)
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--history must be a whole number >= 0 or 'all', got {text!r}") from None
     if value < 0:
-        raise argparse.ArgumentTypeError(f"history must be >= 0 or 'all', got {value}")
+        raise argparse.ArgumentTypeError(f"--history must be >= 0 or 'all', got {value}")
     return value
 
 
@@ -120,6 +123,18 @@ def main(argv: list[str] | None = None) -> int:
                               cfg_scale=args.cfg, gaze=_gaze(args.gaze), seed=args.seed)
     except (ValueError, argparse.ArgumentTypeError) as exc:
         print(f"sarah-generate: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    problems = []
+    if args.frames is not None and args.frames < 1:
+        problems.append(f"--frames must be >= 1, got {args.frames}")
+    if args.start is not None and args.start < 0:
+        problems.append(f"--start must be >= 0, got {args.start}")
+    if args.device is not None:
+        from sarah_data.config import device_problems
+
+        problems += device_problems(args.device)
+    if problems:
+        print(f"sarah-generate: error: {problems[0]}", file=sys.stderr)
         return EXIT_ERROR
     try:
         run(args.run, args.out, config, checkpoint=args.checkpoint, device=args.device,

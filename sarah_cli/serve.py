@@ -99,6 +99,11 @@ def main(argv: list[str] | None = None) -> int:
                              ("--workers", args.workers, 1), ("--steps", args.steps, 1)):
         if value < low or (flag == "--port" and value > 65535):
             parser.error(f"{flag} {value} is out of range")
+    if args.device is not None:
+        from sarah_data.config import device_problems
+
+        for problem in device_problems(args.device):
+            parser.error(problem)
     if args.send_timeout <= 0:
         parser.error(f"--send-timeout must be positive, got {args.send_timeout}")
     try:

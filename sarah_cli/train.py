@@ -74,6 +74,12 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"sarah-train: error: {exc}", file=sys.stderr)
         return EXIT_ERROR
+    if args.device is not None:
+        from sarah_data.config import device_problems
+
+        for problem in device_problems(args.device):
+            print(f"sarah-train: error: {problem}", file=sys.stderr)
+            return EXIT_ERROR
     from sarah_data.loading import DataProblem
     from sarah_models.training.distributed import cleanup_distributed, is_main_process
     from sarah_models.training.model_file import MODEL_FILE, write_model_file

@@ -175,6 +175,15 @@ class TrainConfig:
                              f"got {self.lr_schedule!r}")
         if not 0.0 <= self.final_lr_ratio <= 1.0:
             raise ValueError(f"TrainConfig.final_lr_ratio must be in [0, 1], got {self.final_lr_ratio}")
+        for name in ("batch_size", "vae_steps", "flow_steps", "window", "log_every",
+                     "checkpoint_every", "latent_stats_batches"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if self.num_workers < 0 or self.warmup_steps < 0 or self.seed < 0:
+            raise ValueError("TrainConfig.num_workers, warmup_steps and seed must be >= 0, got "
+                             f"{self.num_workers}, {self.warmup_steps}, {self.seed}")
+        if not (self.lr > 0 and math.isfinite(self.lr)):
+            raise ValueError(f"TrainConfig.lr must be a positive number, got {self.lr}")
 
     @classmethod
     def paper(cls) -> "TrainConfig":

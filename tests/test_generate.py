@@ -140,6 +140,17 @@ def test_one_line_errors(run_dir, raw, tmp_path, capsys):
     assert "shorter than the trajectory" in _error(capsys, raw_args(run_dir, short, out))
     narrow = save_run(tmp_path / "narrow", audio_dim=8)
     assert "mismatched feature extractor" in _error(capsys, raw_args(narrow, raw, out))
+    assert "--frames must be >= 1" in _error(capsys, raw_args(run_dir, raw, out, "--frames", "0"))
+    assert "'gpu' is not a device" in _error(capsys, raw_args(run_dir, raw, out, "--device", "gpu"))
+    for text, words in (("x,z\n1,2\n3,abc\n", "line 3: '3,abc' is not two numbers"),
+                        ("", "has no rows"), ("x,z\n", "has no rows"),
+                        ("1,2,3\n", "line 1: 3 values"), ("1,2\n3,nan\n", "first at frame 1")):
+        bad = tmp_path / "bad.csv"
+        bad.write_text(text)
+        assert words in _error(capsys, raw_args(run_dir, dict(raw, traj=bad), out))
+    with pytest.raises(SystemExit):
+        main(raw_args(run_dir, raw, out, "--history", "abc"))
+    assert "--history must be a whole number" in capsys.readouterr().err
     assert not out.exists()
 
 

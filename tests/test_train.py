@@ -428,6 +428,19 @@ def test_cli_reports_bad_input_clearly(tmp_path, capsys):
     assert main(["--shards", str(tmp_path), "--out", str(tmp_path / "run"),
                  "--set", "train.nope=1"]) == 2
     assert "nope" in capsys.readouterr().err
+    # Settings are checked before any work: one line each, nothing written.
+    for extra, words in ((["--batch-size", "0"], "batch_size must be >= 1"),
+                         (["--steps", "0"], "vae_steps must be >= 1"),
+                         (["--set", "train.lr=-1"], "lr must be a positive number"),
+                         (["--device", "gpu"], "'gpu' is not a device"),
+                         (["--device", "cuda:7"] if torch.cuda.device_count() < 8 else [], "cuda:7")):
+        if not extra:
+            continue
+        assert main(["--shards", str(tmp_path), "--out", str(tmp_path / "run"), "--config", "tiny",
+                     *extra]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and words in err, err
+    assert not (tmp_path / "run").exists()
 
 
 def _write_shards(root: Path) -> None:

@@ -183,10 +183,7 @@ def read_trajectory(path: str | Path) -> np.ndarray:
         if path.suffix.lower() == ".npy":
             data = np.load(path, allow_pickle=False)
         elif path.suffix.lower() == ".csv":
-            try:
-                data = np.loadtxt(path, delimiter=",", ndmin=2)
-            except ValueError:
-                data = np.loadtxt(path, delimiter=",", ndmin=2, skiprows=1)
+            data = _read_csv_rows(path)
         else:
             raise GenerateError(f"{path}: trajectory must be .npy or .csv")
     except (ValueError, OSError) as exc:
@@ -195,9 +192,33 @@ def read_trajectory(path: str | Path) -> np.ndarray:
     if data.ndim != 2 or data.shape[1] != 2 or not np.issubdtype(data.dtype, np.number):
         raise GenerateError(f"{path}: trajectory must be (T, 2) numbers (x, z), got shape "
                             f"{data.shape}")
+    if len(data) == 0:
+        raise GenerateError(f"{path}: trajectory has no rows")
     if not np.isfinite(data).all():
-        raise GenerateError(f"{path}: trajectory contains non-finite values")
+        row = int(np.flatnonzero(~np.isfinite(data).all(axis=1))[0])
+        raise GenerateError(f"{path}: trajectory contains non-finite values (first at frame {row})")
     return data.astype(np.float32)
+
+
+def _read_csv_rows(path: Path) -> np.ndarray:
+    """x,z rows of a CSV file, an optional header line first; errors name the file's line."""
+    rows = []
+    with open(path, newline="") as handle:
+        for number, line in enumerate(handle, start=1):
+            text = line.strip()
+            if not text:
+                continue
+            cells = [c.strip() for c in text.split(",")]
+            try:
+                values = [float(c) for c in cells]
+            except ValueError:
+                if not rows and number == 1:
+                    continue  # a header such as "x,z"
+                raise GenerateError(f"{path}: line {number}: {text!r} is not two numbers x,z") from None
+            if len(values) != 2:
+                raise GenerateError(f"{path}: line {number}: {len(values)} values, expected 2 (x,z)")
+            rows.append(values)
+    return np.asarray(rows, dtype=np.float64).reshape(-1, 2)
 
 
 def read_audio(path: str | Path) -> np.ndarray:
