@@ -11,6 +11,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from sarah_cli.arguments import non_negative_int, positive_int
+
 EXIT_ERROR = 2
 FORMATS = ("smplx", "bvh")
 
@@ -22,23 +24,6 @@ def _formats(text: str) -> tuple[str, ...]:
         raise argparse.ArgumentTypeError(f"--format takes a comma list of {', '.join(FORMATS)}; "
                                          f"got {text!r}")
     return names
-
-
-def _non_negative(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
-    return value
-
-
-def _positive(text: str) -> int:
-    value = _non_negative(text)
-    if value == 0:
-        raise argparse.ArgumentTypeError("must be >= 1, got 0")
-    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -59,9 +44,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "truth of --sequence instead of motion files")
     parser.add_argument("--sequence", help="sequence name in --shards")
     parser.add_argument("--person", help="person of --sequence (default: its first person)")
-    parser.add_argument("--start", type=_non_negative, default=0,
+    parser.add_argument("--start", type=non_negative_int, default=0,
                         help="first frame of --sequence to export")
-    parser.add_argument("--frames", type=_positive, default=None,
+    parser.add_argument("--frames", type=positive_int, default=None,
                         help="frames of --sequence to export (default: to its end)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--format", type=_formats, default=FORMATS,

@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from sarah_cli.arguments import non_negative_int
 from sarah_models.accel import MODE_HELP, MODES
 
 EXIT_ERROR = 2
@@ -28,12 +29,9 @@ def _history(text: str) -> int | None:
     if text.strip().lower() in ("all", "none"):
         return None
     try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--history must be a whole number >= 0 or 'all', got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"--history must be >= 0 or 'all', got {value}")
-    return value
+        return non_negative_int(text)
+    except argparse.ArgumentTypeError as error:
+        raise argparse.ArgumentTypeError(f"--history: {error} (or 'all')") from None
 
 
 def _agent_start(text: str) -> tuple[float, float, float]:
