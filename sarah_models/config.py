@@ -228,6 +228,7 @@ class RunConfig:
     def with_overrides(self, assignments: Sequence[str]) -> "RunConfig":
         """Apply ``section.field=value`` (or ``field=value`` when the name is unique) strings."""
         sections = {"vae": self.vae, "flow": self.flow, "train": self.train}
+        assigned: set[tuple[str, str]] = set()
         for text in assignments:
             key, sep, raw = text.partition("=")
             if not sep:
@@ -248,6 +249,12 @@ class RunConfig:
                 raise ValueError(f"--set {text!r}: {section} has no field {name!r}")
             value = _parse_value(getattr(current, name), raw.strip(), text)
             sections[section] = dataclasses.replace(current, **{name: value})
+            assigned.add((section, name))
+        # The position embedding spans one training window: a new window (or stride) moves it,
+        # unless flow.position_tokens was set too.
+        if ({("train", "window"), ("vae", "stride")} & assigned) and ("flow", "position_tokens") not in assigned:
+            sections["flow"] = dataclasses.replace(
+                sections["flow"], position_tokens=max(1, sections["train"].window // sections["vae"].stride))
         return RunConfig(**sections)  # type: ignore[arg-type]
 
 

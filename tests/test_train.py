@@ -187,6 +187,11 @@ def test_config_round_trip_and_overrides():
                               "train.adam_betas=0.8,0.99"])
     assert (new.train.lr, new.flow.layers, new.vae.beta) == (3e-4, 2, 0.01)
     assert new.train.adam_betas == (0.8, 0.99)
+    # The position embedding follows the training window unless set itself.
+    tiny = RunConfig.preset("tiny")
+    assert tiny.flow.position_tokens == tiny.train.window // tiny.vae.stride
+    assert tiny.with_overrides(["train.window=400"]).flow.position_tokens == 100
+    assert tiny.with_overrides(["train.window=400", "flow.position_tokens=8"]).flow.position_tokens == 8
     for bad in (["hidden=3"], ["nope=1"], ["vae.nope=1"], ["train.lr=fast"], ["lr"]):
         with pytest.raises(ValueError):
             cfg.with_overrides(bad)
