@@ -36,7 +36,8 @@ class ServeBenchConfig:
     sizes: tuple[str, ...] = ("tiny", "paper")
     session_counts: tuple[int, ...] = (1, 2, 4, 8, 16, 32)
     level_seconds: float = 15.0
-    soak_seconds: float = 600.0
+    soak_seconds: float = 600.0  # at least; longer when needed for soak_min_chunks
+    soak_min_chunks: int = 10_000
     p99_goal_ms: float = 100.0
     mode: str = "int8"
     steps: int = 4  # solver steps per chunk (the paper's)
@@ -187,6 +188,7 @@ def run_level(url: str, size: str, sessions: int, cfg: ServeBenchConfig) -> Leve
 def run_soak(server: ServerProcess, sessions: int, cfg: ServeBenchConfig,
              log: Callable[[str], None]) -> dict[str, Any]:
     samples: list[tuple[float, float]] = []
+    seconds = max(cfg.soak_seconds, cfg.soak_min_chunks / (sessions * FPS / CHUNK))
 
     async def main() -> dict:
         stats = {"chunks": 0, "lost": 0, "reordered": 0, "rtts": [], "fps": []}
@@ -198,7 +200,7 @@ def run_soak(server: ServerProcess, sessions: int, cfg: ServeBenchConfig,
                 await asyncio.sleep(10)
 
         sampler = asyncio.create_task(sample())
-        await asyncio.gather(*(_client(server.url, cfg.soak_seconds, cfg.seed + 100 + i, stats)
+        await asyncio.gather(*(_client(server.url, seconds, cfg.seed + 100 + i, stats)
                                for i in range(sessions)))
         sampler.cancel()
         return stats
@@ -208,14 +210,14 @@ def run_soak(server: ServerProcess, sessions: int, cfg: ServeBenchConfig,
     settled = rss[rss[:, 0] >= 60] if (rss[:, 0] >= 60).sum() >= 2 else rss
     slope = float(np.polyfit(settled[:, 0] / 60.0, settled[:, 1], 1)[0]) if len(settled) >= 2 else float("nan")
     rtts = np.concatenate(stats["rtts"]) * 1000
-    result = {"sessions": sessions, "seconds": cfg.soak_seconds, "chunks": stats["chunks"],
+    result = {"sessions": sessions, "seconds": seconds, "chunks": stats["chunks"],
               "lost": stats["lost"], "reordered": stats["reordered"],
               "p50_ms": float(np.percentile(rtts, 50)), "p99_ms": float(np.percentile(rtts, 99)),
               "min_fps": float(min(stats["fps"])),
               "rss_mb_first": float(settled[0, 1]), "rss_mb_last": float(settled[-1, 1]),
               "rss_mb_max": float(rss[:, 1].max()), "rss_slope_mb_per_min": slope,
               "rss_samples": rss.tolist()}
-    log(f"soak: {sessions} sessions x {cfg.soak_seconds:.0f} s, {result['chunks']} chunks, "
+    log(f"soak: {sessions} sessions x {seconds:.0f} s, {result['chunks']} chunks, "
         f"{result['lost']} lost, {result['reordered']} reordered, p99 {result['p99_ms']:.1f} ms, "
         f"RSS {result['rss_mb_first']:.0f} -> {result['rss_mb_last']:.0f} MB")
     return result

@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from sarah_cli.arguments import HelpFormatter
+
 
 def build_parser() -> argparse.ArgumentParser:
     from sarah_bench.config import BenchConfig
@@ -13,7 +15,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     defaults = BenchConfig()
     parser = argparse.ArgumentParser(
-        prog="sarah-bench", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        prog="sarah-bench", formatter_class=HelpFormatter,
         description="Measure prep real-time factor, loader throughput, offline and streaming "
                     "generation (paper and tiny sizes, random weights) and HuBERT-Large "
                     "streaming cost, each against a naive reference in the same run; print a "

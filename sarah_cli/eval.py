@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from sarah_cli.arguments import HelpFormatter
+
 EXIT_ERROR = 2
 
 
@@ -38,7 +40,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = EvalConfig()
     parser = argparse.ArgumentParser(
-        prog="sarah-eval", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        prog="sarah-eval", formatter_class=HelpFormatter,
         description="Evaluate GT, the Random and NN baselines and a trained run on a split's "
                     "non-overlapping T-frame windows (paper sec. 4 and A.2). Writes "
                     "table1.md/.json, table2.md/.json, windows.json and plots/*.png to --out.")

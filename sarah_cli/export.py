@@ -11,7 +11,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import non_negative_int, positive_int
+from sarah_cli.arguments import HelpFormatter, non_negative_int, positive_int
 
 EXIT_ERROR = 2
 FORMATS = ("smplx", "bvh")
@@ -31,7 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
     from sarah_data.export.smplx_params import UP_AXES
 
     parser = argparse.ArgumentParser(
-        prog="sarah-export", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        prog="sarah-export", formatter_class=HelpFormatter,
         description="Write motion as SMPL-X parameters in the AMASS layout (.smplx.npz: poses, "
                     "trans, betas, gender, mocap_frame_rate, root_orient, pose_body, pose_hand, "
                     "pose_jaw, pose_eye) and as a BVH of the SMPL-X skeleton. The exported body "

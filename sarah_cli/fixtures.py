@@ -6,13 +6,14 @@ import argparse
 import sys
 from pathlib import Path
 
+from sarah_cli.arguments import HelpFormatter
 from sarah_data.fixtures.dyads import FixtureConfig, make_fixtures
 
 
 def build_parser() -> argparse.ArgumentParser:
     defaults = FixtureConfig()
     parser = argparse.ArgumentParser(
-        prog="sarah-fixtures", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        prog="sarah-fixtures", formatter_class=HelpFormatter,
         description="Write generated two-person sequences as Embody 3D lays them out: "
                     "OUT/aiagent/ (dataset.json + per-person .npy/.wav), OUT/body_models/ "
                     "(the procedural body model) and OUT/fixture_truth.json/.npz (what the "
@@ -26,7 +27,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--body-model", type=Path, default=None,
                         help="copy this SMPL-X-format .npz into OUT/body_models/ instead of writing "
                              "the procedural body model")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--no-progress", "--quiet", dest="quiet", action="store_true",
+                        help="no progress bar (--quiet is the same)")
     return parser
 
 

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import non_negative_int
+from sarah_cli.arguments import HelpFormatter, non_negative_int
 from sarah_models.accel import MODE_HELP, MODES
 
 EXIT_ERROR = 2
@@ -62,7 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = StreamConfig()
     parser = argparse.ArgumentParser(
-        prog="sarah-generate", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        prog="sarah-generate", formatter_class=HelpFormatter,
         description="Generate the agent's motion causally, 4 frames at a time, from a trained run. "
                     "Inputs: a shard window (--shards --sequence --agent) or raw files "
                     "(--user-trajectory --agent-audio --user-audio). Writes motion.npz, "
@@ -74,21 +74,24 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--gaze", default=str(d.gaze),
                         help="target gaze score in [-1, 1], or 'none' to drop it")
     parser.add_argument("--steps", type=int, default=d.steps, help="solver steps per chunk")
-    parser.add_argument("--solver", choices=("midpoint", "euler"), default=d.solver)
+    parser.add_argument("--solver", choices=("midpoint", "euler"), default=d.solver,
+                        help="ODE solver (midpoint: 2 network evaluations per step)")
     parser.add_argument("--cfg", type=float, default=d.cfg_scale, help="guidance scale w")
     parser.add_argument("--history", type=_history, default=d.history_tokens,
                         help="history tokens kept (or 'all')")
-    parser.add_argument("--seed", type=int, default=d.seed)
+    parser.add_argument("--seed", type=int, default=d.seed,
+                        help="noise seed: the same seed and inputs give the same motion")
     parser.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     parser.add_argument("--offline", action="store_true",
                         help="the offline protocol: all tokens denoised jointly")
-    parser.add_argument("--no-animation", action="store_true", help="skip skeleton.gif")
+    parser.add_argument("--no-animation", action="store_true",
+                        help="skip skeleton.gif (drawing it takes most of a short run)")
     parser.add_argument("--speed", choices=MODES, default="fp32",
                         help="inference fast path: " + "; ".join(f"{k}: {v}" for k, v in MODE_HELP.items())
                              + " (int8 stays within 1 mm of fp32; see docs/performance.md)")
     shard = parser.add_argument_group("shard input")
     shard.add_argument("--shards", type=Path, default=None, help="shards folder")
-    shard.add_argument("--split", default="test")
+    shard.add_argument("--split", default="test", help="split of --shards to take the window from")
     shard.add_argument("--sequence", default=None, help="sequence name (default: the split's first)")
     shard.add_argument("--agent", default=None,
                        help="person generated as the agent (default: the sequence's first)")

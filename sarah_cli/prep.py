@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from sarah_data.config import PrepConfig
+from sarah_cli.arguments import HelpFormatter
 
 EXIT_NOTHING_WRITTEN = 1
 EXIT_USAGE = 2
@@ -17,7 +18,7 @@ EXIT_STRICT_SKIPS = 3
 def build_parser() -> argparse.ArgumentParser:
     defaults = PrepConfig()
     parser = argparse.ArgumentParser(
-        prog="sarah-prep", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        prog="sarah-prep", formatter_class=HelpFormatter,
         description="Turn Embody 3D dyadic captures into HDF5 shards: `sarah-prep raw/ shards/`. "
                     "Bad sequences are reported (terminal and shards/report.json) and skipped.")
     parser.add_argument("paths", nargs="+", type=Path,
@@ -42,6 +43,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--max-shard-mb", type=float, default=defaults.max_shard_bytes / 2**20,
                         help="a shard file closes once it holds about this many MiB")
     parser.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
+    parser.add_argument("--sections", default=None,
+                        help="comma list of section folder names to prepare (e.g. aiagent); default: all found")
     parser.add_argument("--strict", action="store_true", help="exit non-zero when any input was skipped")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
@@ -85,14 +88,16 @@ def main(argv: list[str] | None = None) -> int:
     try:
         result = prepare(args.paths[:-1], args.paths[-1], config, body_model=args.body_model,
                          jobs=args.jobs, executor=args.executor, ray_address=args.ray_address,
-                         progress=not args.no_progress)
+                         progress=not args.no_progress,
+                         sections=[n.strip() for n in args.sections.split(",") if n.strip()]
+                         if args.sections else None)
     except PrepError as error:
         print(f"sarah-prep: error: {error}", file=sys.stderr)
         return EXIT_USAGE
     hours = ", ".join(f"{name} {h:.2f} h" for name, h in result.hours.items())
     rate = result.dyad_seconds / max(result.wall_seconds, 1e-9)
     print(f"sarah-prep: wrote {len(result.written)} sequences ({hours}) in {len(result.shards)} shard files "
-          f"to {args.paths[-1]}; skipped {len(result.skipped)} (see report.json); "
+          f"to {args.paths[-1]}; left out {len(result.skipped)} (see report.json); "
           f"{result.wall_seconds:.1f} s, {rate:.0f}x real time")
     if not result.written:
         return EXIT_NOTHING_WRITTEN

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from sarah_models.accel import MODE_HELP, MODES
+from sarah_cli.arguments import HelpFormatter
 
 EXIT_ERROR = 2
 
@@ -19,7 +20,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     d, s = StreamConfig(), ServeConfig()
     parser = argparse.ArgumentParser(
-        prog="sarah-serve", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        prog="sarah-serve", formatter_class=HelpFormatter,
         description="Serve a trained run: each WebSocket connection is one streaming session "
                     "(protocol: docs/protocol.md); http://HOST:PORT/ is a browser page that "
                     "drives it. With --client URL, stream --user-trajectory, --agent-audio and "
@@ -49,7 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
     client.add_argument("--agent-audio", type=Path, help="agent's audio file")
     client.add_argument("--user-audio", type=Path, help="user's audio file")
     client.add_argument("--gaze", default=str(d.gaze), help="target gaze score, or 'none'")
-    client.add_argument("--seed", type=int, default=d.seed)
+    client.add_argument("--seed", type=int, default=d.seed, help="noise seed of the session")
     client.add_argument("--chunk-frames", type=int, default=4, help="frames per chunk (a multiple of 4)")
     client.add_argument("--out", type=Path, help="output folder for motion.npz")
     return parser

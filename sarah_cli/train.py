@@ -10,13 +10,14 @@ import sys
 from pathlib import Path
 
 from sarah_models.config import PRESETS, RunConfig
+from sarah_cli.arguments import HelpFormatter
 
 EXIT_ERROR = 2
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog="sarah-train", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        prog="sarah-train", formatter_class=HelpFormatter,
         description="Staged training of SARAH's motion models: `vae` (causal VAE), then `flow` "
                     "(causal flow matcher on the frozen VAE's latents), or `all` for both. "
                     "Writes OUT/config.json, OUT/vae.pt, OUT/flow.pt, *_log.jsonl and *_loss.png. "
@@ -80,6 +81,11 @@ def main(argv: list[str] | None = None) -> int:
         for problem in device_problems(args.device):
             print(f"sarah-train: error: {problem}", file=sys.stderr)
             return EXIT_ERROR
+    import torch
+
+    if args.config == "paper" and (args.device or ("cuda" if torch.cuda.is_available() else "cpu")) == "cpu":
+        print("sarah-train: note: training the paper-size model on a CPU (many seconds per step); "
+              "--config tiny is the preset for CPUs", file=sys.stderr)
     from sarah_data.loading import DataProblem
     from sarah_models.training.distributed import cleanup_distributed, is_main_process
     from sarah_models.training.model_file import MODEL_FILE, write_model_file

@@ -57,8 +57,9 @@ class PrepResult:
         return sum(self.hours.values()) * 3600.0
 
 
-def find_sections(inputs: list[Path]) -> list[Path]:
-    """Section folders (holding a dataset.json) among the inputs and their direct subfolders."""
+def find_sections(inputs: list[Path], only: list[str] | None = None) -> list[Path]:
+    """Section folders (holding a dataset.json) among the inputs and their direct subfolders;
+    with ``only``, those of these folder names (PrepError naming any that is not there)."""
     sections = []
     for folder in inputs:
         folder = Path(folder)
@@ -70,6 +71,13 @@ def find_sections(inputs: list[Path]) -> list[Path]:
     if not sections:
         raise PrepError(f"{', '.join(map(str, inputs))}: no dataset.json found (expected an Embody 3D "
                         "section folder such as raw/aiagent/ with its dataset.json, or its parent)")
+    if only:
+        names = {p.name for p in sections}
+        missing = [name for name in only if name not in names]
+        if missing:
+            raise PrepError(f"--sections {', '.join(missing)}: not found; the inputs hold "
+                            f"{', '.join(sorted(names))}")
+        sections = [p for p in sections if p.name in only]
     return sections
 
 
@@ -95,7 +103,8 @@ def resolve_body_model(inputs: list[Path], explicit: str | None) -> Path:
 
 def prepare(inputs: list[Path] | Path, out_dir: Path, config: PrepConfig = PrepConfig(), *,
             body_model: str | None = None, jobs: int = 1, executor: str | Executor = "process",
-            ray_address: str | None = None, progress: bool = True, log=print) -> PrepResult:
+            ray_address: str | None = None, progress: bool = True, log=print,
+            sections: list[str] | None = None) -> PrepResult:
     """Run the whole pipeline; bad sequences are reported and skipped, never fatal."""
     from .shards import Manifest, SourceFile, write_manifest
     from .stats import merge_moments, write_stats
@@ -106,16 +115,18 @@ def prepare(inputs: list[Path] | Path, out_dir: Path, config: PrepConfig = PrepC
     started = time.perf_counter()
     inputs = [Path(p) for p in ([inputs] if isinstance(inputs, (str, Path)) else inputs)]
     out_dir = Path(out_dir)
-    sections = find_sections(inputs)
+    section_dirs = find_sections(inputs, sections)
     model_path = resolve_body_model(inputs, body_model)
     model_sha = file_sha256(model_path)
-    corpus = read_corpus(sections)
+    corpus = read_corpus(section_dirs)
     result = PrepResult()
+    section_of = _section_namer(section_dirs)
     for problem in corpus.problems:
-        _skip(result, log, {"path": str(problem.path), "reason": problem.reason, "kind": "unreadable"})
+        _skip(result, log, {"path": str(problem.path), "reason": problem.reason, "kind": "unreadable",
+                            "section": section_of(problem.path)})
     for skip in corpus.skipped:
         _skip(result, log, {"sequence": skip.sequence, "path": str(skip.path), "reason": skip.reason,
-                            "kind": skip.kind})
+                            "kind": skip.kind, "section": section_of(skip.path)})
 
     splits = split_sessions(session_frames_of(corpus.pairs), config.split_fractions, config.split_seed)
     split_of = {session: name for name, sessions in splits.items() for session in sessions}
@@ -142,8 +153,12 @@ def prepare(inputs: list[Path] | Path, out_dir: Path, config: PrepConfig = PrepC
             done[split_of[pair.session]].append(pair)
             sources[pair.sequence] = task.sources
         else:
-            _skip(result, log, {"sequence": pair.sequence, "reason": task.reason, "kind": task.status,
+            kind = "no-audio" if task.reason.endswith(": no audio") else task.status
+            _skip(result, log, {"sequence": pair.sequence, "reason": task.reason, "kind": kind,
+                                "section": section_of(pair.folder),
                                 **({"traceback": task.detail} if task.detail else {})})
+    for line in skip_summary(result.skipped):
+        log(line)
 
     result.shards = [asdict(info) for info in shards]
     result.written = [p.sequence for name in SPLITS for p in done[name]]
@@ -157,7 +172,8 @@ def prepare(inputs: list[Path] | Path, out_dir: Path, config: PrepConfig = PrepC
         moments = assembler.moments
         write_stats(out_dir, merge_moments([moments[name] for name in sorted(moments)],
                                            sorted(assembler.attrs.extractors)), len(moments))
-    report = {"written": len(result.written), "skipped": result.skipped}
+    report = {"written": len(result.written), "skipped": result.skipped,
+              "skipped_counts": skip_counts(result.skipped)}
     atomic_write_bytes(out_dir / "report.json", (json.dumps(report, indent=2, sort_keys=True) + "\n").encode(),
                        durable=True)
     shutil.rmtree(work_dir, ignore_errors=True)
@@ -216,11 +232,64 @@ def _reusable(work_dir: Path, pair: PairRecord, split: str, model_sha: str, conf
     return TaskResult(**{k: v for k, v in saved.items() if k in fields})
 
 
+SKIP_LINES = 20  # skipped inputs named one per line; past this, counts (report.json has them all)
+
+
+def _section_namer(section_dirs: list[Path]):
+    resolved = [(d.resolve(), d.name) for d in section_dirs]
+
+    def section_of(path) -> str:
+        path = Path(path).resolve()
+        for folder, name in resolved:
+            if path == folder or folder in path.parents:
+                return name
+        return ""
+
+    return section_of
+
+
 def _skip(result: PrepResult, log, entry: dict) -> None:
     result.skipped.append(entry)
+    if entry["kind"] == "no-audio":
+        return  # expected in Embody 3D: counted in the summary, not a line each
+    shown = sum(1 for e in result.skipped if e["kind"] != "no-audio")
+    if shown > SKIP_LINES:
+        return
     where = entry.get("sequence") or entry.get("path")
     reason = entry["reason"]
     log(f"skipped: {reason}" if where and str(where) in reason else f"skipped: {where}: {reason}")
+    if shown == SKIP_LINES:
+        log("(further skipped inputs are counted below; report.json lists every one)")
+
+
+def skip_counts(skipped: list[dict]) -> dict[str, dict[str, int]]:
+    """Skipped inputs counted by kind and by section (sorted, for the report)."""
+    by_kind: dict[str, int] = {}
+    by_section: dict[str, int] = {}
+    for entry in skipped:
+        by_kind[entry["kind"]] = by_kind.get(entry["kind"], 0) + 1
+        section = entry.get("section") or "(no section)"
+        by_section[section] = by_section.get(section, 0) + 1
+    return {"by_kind": dict(sorted(by_kind.items())), "by_section": dict(sorted(by_section.items()))}
+
+
+def skip_summary(skipped: list[dict]) -> list[str]:
+    """The lines that end a run's report of what it left out."""
+    if not skipped:
+        return []
+    counts = skip_counts(skipped)
+    lines = []
+    no_audio = counts["by_kind"].get("no-audio", 0)
+    if no_audio:
+        lines.append(f"note: {no_audio} sequence{'s' if no_audio > 1 else ''} without audio left out "
+                     f"(Embody 3D has such captures; the model needs both voices)")
+    others = skip_counts([e for e in skipped if e["kind"] != "no-audio"])
+    if others["by_kind"]:
+        lines.append(f"skipped {sum(others['by_kind'].values())} inputs by reason: "
+                     + ", ".join(f"{k} {v}" for k, v in others["by_kind"].items())
+                     + "; by section: " + ", ".join(f"{k} {v}" for k, v in others["by_section"].items())
+                     + " (report.json lists each)")
+    return lines
 
 
 def _remove_temporaries(out_dir: Path) -> None:

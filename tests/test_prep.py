@@ -298,3 +298,32 @@ def test_paths_are_checked_before_any_work(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and message in err[0], (argv, err)
     assert a_file.read_text() == "not a folder" and not (tmp_path / "out").exists()
+
+
+def test_many_skips_are_counted_by_reason_and_section(prep_raw_dir, tmp_path, capsys):
+    """A folder with many unusable entries prints at most 20 of them, then counts by reason and
+    section; report.json keeps every one; --sections picks sections by name (#19 item 3)."""
+    raw = tmp_path / "raw"
+    shutil.copytree(prep_raw_dir, raw)
+    crowd = {f"not-a-sequence-name-{i:02d}": {"length": 10, "id": i, "text": None,
+                                              "multiperson": ["YYY888"], "audio": None}
+             for i in range(25)}
+    (raw / "crowd").mkdir()
+    (raw / "crowd" / "dataset.json").write_text(json.dumps({"ZZZ999": crowd}))
+    assert prep_main([str(raw), str(tmp_path / "all"), "-j", "1", "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert printed.count("skipped: ") == 20 and "report.json lists every one" in printed
+    assert "skipped 25 inputs by reason: malformed-name 25; by section: crowd 25" in printed
+    report = json.loads((tmp_path / "all" / "report.json").read_text())
+    assert report["skipped_counts"]["by_section"]["crowd"] == 25
+    assert sum(1 for s in report["skipped"] if s["section"] == "crowd") == 25
+    no_audio = report["skipped_counts"]["by_kind"].get("no-audio", 0)
+    assert (f"note: {no_audio} sequence" in printed) == bool(no_audio)
+    # Only the named section: none of the crowd's entries are read.
+    assert prep_main([str(raw), str(tmp_path / "one"), "-j", "1", "--no-progress",
+                      "--sections", "aiagent"]) == 0
+    assert "crowd" not in capsys.readouterr().out
+    assert prep_main([str(raw), str(tmp_path / "none"), "--no-progress", "--sections", "nope"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--sections nope: not found; the inputs hold aiagent, crowd" in err[0]
+    assert not (tmp_path / "none").exists()
