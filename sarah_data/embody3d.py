@@ -26,7 +26,8 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from sarah_data.constants import AUDIO_SAMPLE_RATE, SAMPLES_PER_FRAME, SMPLX_PARAM_WIDTHS
-from sarah_data.loading import DataProblem, load_mask, load_npy, load_wav
+from sarah_data.loading import (DataProblem, fill_nonfinite_frames, format_frames, load_mask, load_npy,
+                                load_wav, nonfinite_frames)
 from sarah_data.sequence_names import SequenceName, parse_sequence_name
 
 __all__ = [
@@ -380,6 +381,9 @@ class PersonArrays:
     valid: np.ndarray  # (T,) bool: True = good tracking
     audio: np.ndarray | None  # (T*1600,) float32 at 48 kHz
     warnings: list[str] = field(default_factory=list)
+    # Frames with NaN/inf parameters: "tracked" ones were marked untracked, "untracked" ones were
+    # untracked already (both filled with finite values).
+    nonfinite: dict[str, int] = field(default_factory=lambda: {"tracked": 0, "untracked": 0})
 
     @property
     def length(self) -> int:
@@ -398,14 +402,34 @@ def load_person(pair: PairRecord, person: str) -> PersonArrays:
         raise ValueError(f"{person!r} is not a person of {pair.sequence} "
                          f"(persons: {', '.join(pair.persons)})")
     files = pair.files[person]
-    params = {PARAM_KEYS[folder]: load_npy(files.params[folder], (width,), "f", pair.length)
+    params = {PARAM_KEYS[folder]: load_npy(files.params[folder], (width,), "f", pair.length,
+                                           check_finite=False)
               for folder, width in SMPLX_PARAM_WIDTHS.items()}
     valid = load_mask(files.missing, pair.length)
     audio, warnings = None, []
+    # Untracked frames may hold anything (upstream promises nothing there); a NaN or inf in a
+    # tracked frame makes that frame untracked instead of costing the whole sequence. Either
+    # way the values are replaced by the nearest earlier finite frame, so every array is finite.
+    counts = {"tracked": 0, "untracked": 0}
+    for folder in SMPLX_PARAM_WIDTHS:
+        key = PARAM_KEYS[folder]
+        bad = nonfinite_frames(params[key])
+        if not bad.size:
+            continue
+        tracked = bad[valid[bad]]
+        counts["tracked"] += int(tracked.size)
+        counts["untracked"] += int(bad.size - tracked.size)
+        if tracked.size:
+            valid = valid.copy()
+            valid[tracked] = False
+            warnings.append(f"{files.params[folder]}: NaN/inf in tracked frames {format_frames(tracked)}; "
+                            f"those frames are marked untracked")
+        params[key] = fill_nonfinite_frames(params[key], bad)
     if files.audio is not None:
         path = _existing_audio(files.audio)
         if not path.exists():
             raise DataProblem(path, _missing_audio_reason(path))
-        audio, warnings = load_wav(path, AUDIO_SAMPLE_RATE, pair.length * SAMPLES_PER_FRAME,
-                                   tolerance=SAMPLES_PER_FRAME)
-    return PersonArrays(pair.sequence, person, params, valid, audio, warnings)
+        audio, audio_warnings = load_wav(path, AUDIO_SAMPLE_RATE, pair.length * SAMPLES_PER_FRAME,
+                                         tolerance=SAMPLES_PER_FRAME)
+        warnings += audio_warnings
+    return PersonArrays(pair.sequence, person, params, valid, audio, warnings, counts)

@@ -120,13 +120,14 @@ def load_npy(path: Path | str, expected_shape_tail: tuple[int, ...], dtype_kind:
     if not array.dtype.isnative:  # torch and most kernels want native byte order
         array = array.astype(array.dtype.newbyteorder("="))
     if check_finite and dtype.kind in "fc":
-        bad = _nonfinite_frames(array)
+        bad = nonfinite_frames(array)
         if bad.size:
             raise DataProblem(path, f"NaN/inf values in frames {format_frames(bad)}")
     return array
 
 
-def _nonfinite_frames(array: np.ndarray) -> np.ndarray:
+def nonfinite_frames(array: np.ndarray) -> np.ndarray:
+    """Indices of the frames (first axis) holding any NaN or infinite value."""
     bad = []
     for start in range(0, array.shape[0], FINITE_CHECK_CHUNK):
         chunk = np.asarray(array[start:start + FINITE_CHECK_CHUNK])
@@ -231,3 +232,16 @@ def _fit_length(path: Path, audio: np.ndarray, expected: int, tolerance: int,
         audio = audio[:expected]
         warnings.append(f"{path}: audio {diff} samples long; trimmed to {expected}")
     return audio
+
+
+def fill_nonfinite_frames(array: np.ndarray, bad: np.ndarray) -> np.ndarray:
+    """A copy of ``array`` whose ``bad`` frames hold the nearest earlier finite frame (the first
+    finite frame for a leading run; zeros when no frame is finite)."""
+    out = np.array(array)
+    good = np.setdiff1d(np.arange(len(out)), bad)
+    if good.size == 0:
+        out[...] = 0
+        return out
+    source = good[np.clip(np.searchsorted(good, bad, side="right") - 1, 0, None)]
+    out[bad] = out[source]
+    return out

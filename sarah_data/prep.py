@@ -172,8 +172,13 @@ def prepare(inputs: list[Path] | Path, out_dir: Path, config: PrepConfig = PrepC
         moments = assembler.moments
         write_stats(out_dir, merge_moments([moments[name] for name in sorted(moments)],
                                            sorted(assembler.attrs.extractors)), len(moments))
+    nonfinite = {seq: task.nonfinite for seq, task in sorted(results.items())
+                 if task.status == "ok" and any(task.nonfinite.values())}
     report = {"written": len(result.written), "skipped": result.skipped,
-              "skipped_counts": skip_counts(result.skipped)}
+              "skipped_counts": skip_counts(result.skipped),
+              "nonfinite_frames": {"tracked_marked_untracked": sum(n["tracked"] for n in nonfinite.values()),
+                                   "untracked": sum(n["untracked"] for n in nonfinite.values()),
+                                   "sequences": nonfinite}}
     atomic_write_bytes(out_dir / "report.json", (json.dumps(report, indent=2, sort_keys=True) + "\n").encode(),
                        durable=True)
     shutil.rmtree(work_dir, ignore_errors=True)

@@ -31,7 +31,7 @@ from .shards import (ProcessedSequence, ShardAttrs, atomic_h5, create_group,
                      file_sha256, write_sequence)
 
 _MODELS: dict[tuple, object] = {}  # per process: loading a body model or HuBERT once is enough
-WORK_FORMAT = 2  # 1: npz arrays; 2: one-sequence shard file + statistics moments
+WORK_FORMAT = 3  # 1: npz arrays; 2: one-sequence shard file + statistics moments; 3: + body shape, NaN repair
 MOMENTS_GROUP = ".moments"  # in a work file; sequence names never start with "."
 
 
@@ -45,6 +45,9 @@ class TaskResult:
     frames: int = 0
     warnings: list[str] = field(default_factory=list)
     sources: list[dict] = field(default_factory=list)  # path, bytes, sha256 of every input file
+    # Frames with NaN/inf parameters, both persons: tracked ones (now marked untracked) and
+    # untracked ones (allowed); embody3d.load_person fills both with finite values.
+    nonfinite: dict[str, int] = field(default_factory=lambda: {"tracked": 0, "untracked": 0})
     detail: str = ""
 
 
@@ -96,8 +99,9 @@ def jsonable(value):
 
 
 def process_pair(pair: PairRecord, body_model_path: str, config: PrepConfig
-                 ) -> tuple[dict[str, np.ndarray], list[str]]:
-    """Both persons' arrays for one dyad, keyed "<person>/<name>", and the loader's warnings.
+                 ) -> tuple[dict[str, np.ndarray], list[str], dict[str, int]]:
+    """Both persons' arrays for one dyad, keyed "<person>/<name>", the loader's warnings and the
+    count of frames with non-finite parameters (``PersonArrays.nonfinite``, summed).
 
     Raises DataProblem for bad input.
     """
@@ -135,7 +139,8 @@ def process_pair(pair: PairRecord, body_model_path: str, config: PrepConfig
         for name in config.extractors:
             arrays[prefix + f"audio/{name}"] = _extractor(name, config).extract(
                 arrays_in.audio, pair.length).astype(np.float32, copy=False)
-    return arrays, warnings
+    nonfinite = {key: sum(p.nonfinite[key] for p in people) for key in ("tracked", "untracked")}
+    return arrays, warnings, nonfinite
 
 
 def person_betas(betas: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, float]:
@@ -169,7 +174,7 @@ def run_task(pair: PairRecord, split: str, body_model_path: str, body_model_sha:
         result.sources = [{"path": str(p), "bytes": p.stat().st_size, "sha256": file_sha256(p)}
                           for person in pair.persons for p in pair.files[person].paths()
                           if p.exists()]
-        arrays, result.warnings = process_pair(pair, body_model_path, config)
+        arrays, result.warnings, result.nonfinite = process_pair(pair, body_model_path, config)
         gender = _body_model(body_model_path, config).gender
         seq = ProcessedSequence.from_arrays(pair.sequence, session=pair.session, split=split,
                                             persons=list(pair.persons), arrays=arrays,

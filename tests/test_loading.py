@@ -325,3 +325,21 @@ def test_corrupted_wav_never_escapes_as_another_error(data):
             assert problem.path == path and "\n" not in str(problem)
         else:
             assert x.shape == (N,) and x.dtype == np.float32
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.sampled_from([0.0, 1.5, np.nan, np.inf]), min_size=1, max_size=12))
+def test_fill_nonfinite_frames_holds_the_nearest_earlier_finite_frame(values):
+    from sarah_data.loading import fill_nonfinite_frames, nonfinite_frames
+
+    array = np.stack([np.array(values), np.arange(len(values), dtype=float)], 1)
+    bad = nonfinite_frames(array)
+    filled = fill_nonfinite_frames(array, bad)
+    assert np.isfinite(filled).all()
+    good = np.setdiff1d(np.arange(len(values)), bad)
+    np.testing.assert_array_equal(filled[good], array[good])  # finite frames untouched
+    for frame in bad:
+        earlier = good[good < frame]
+        source = earlier[-1] if earlier.size else (good[0] if good.size else None)
+        expected = array[source] if source is not None else np.zeros(2)
+        np.testing.assert_array_equal(filled[frame], expected)

@@ -16,6 +16,8 @@ import torch
 
 from sarah_cli.prep import main as prep_main
 from sarah_data.dataset import WindowDataset
+from sarah_data.loading import load_mask
+from sarah_data.shards import ShardSet
 from sarah_data.verify import verify_shards
 from sarah_data.splits import split_sessions
 
@@ -108,23 +110,39 @@ def test_bad_input_is_reported_and_the_rest_is_written(prep_raw_dir, tmp_path, c
     person = sorted(p.name for p in (raw / "aiagent" / broken).iterdir() if p.is_dir())[0]
     pose = raw / "aiagent" / broken / person / "smplx_mesh_body_pose" / f"{broken}.npy"
     pose.write_bytes(pose.read_bytes()[:200])  # truncated
+    # NaN/inf: in a tracked frame it makes that frame untracked; in an untracked frame it is
+    # allowed (#19 item 4). Neither costs the sequence.
     person2 = sorted(p.name for p in (raw / "aiagent" / nan_seq).iterdir() if p.is_dir())[1]
-    transl_path = raw / "aiagent" / nan_seq / person2 / "smplx_mesh_transl" / f"{nan_seq}.npy"
+    folder = raw / "aiagent" / nan_seq / person2
+    transl_path = folder / "smplx_mesh_transl" / f"{nan_seq}.npy"
+    valid = load_mask(folder / "missing" / f"{nan_seq}.npy")
+    tracked, untracked = int(np.flatnonzero(valid)[5]), np.flatnonzero(~valid)
     transl = np.load(transl_path)
-    transl[5] = np.nan
+    transl[tracked] = np.nan
+    pose2 = folder / "smplx_mesh_body_pose" / f"{nan_seq}.npy"
+    body = np.load(pose2)
+    if untracked.size:
+        body[untracked[0]] = np.inf
     np.save(transl_path, transl)
+    np.save(pose2, body)
 
     out = tmp_path / "shards"
     assert prep_main([str(raw), str(out), "-j", "1", "--no-progress"]) == 0
     printed = capsys.readouterr().out
-    assert str(pose) in printed and str(transl_path) in printed and "Traceback" not in printed
+    assert str(pose) in printed and f"{transl_path}: NaN/inf in tracked frames {tracked}" in printed
+    assert "Traceback" not in printed
     report = json.loads((out / "report.json").read_text())
     reasons = {s["sequence"]: s["reason"] for s in report["skipped"]}
-    assert str(pose) in reasons[broken] and "NaN" in reasons[nan_seq] or "inf" in reasons[nan_seq]
+    assert str(pose) in reasons[broken] and nan_seq not in reasons
+    assert report["nonfinite_frames"]["sequences"][nan_seq] == {"tracked": 1, "untracked": int(untracked.size > 0)}
     manifest = json.loads((out / "manifest.json").read_text())
-    assert broken not in manifest["sequences"] and nan_seq not in manifest["sequences"]
-    assert len(manifest["sequences"]) == len(sequences) - 2
+    assert broken not in manifest["sequences"] and nan_seq in manifest["sequences"]
+    assert len(manifest["sequences"]) == len(sequences) - 1
     assert verify_shards(out) == []
+    shards = ShardSet(out)
+    group = shards.group(nan_seq)[person2]
+    assert not group["valid"][tracked] and np.isfinite(group["icosahedra"][()]).all()
+    shards.close()
     assert prep_main([str(raw), str(tmp_path / "strict"), "-j", "1", "--no-progress", "--strict"]) != 0
 
 
