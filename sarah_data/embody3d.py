@@ -19,7 +19,7 @@ from __future__ import annotations
 import json
 import os
 from collections import Counter, defaultdict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path, PurePosixPath
 
@@ -101,6 +101,7 @@ class PairRecord:
     length: int  # frames at 30 fps; == end - start + 1
     persons: tuple[str, str]  # sorted subject ids
     files: dict[str, PersonFiles]  # keyed by subject id
+    notes: tuple[str, ...] = ()  # what the reader did beyond the manifest (e.g. audio found on disk)
 
     @property
     def has_audio(self) -> bool:
@@ -306,6 +307,13 @@ def _make_pair(folder: Path, sequence: str, listed: list[tuple[str, object]],
         raise _SkipSequence("length-mismatch", f"length {e1.length} in dataset.json, but the "
                                                f"name's frame range {name.start}-{name.end} "
                                                f"gives {name.length}")
+    # "audio": null may mean "missed in the upload, to be added later" (upstream): files that are
+    # on disk where the audio belongs are used, and said so.
+    found = {s: _unlisted_audio(folder, sequence, s) for s, e in ((s1, e1), (s2, e2)) if e.audio is None}
+    notes = tuple(f"{sequence}/{s}: dataset.json lists no audio, but {path} is there; using it"
+                  for s, path in sorted(found.items()) if path is not None)
+    e1, e2 = (replace(e, audio=str(found[s])) if found.get(s) is not None else e
+              for s, e in ((s1, e1), (s2, e2)))
     if (e1.audio is None) != (e2.audio is None):
         has, lacks = (s1, s2) if e2.audio is None else (s2, s1)
         raise _SkipSequence("audio-mismatch", f"audio listed for {has} but not for {lacks}")
@@ -314,7 +322,13 @@ def _make_pair(folder: Path, sequence: str, listed: list[tuple[str, object]],
     files = {s: _person_files(folder, sequence, s, e.audio) for s, e in ((s1, e1), (s2, e2))}
     return PairRecord(sequence=sequence, folder=folder, session=name.session,
                       recorded=name.recorded, scene=name.scene, start=name.start, end=name.end,
-                      length=name.length, persons=(s1, s2), files=files)
+                      length=name.length, persons=(s1, s2), files=files, notes=notes)
+
+
+def _unlisted_audio(folder: Path, sequence: str, subject: str) -> Path | None:
+    """The wav a null manifest entry would have listed, when it is on disk."""
+    path = _existing_audio(folder / sequence / subject / AUDIO_FOLDERS[0] / f"{sequence}.wav")
+    return path if path.is_file() else None
 
 
 def _person_files(folder: Path, sequence: str, subject: str, audio: str | None) -> PersonFiles:

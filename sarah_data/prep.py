@@ -127,6 +127,9 @@ def prepare(inputs: list[Path] | Path, out_dir: Path, config: PrepConfig = PrepC
     for skip in corpus.skipped:
         _skip(result, log, {"sequence": skip.sequence, "path": str(skip.path), "reason": skip.reason,
                             "kind": skip.kind, "section": section_of(skip.path)})
+    notes = [note for pair in corpus.pairs for note in pair.notes]
+    for note in notes:
+        log(f"note: {note}")
 
     splits = split_sessions(session_frames_of(corpus.pairs), config.split_fractions, config.split_seed)
     split_of = {session: name for name, sessions in splits.items() for session in sessions}
@@ -175,7 +178,7 @@ def prepare(inputs: list[Path] | Path, out_dir: Path, config: PrepConfig = PrepC
     nonfinite = {seq: task.nonfinite for seq, task in sorted(results.items())
                  if task.status == "ok" and any(task.nonfinite.values())}
     report = {"written": len(result.written), "skipped": result.skipped,
-              "skipped_counts": skip_counts(result.skipped),
+              "skipped_counts": skip_counts(result.skipped), "notes": notes,
               "nonfinite_frames": {"tracked_marked_untracked": sum(n["tracked"] for n in nonfinite.values()),
                                    "untracked": sum(n["untracked"] for n in nonfinite.values()),
                                    "sequences": nonfinite}}

@@ -402,3 +402,22 @@ def test_scene_names_with_hyphens_parse():
     assert parsed.named_persons == ("AAA111", "BBB222") and parsed.length == 10
     with pytest.raises(ValueError, match="does not match"):
         parse_sequence_name(BASE.replace("AIAGENT_scene_009", "bad--scene"))
+
+
+def test_null_audio_with_files_on_disk_uses_them(tmp_path):
+    """Upstream: audio missed in the upload is listed as null and added later. When the wavs are
+    where they belong, the reader uses them and says so (#19 item 6)."""
+    name = variant(20)
+    entries = manifest_entries(name, 10, audio=False)
+    write_manifest(tmp_path, {name: entries})
+    write_sequence(tmp_path, name, audio=True)
+    corpus = read_corpus(tmp_path)
+    (pair,) = corpus.pairs
+    assert pair.has_audio and len(pair.notes) == 2
+    assert all("lists no audio" in note and "using it" in note for note in pair.notes)
+    # Without the files it stays a sequence without audio.
+    other = variant(21)
+    write_manifest(tmp_path / "b", {other: manifest_entries(other, 10, audio=False)})
+    write_sequence(tmp_path / "b", other, audio=False)
+    corpus = read_corpus(tmp_path / "b")
+    assert not corpus.pairs and corpus.skipped[0].kind == "no-audio"
