@@ -26,6 +26,10 @@ def build_parser() -> argparse.ArgumentParser:
                              "with --verify/--info, the shards folder")
     parser.add_argument("--verify", action="store_true", help="check a shards folder (checksums, schema, manifest)")
     parser.add_argument("--info", action="store_true", help="print a summary table of a shards folder")
+    parser.add_argument("--audit", action="store_true",
+                        help="report what the raw input folders hold, per section (tracked fraction, "
+                             "NaN/inf in tracked and untracked frames, audio lengths, dtypes, a warning "
+                             "when the tracking mask looks inverted); writes nothing")
     parser.add_argument("--body-model", default=None,
                         help="SMPL-X .npz (or the procedural one); default: the one file under "
                              "<input>/body_models/, else $SARAH_BODY_MODEL")
@@ -55,6 +59,23 @@ def _error(message: str) -> int:
     return EXIT_USAGE
 
 
+def _audit(args) -> int:
+    from sarah_data.audit import audit, format_audit
+    from sarah_data.prep import PrepError, find_sections
+
+    missing = [str(p) for p in args.paths if not p.is_dir()]
+    if missing:
+        return _error(f"{', '.join(missing)}: no such input folder")
+    try:
+        sections = find_sections(list(args.paths), [n.strip() for n in args.sections.split(",")
+                                                    if n.strip()] if args.sections else None)
+    except PrepError as error:
+        return _error(str(error))
+    results = audit(sections, log=lambda line: None if args.no_progress else print(line, file=sys.stderr))
+    print(format_audit(results))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.verify or args.info:
@@ -62,6 +83,8 @@ def main(argv: list[str] | None = None) -> int:
         if missing:
             return _error(f"{', '.join(missing)}: no such shards folder")
         return _inspect(args)
+    if args.audit:
+        return _audit(args)
     if len(args.paths) < 2:
         return _error("give the input folder(s) and then the output folder")
     out = args.paths[-1]

@@ -345,3 +345,28 @@ def test_many_skips_are_counted_by_reason_and_section(prep_raw_dir, tmp_path, ca
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--sections nope: not found; the inputs hold aiagent, crowd" in err[0]
     assert not (tmp_path / "none").exists()
+
+
+def test_audit_reports_each_section_and_warns_of_an_inverted_mask(prep_raw_dir, tmp_path, capsys):
+    """sarah-prep --audit (#19 item 5): per-section figures; masks read the wrong way round (here
+    inverted on disk, with NaNs where tracking failed) are flagged; nothing is written."""
+    raw = tmp_path / "raw"
+    shutil.copytree(prep_raw_dir, raw)
+    flipped = raw / "flipped"
+    shutil.copytree(raw / "aiagent", flipped)
+    for mask_path in flipped.glob("*/*/missing/*.npy"):
+        valid = load_mask(mask_path)
+        np.save(mask_path, (~valid).astype(np.uint8))  # 1 now marks the frames that failed
+        transl_path = mask_path.parent.parent / "smplx_mesh_transl" / mask_path.name
+        transl = np.load(transl_path)
+        transl[np.flatnonzero(valid)[:12]] = np.nan  # tracking failed where the old mask said good
+        np.save(transl_path, transl)
+    before = sorted(p.relative_to(raw) for p in raw.rglob("*"))
+    assert prep_main(["--audit", str(raw), "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    rows = {line.split("|")[1].strip(): line for line in out.splitlines() if line.startswith("| ")}
+    assert "aiagent" in rows and "flipped" in rows
+    assert "warning: flipped: only" in out and "is the mask inverted" in out
+    assert "warning: aiagent" not in out
+    assert sorted(p.relative_to(raw) for p in raw.rglob("*")) == before  # nothing written
+    assert prep_main(["--audit", str(tmp_path / "nowhere")]) == 2
