@@ -135,7 +135,7 @@ def _inspect(args) -> int:
     status = 0
     for folder in args.paths:
         if args.verify:
-            problems = verify_shards(folder)
+            problems = verify_shards(folder, body_model=args.body_model)
             for problem in problems:
                 print(f"{folder}: {problem}")
             print(f"{folder}: {'OK' if not problems else f'{len(problems)} problem(s)'}")

@@ -81,6 +81,22 @@ def find_sections(inputs: list[Path], only: list[str] | None = None) -> list[Pat
     return sections
 
 
+def check_same_body_model(out_dir: Path, model_path: Path, model_sha: str) -> None:
+    """A run into a folder that already holds shards must use the body model they were made with
+    (its sha256 is in their manifest): mixing two bodies in one corpus would go unnoticed."""
+    manifest = Path(out_dir) / "manifest.json"
+    if not manifest.is_file():
+        return
+    try:
+        recorded = json.loads(manifest.read_text())["config"]["body_model"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return  # not ours or unreadable: the run rewrites it
+    if recorded.get("sha256") != model_sha:
+        raise PrepError(f"{out_dir} holds shards made with body model {recorded.get('name')} "
+                        f"(sha256 {str(recorded.get('sha256'))[:12]}...), this run uses {model_path} "
+                        f"(sha256 {model_sha[:12]}...): use a new output folder, or that model")
+
+
 def resolve_body_model(inputs: list[Path], explicit: str | None) -> Path:
     """--body-model, else the one model file under <input>/body_models/, else $SARAH_BODY_MODEL."""
     if explicit:
@@ -89,6 +105,12 @@ def resolve_body_model(inputs: list[Path], explicit: str | None) -> Path:
             raise PrepError(f"{path}: body model file not found")
         return path
     found = sorted({p for folder in inputs for p in Path(folder).glob(f"{BODY_MODEL_FOLDER}/*.npz")})
+    if not found:
+        # The Embody 3D loader's layout: body_models/smplx_models_lockedhead/smplx/SMPLX_*.npz
+        # (the locked-head SMPL-X release); the neutral model when several genders are there.
+        nested = sorted({p for folder in inputs for p in Path(folder).glob(f"{BODY_MODEL_FOLDER}/**/*.npz")})
+        neutral = [p for p in nested if "neutral" in p.name.lower()]
+        found = neutral if len(neutral) == 1 else nested
     if len(found) == 1:
         return found[0]
     if len(found) > 1:
@@ -118,6 +140,7 @@ def prepare(inputs: list[Path] | Path, out_dir: Path, config: PrepConfig = PrepC
     section_dirs = find_sections(inputs, sections)
     model_path = resolve_body_model(inputs, body_model)
     model_sha = file_sha256(model_path)
+    check_same_body_model(out_dir, model_path, model_sha)
     corpus = read_corpus(section_dirs)
     result = PrepResult()
     section_of = _section_namer(section_dirs)

@@ -19,7 +19,7 @@ from sarah_data.splits import SPLITS
 
 # --------------------------------------------------------------------------- verification
 
-def verify_shards(shards_dir: Path | str) -> list[str]:
+def verify_shards(shards_dir: Path | str, body_model: Path | str | None = None) -> list[str]:
     """Check a shards folder end to end; returns one line per problem (empty when all is well).
 
     Checks: the manifest parses and has this toolkit's schema version; every listed file exists
@@ -27,7 +27,8 @@ def verify_shards(shards_dir: Path | str) -> list[str]:
     every file reads back (HDF5 fletcher32 checksums); root attributes are complete, of this
     schema version and the same in every file; each sequence has its attributes and all required
     datasets with consistent shapes; the sequences in each file, their split, persons and frame
-    counts match the manifest.
+    counts match the manifest. With ``body_model``, that file is the one the shards were made
+    with (its sha256 against the manifest's and the files' records).
     """
     root = Path(shards_dir)
     try:
@@ -35,6 +36,8 @@ def verify_shards(shards_dir: Path | str) -> list[str]:
     except ShardError as error:
         return [str(error)]
     problems: list[str] = []
+    if body_model is not None:
+        problems += _check_body_model(Path(body_model), manifest.config.get("body_model", {}))
     if manifest.schema_version not in READABLE_SCHEMA_VERSIONS:
         problems.append(f"{MANIFEST_NAME}: schema version {manifest.schema_version}, "
                         f"expected one of {READABLE_SCHEMA_VERSIONS}")
@@ -227,3 +230,13 @@ def format_summary(rows: list[dict]) -> str:
     widths = [max(len(line[i]) for line in table) for i in range(len(columns))]
     return "\n".join("  ".join(text.rjust(w) if i else text.ljust(w)
                                for i, (text, w) in enumerate(zip(line, widths))) for line in table)
+
+
+def _check_body_model(path: Path, recorded: dict) -> list[str]:
+    if not path.is_file():
+        return [f"--body-model {path}: no such file"]
+    sha = file_sha256(path)
+    if recorded.get("sha256") != sha:
+        return [f"body model {path} (sha256 {sha[:12]}...) is not the one these shards were made "
+                f"with ({recorded.get('name')}, sha256 {str(recorded.get('sha256'))[:12]}...)"]
+    return []

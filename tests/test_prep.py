@@ -370,3 +370,31 @@ def test_audit_reports_each_section_and_warns_of_an_inverted_mask(prep_raw_dir, 
     assert "warning: aiagent" not in out
     assert sorted(p.relative_to(raw) for p in raw.rglob("*")) == before  # nothing written
     assert prep_main(["--audit", str(tmp_path / "nowhere")]) == 2
+
+
+def test_body_model_layout_and_its_checksum(prep_raw_dir, prepared_shards, tmp_path, capsys):
+    """#19 item 7: the Embody 3D loader's locked-head layout is found; --verify checks a given
+    model file against the shards' record; a run into shards of another body model is refused."""
+    from sarah_data.body import write_procedural_body_model
+
+    raw = tmp_path / "raw"
+    shutil.copytree(prep_raw_dir / "aiagent", raw / "aiagent")
+    nested = raw / "body_models" / "smplx_models_lockedhead" / "smplx"
+    nested.mkdir(parents=True)
+    shutil.copy(next((prep_raw_dir / "body_models").glob("*.npz")), nested / "SMPLX_NEUTRAL.npz")
+    write_procedural_body_model(nested / "SMPLX_FEMALE.npz", seed=5)  # the neutral one is chosen
+    out = tmp_path / "shards"
+    assert prep_main([str(raw), str(out), "-j", "1", "--no-progress", "--sections", "aiagent"]) == 0
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["config"]["body_model"]["name"] == "SMPLX_NEUTRAL"
+    capsys.readouterr()
+    model = next((prep_raw_dir / "body_models").glob("*.npz"))
+    assert prep_main(["--verify", str(prepared_shards), "--body-model", str(model)]) == 0
+    assert prep_main(["--verify", str(prepared_shards), "--body-model", str(nested / "SMPLX_FEMALE.npz")]) == 1
+    assert "is not the one these shards were made with" in capsys.readouterr().out
+    # Another body model into the same output folder: one line, the shards untouched.
+    before = (out / "manifest.json").read_bytes()
+    assert prep_main([str(raw), str(out), "--no-progress", "--body-model", str(nested / "SMPLX_FEMALE.npz")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "made with body model SMPLX_NEUTRAL" in err[0]
+    assert (out / "manifest.json").read_bytes() == before
