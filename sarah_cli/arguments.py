@@ -28,6 +28,7 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
 
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
-        if "(default" in text or action.default in (None, False) or action.default is argparse.SUPPRESS:
+        if "(default" in text or action.default is None or action.default is False \
+                or action.default is argparse.SUPPRESS:
             return text
         return super()._get_help_string(action)

@@ -34,12 +34,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.out.exists() and not args.out.is_dir():
+        print(f"sarah-fixtures: error: {args.out}: the output must be a folder, this is a file",
+              file=sys.stderr)
+        return 2
     try:
         summary = make_fixtures(args.out, sessions=args.sessions, seconds=args.seconds, seed=args.seed,
                                 sequences_per_session=args.sequences_per_session,
                                 progress=not args.quiet, body_model=args.body_model)
     except (ValueError, OSError) as error:
-        print(f"sarah-fixtures: {error}", file=sys.stderr)
+        print(f"sarah-fixtures: error: {error}", file=sys.stderr)
         return 2
     print(summary.line())
     return 0
