@@ -95,7 +95,11 @@ def stream_files(url: str, trajectory, agent_audio, user_audio, out: str | Path,
                 user_feats.append(arrays["user_features"])
                 latencies.append(reply["latency_ms"] / 1000.0)
             ws.send(json.dumps({"type": "close"}))
-    except (ConnectionClosed, OSError, ProtocolError) as error:
+    except ConnectionRefusedError:
+        raise ServerError(f"{url}: connection refused: is sarah-serve running there?") from None
+    except OSError as error:
+        raise ServerError(f"{url}: cannot connect ({error.strerror or error})") from None
+    except (ConnectionClosed, ProtocolError) as error:
         raise ServerError(f"{url}: {error}") from None
     result = Result(np.concatenate(motion), np.concatenate(agent_feats), np.concatenate(user_feats),
                     latencies, seconds)
