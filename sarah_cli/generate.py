@@ -106,6 +106,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="(T, 2) floor x, z of the user's head at 30 fps (.npy or .csv)")
     raw.add_argument("--agent-audio", type=Path, default=None, help="agent's audio file (any rate)")
     raw.add_argument("--user-audio", type=Path, default=None, help="user's audio file (any rate)")
+    raw.add_argument("--pad", action="store_true",
+                     help="pad audio shorter than the trajectory with silence (else an error)")
     raw.add_argument("--agent-start", type=_agent_start, default=(0.0, 0.0, 0.0),
                      help="agent's initial floor position and heading: X,Z,YAW_DEG")
     raw.add_argument("--feature-option", type=_option, action="append", default=[],
@@ -143,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
             start=args.start, frames=args.frames, trajectory=args.user_trajectory,
             agent_audio=args.agent_audio, user_audio=args.user_audio,
             agent_start=args.agent_start, feature_options=dict(args.feature_option),
-            offline=args.offline, animation=not args.no_animation, speed=args.speed)
+            offline=args.offline, animation=not args.no_animation, speed=args.speed, pad=args.pad)
     except (GenerateError, DataProblem) as exc:
         print(f"sarah-generate: error: {exc}", file=sys.stderr)
         return EXIT_ERROR

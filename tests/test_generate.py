@@ -297,3 +297,20 @@ def test_speed_paths_match_the_plain_models(run_dir, raw, tmp_path):
         motion[speed] = np.load(out / "motion.npz", allow_pickle=False)["joint_positions"]
     np.testing.assert_array_equal(motion["fp32"], motion["none"])
     assert np.abs(motion["int8"] - motion["none"]).max() < 1e-3
+
+
+def test_pad_and_mixed_stereo_warnings(run_dir, raw, tmp_path, capsys):
+    """--pad pads short audio with silence (said so); a stereo file whose channels are two
+    different signals is averaged with a warning; the GIF step says what it is doing."""
+    short = dict(raw, user=raw["short"])
+    assert main(raw_args(run_dir, short, tmp_path / "padded", "--pad")) == 0
+    printed = capsys.readouterr().out
+    assert "padded with silence" in printed and "drawing" in printed and "skeleton.gif" in printed
+    rate = 16_000
+    t = np.arange(rate) / rate
+    two_voices = np.stack([np.sin(2 * np.pi * 180 * t), np.sign(np.sin(2 * np.pi * 3 * t)) *
+                           np.random.default_rng(0).normal(size=t.size)], 1) * 0.2
+    sf.write(tmp_path / "mixed.wav", two_voices.astype(np.float32), rate)
+    mixed = dict(raw, agent=tmp_path / "mixed.wav")
+    assert main(raw_args(run_dir, mixed, tmp_path / "mixed", "--no-animation")) == 0
+    assert "channels differ a lot" in capsys.readouterr().out

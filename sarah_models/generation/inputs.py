@@ -221,8 +221,12 @@ def _read_csv_rows(path: Path) -> np.ndarray:
     return np.asarray(rows, dtype=np.float64).reshape(-1, 2)
 
 
-def read_audio(path: str | Path) -> np.ndarray:
-    """Mono float32 at 48 kHz from any file soundfile reads (channels averaged, resampled)."""
+STEREO_CORRELATION_WARNING = 0.3  # below this, two channels are likely two different voices
+
+
+def read_audio(path: str | Path, warnings: list[str] | None = None) -> np.ndarray:
+    """Mono float32 at 48 kHz from any file soundfile reads (channels averaged, resampled).
+    Channels that hardly correlate (two voices in one file?) add a line to ``warnings``."""
     import soundfile as sf
     import torchaudio
 
@@ -233,6 +237,12 @@ def read_audio(path: str | Path) -> np.ndarray:
         wave, rate = sf.read(path, dtype="float32", always_2d=True)
     except (RuntimeError, sf.LibsndfileError) as exc:
         raise GenerateError(f"{path}: cannot read audio ({exc})") from None
+    if wave.shape[1] > 1 and warnings is not None:
+        left, right = wave[:, 0] - wave[:, 0].mean(), wave[:, 1] - wave[:, 1].mean()
+        energy = float(np.sqrt((left ** 2).sum() * (right ** 2).sum()))
+        if energy > 0 and float((left * right).sum()) / energy < STEREO_CORRELATION_WARNING:
+            warnings.append(f"{path}: its {wave.shape[1]} channels differ a lot (two speakers mixed "
+                            f"into one file?); they are averaged into one voice")
     wave = wave.mean(axis=1)
     if rate != AUDIO_SAMPLE_RATE:
         wave = torchaudio.functional.resample(torch.from_numpy(wave), rate,
@@ -251,8 +261,12 @@ def agent_anchor(agent_start: tuple[float, float, float]) -> WindowTransform:
 
 def raw_inputs(trajectory: str | Path, agent_audio: str | Path, user_audio: str | Path,
                stride: int, frames: int | None = None,
-               agent_start: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Inputs:
-    """Raw files; ``agent_start`` = (x, z, yaw in degrees, 0 = facing +z) of the agent."""
+               agent_start: tuple[float, float, float] = (0.0, 0.0, 0.0), pad: bool = False,
+               warnings: list[str] | None = None) -> Inputs:
+    """Raw files; ``agent_start`` = (x, z, yaw in degrees, 0 = facing +z) of the agent.
+    Audio shorter than the trajectory is an error, or with ``pad`` is padded with silence (a line
+    in ``warnings``)."""
+    warnings = [] if warnings is None else warnings
     from sarah_data.speaking import SpeakingConfig, speaking_labels
 
     head = read_trajectory(trajectory)
@@ -261,11 +275,15 @@ def raw_inputs(trajectory: str | Path, agent_audio: str | Path, user_audio: str 
     head = head[:count]
     waves = {}
     for name, path in (("agent", agent_audio), ("user", user_audio)):
-        wave = read_audio(path)
+        wave = read_audio(path, warnings)
         if len(wave) < count * SAMPLES_PER_FRAME:
-            raise GenerateError(f"{path}: audio shorter than the trajectory "
-                                f"({len(wave) / AUDIO_SAMPLE_RATE:.2f} s < {count / FPS:.2f} s "
-                                f"for {count} frames)")
+            if not pad:
+                raise GenerateError(f"{path}: audio shorter than the trajectory "
+                                    f"({len(wave) / AUDIO_SAMPLE_RATE:.2f} s < {count / FPS:.2f} s "
+                                    f"for {count} frames); --pad pads it with silence")
+            warnings.append(f"{path}: {len(wave) / AUDIO_SAMPLE_RATE:.2f} s of audio padded with "
+                            f"silence to the trajectory's {count / FPS:.2f} s")
+            wave = np.pad(wave, (0, count * SAMPLES_PER_FRAME - len(wave)))
         waves[name] = wave[: count * SAMPLES_PER_FRAME]
     x, z, yaw_deg = (float(v) for v in agent_start)
     anchor = agent_anchor(agent_start)

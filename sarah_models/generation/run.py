@@ -128,7 +128,7 @@ def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
         trajectory: str | Path | None = None, agent_audio: str | Path | None = None,
         user_audio: str | Path | None = None,
         agent_start: tuple[float, float, float] = (0.0, 0.0, 0.0),
-        feature_options: dict[str, Any] | None = None, offline: bool = False,
+        feature_options: dict[str, Any] | None = None, offline: bool = False, pad: bool = False,
         animation: bool = True, speed: str = "fp32", echo: Callable[[str], None] = print) -> Summary:
     """Everything ``sarah-generate`` does: load, read inputs, generate, write, plot.
 
@@ -157,7 +157,11 @@ def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
         if trajectory is None or agent_audio is None or user_audio is None:
             raise GenerateError("give --shards/--sequence/--agent, or --user-trajectory with "
                                 "--agent-audio and --user-audio")
-        inputs = raw_inputs(trajectory, agent_audio, user_audio, stride, frames, agent_start)
+        warnings: list[str] = []
+        inputs = raw_inputs(trajectory, agent_audio, user_audio, stride, frames, agent_start,
+                            pad=pad, warnings=warnings)
+        for warning in warnings:
+            echo(f"warning: {warning}")
         extractor = make_extractor(models.features, feature_options)
     where = (f"{inputs.source['sequence']} (agent {inputs.source['agent']}, from frame "
              f"{inputs.source['start']})" if shards is not None else "raw files")
@@ -181,6 +185,7 @@ def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
                               inputs.user_head, FPS,
                               title=f"gaze target {target}, mean gaze score {gaze.mean():.2f}"))
     if animation:
+        echo(f"drawing {out / 'skeleton.gif'} ({inputs.frames} frames; --no-animation skips it)")
         paths.append(animate_skeleton(out / "skeleton.gif", positions, JOINT_PARENTS,
                                       inputs.user_head, inputs.agent_speaking,
                                       inputs.user_speaking, FPS))
