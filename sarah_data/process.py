@@ -84,7 +84,7 @@ def shard_attrs(body_model_path: str, body_model_sha: str, config: PrepConfig) -
         shell_vertex_ids=np.asarray(body.shell_ids, dtype=np.int64),
         body_model_name=Path(body_model_path).stem,
         body_model_sha256=body_model_sha,
-        extractors={name: {"dim": e.dim, **jsonable(asdict(e.config))} for name, e in extractors.items()},
+        extractors={name: {"dim": e.dim, **jsonable(e.record())} for name, e in extractors.items()},
     )
 
 

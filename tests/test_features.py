@@ -312,3 +312,70 @@ def test_hubert_long_clips_are_segmented(hubert_base_file, speech):
     changed[: 5 * SPF] = 0.0
     changed[25 * SPF:] = 0.0
     np.testing.assert_array_equal(extractor.extract(changed, 30)[10:20], features[10:20])
+
+
+def _renamed(state: dict, naming: str) -> dict:
+    """torchaudio's HuBERT keys as fairseq's release or Hugging Face's hubert-*-ll60k name them
+    (written here independently of the loader's table, from the two projects' module names)."""
+    out = {}
+    for key, value in state.items():
+        key = key.replace("parametrizations.weight.original0", "weight_g").replace(
+            "parametrizations.weight.original1", "weight_v")
+        if naming == "hf":
+            key = key.replace("encoder.feature_projection.", "feature_projection.")
+            key = key.replace("encoder.transformer.", "encoder.")
+        else:
+            key = key.replace("encoder.feature_projection.projection.", "post_extract_proj.")
+            key = key.replace("encoder.feature_projection.layer_norm.", "layer_norm.")
+            key = key.replace("feature_extractor.conv_layers.0.layer_norm.", "feature_extractor.conv_layers.0.2.")
+            for i in range(12):
+                key = key.replace(f"feature_extractor.conv_layers.{i}.conv.", f"feature_extractor.conv_layers.{i}.0.")
+            key = key.replace("encoder.transformer.pos_conv_embed.conv.", "encoder.pos_conv.0.")
+            key = key.replace("encoder.transformer.layer_norm.", "encoder.layer_norm.")
+            key = key.replace("encoder.transformer.layers.", "encoder.layers.")
+            key = key.replace(".attention.", ".self_attn.").replace(".layer_norm.", ".self_attn_layer_norm.") \
+                if key.startswith("encoder.layers.") and ".final_layer_norm." not in key else key
+            key = key.replace(".feed_forward.intermediate_dense.", ".fc1.").replace(".feed_forward.output_dense.", ".fc2.")
+        out[key] = value
+    return out
+
+
+def test_hubert_accepts_fairseq_and_hugging_face_checkpoints(tmp_path, hubert_base_file, hubert_base, speech):
+    """#19 item 8: the checkpoints users have, as local files: a Hugging Face model folder
+    (model.safetensors or pytorch_model.bin) and fairseq's .pt (its state dict under "model",
+    settings in an argparse Namespace); shards record the weights' sha256, not their path."""
+    import argparse
+
+    from safetensors.torch import save_file
+
+    _, model = hubert_base_file
+    wave = speech[: 10 * SPF]
+    reference = hubert_base.extract(wave, 10)
+    state = model.state_dict()
+    hf_safe, hf_bin = tmp_path / "hf_safe", tmp_path / "hf_bin"
+    for folder in (hf_safe, hf_bin):
+        folder.mkdir()
+        (folder / "config.json").write_text('{"model_type": "hubert"}')
+    hf = {f"hubert.{k}" if i % 2 else k: v.contiguous() for i, (k, v) in enumerate(_renamed(state, "hf").items())}
+    hf["masked_spec_embed"] = torch.zeros(768)
+    save_file(hf, str(hf_safe / "model.safetensors"))
+    torch.save(hf, hf_bin / "pytorch_model.bin")
+    fairseq = tmp_path / "hubert_base_ls960.pt"
+    torch.save({"args": argparse.Namespace(label_rate=50), "model": {
+        **_renamed(state, "fairseq"), "label_embs_concat": torch.zeros(3), "final_proj.weight": torch.zeros(2)}},
+        fairseq)
+    for weights in (hf_safe, hf_bin, fairseq):
+        loaded = get_extractor("hubert-large", weights=str(weights), architecture="base",
+                               past_frames=4, device="cpu")
+        np.testing.assert_array_equal(loaded.extract(wave, 10), reference, err_msg=str(weights))
+    record = loaded.record()
+    assert "weights" not in record and len(record["weights_sha256"]) == 64
+
+    import datetime
+
+    bad = tmp_path / "foreign.pt"  # an object beyond tensors, as an omegaconf config would be
+    torch.save({"cfg": datetime.date(2021, 6, 1), "model": _renamed(state, "fairseq")}, bad)
+    with pytest.raises(ValueError, match=r"save its 'model' state dict alone"):
+        get_extractor("hubert-large", weights=str(bad), architecture="base")
+    with pytest.raises(FileNotFoundError, match="model.safetensors or pytorch_model.bin"):
+        get_extractor("hubert-large", weights=str(tmp_path), architecture="base")

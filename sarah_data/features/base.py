@@ -105,6 +105,13 @@ class AudioFeatureExtractor(abc.ABC):
     def extract(self, wave: np.ndarray, num_frames: int) -> np.ndarray:
         """(num_frames, D) float32 features of a 48 kHz mono track, one row per motion frame."""
 
+    def record(self) -> dict[str, Any]:
+        """What shards record of this extractor: its configuration (JSON-able), with anything
+        that names a local file replaced by what identifies its content."""
+        from dataclasses import asdict
+
+        return asdict(self.config)
+
     @abc.abstractmethod
     def stream(self) -> FeatureStream:
         """A fresh causal streaming extractor sharing this extractor's configuration and model."""

@@ -3,7 +3,10 @@
 Architecture: ``torchaudio.models.hubert_large()`` (or ``hubert_base()``). Weights come from a local
 file only: ``weights=PATH`` (``--hubert-weights PATH``), else the file torchaudio's HUBERT_LARGE
 bundle would have downloaded, ``<torch.hub.get_dir()>/checkpoints/hubert_fairseq_large_ll60k.pth``.
-Nothing is ever downloaded.
+The file may also be fairseq's release checkpoint (``hubert_large_ll60k.pt``) or a Hugging Face
+model folder (``hubert-large-ll60k/`` with model.safetensors or pytorch_model.bin): their names are
+mapped to torchaudio's (``_CHECKPOINT_NAMES``). Nothing is ever downloaded, and torch files load
+with ``weights_only=True``. Shards record the weights' sha256 (``HubertExtractor.record``).
 
 Alignment. HuBERT reads 16 kHz audio; its conv stack has a receptive field of 400 samples and a
 stride of 320, so HuBERT frame i sees samples [320 i, 320 i + 400) and is centred at
@@ -24,6 +27,7 @@ frames are grouped into chunks, never on future audio.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,7 +48,27 @@ _ARCHITECTURES = {
 }
 # Prefixes of checkpoints that wrap a Wav2Vec2Model: HuBERTPretrainModel ("wav2vec2."), torchaudio's
 # waveform-normalizing bundle wrapper ("model."), DataParallel/DDP ("module.").
-_WRAPPER_PREFIXES = ("wav2vec2.", "model.", "module.")
+_WRAPPER_PREFIXES = ("wav2vec2.", "model.", "module.", "hubert.", "w2v_model.")
+# The same weights under fairseq's names (the HuBERT release's .pt) and Hugging Face's
+# (hubert-large-ll60k): the first pattern that matches renames a key to torchaudio's.
+_CHECKPOINT_NAMES = [(re.compile(pattern), replacement) for pattern, replacement in (
+    (r"^feature_extractor\.conv_layers\.0\.2\.(weight|bias)$", r"feature_extractor.conv_layers.0.layer_norm.\1"),
+    (r"^feature_extractor\.conv_layers\.(\d+)\.0\.(weight|bias)$", r"feature_extractor.conv_layers.\1.conv.\2"),
+    (r"^feature_extractor\.conv_layers\.(\d+)\.2\.1\.(weight|bias)$", r"feature_extractor.conv_layers.\1.layer_norm.\2"),
+    (r"^post_extract_proj\.(.+)$", r"encoder.feature_projection.projection.\1"),
+    (r"^layer_norm\.(weight|bias)$", r"encoder.feature_projection.layer_norm.\1"),
+    (r"^feature_projection\.(.+)$", r"encoder.feature_projection.\1"),
+    (r"^encoder\.pos_conv\.0\.(.+)$", r"encoder.transformer.pos_conv_embed.conv.\1"),
+    (r"^encoder\.pos_conv_embed\.(.+)$", r"encoder.transformer.pos_conv_embed.\1"),
+    (r"^encoder\.layer_norm\.(.+)$", r"encoder.transformer.layer_norm.\1"),
+    (r"^encoder\.layers\.(\d+)\.self_attn_layer_norm\.(.+)$", r"encoder.transformer.layers.\1.layer_norm.\2"),
+    (r"^encoder\.layers\.(\d+)\.self_attn\.(.+)$", r"encoder.transformer.layers.\1.attention.\2"),
+    (r"^encoder\.layers\.(\d+)\.fc1\.(.+)$", r"encoder.transformer.layers.\1.feed_forward.intermediate_dense.\2"),
+    (r"^encoder\.layers\.(\d+)\.fc2\.(.+)$", r"encoder.transformer.layers.\1.feed_forward.output_dense.\2"),
+    (r"^encoder\.layers\.(\d+)\.(.+)$", r"encoder.transformer.layers.\1.\2"),
+)]
+# Where a Hugging Face model folder keeps its weights, preferred first.
+_FOLDER_WEIGHTS = ("model.safetensors", "pytorch_model.bin")
 # Old-style weight norm (what torchaudio's bundle files store) -> the parametrization torchaudio uses now.
 _LEGACY_WEIGHT_NORM = {".weight_g": ".parametrizations.weight.original0",
                        ".weight_v": ".parametrizations.weight.original1"}
@@ -124,6 +148,11 @@ def _match_keys(state: dict[str, torch.Tensor], expected: set[str], path: Path, 
                 name = name[: -len(old)] + new
         while name not in expected and name.startswith(_WRAPPER_PREFIXES):
             name = name.split(".", 1)[1]
+        if name not in expected:
+            for pattern, replacement in _CHECKPOINT_NAMES:
+                if pattern.match(name):
+                    name = pattern.sub(replacement, name)
+                    break
         if name in expected:
             matched[name] = value
     missing = sorted(expected - matched.keys())
@@ -133,9 +162,60 @@ def _match_keys(state: dict[str, torch.Tensor], expected: set[str], path: Path, 
     return matched
 
 
+def weight_file(path: Path) -> Path:
+    """The weight file itself: ``path``, or inside a Hugging Face model folder its
+    model.safetensors / pytorch_model.bin."""
+    if path.is_dir():
+        for name in _FOLDER_WEIGHTS:
+            if (path / name).is_file():
+                return path / name
+        raise MissingWeightsError(f"{path}: a folder without {' or '.join(_FOLDER_WEIGHTS)} "
+                                  f"(a Hugging Face HuBERT folder such as hubert-large-ll60k has one)")
+    return path
+
+
+def read_weight_file(path: Path) -> dict:
+    """The tensors of a local weight file: safetensors, or a torch file loaded with
+    ``weights_only=True`` (fairseq's release files also hold an argparse Namespace of settings,
+    which is allowed; no other Python object is ever unpickled)."""
+    import argparse
+
+    if path.suffix == ".safetensors":
+        from safetensors.torch import load_file
+
+        try:
+            return load_file(str(path))
+        except Exception as error:  # noqa: BLE001 - a foreign or truncated file is one line
+            raise ValueError(f"{path}: cannot read as safetensors ({type(error).__name__}: {error})") from None
+    try:
+        with torch.serialization.safe_globals([argparse.Namespace]):
+            return torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception as error:  # a truncated or foreign file: name it, do not dump a traceback
+        hint = ""
+        if "weights_only" in str(error) or "Unsupported global" in str(error):
+            hint = ("; it holds Python objects beyond tensors (e.g. a fairseq checkpoint's omegaconf "
+                    "settings): save its 'model' state dict alone, torch.save(ckpt['model'], PATH)")
+        first = str(error).strip().splitlines()[0] if str(error).strip() else ""
+        raise ValueError(f"{path}: cannot read as a torch weight file ({type(error).__name__}: "
+                         f"{first}){hint}") from None
+
+
+def weights_sha256(weights: str | Path | None, architecture: str = "large") -> str:
+    """The sha256 of the weight file an extractor loads (what shards record, not its path)."""
+    import hashlib
+
+    path = weight_file(Path(weights).expanduser() if weights else default_weights_path(architecture))
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
 def load_hubert(weights: str | Path | None, architecture: str = "large") -> torch.nn.Module:
     """A torchaudio Wav2Vec2Model (HuBERT) in eval mode on CPU, weights from a local file only."""
     path = Path(weights).expanduser() if weights else default_weights_path(architecture)
+    path = weight_file(path)
     if not path.is_file():
         bundle_file = bundle_file_name(architecture)
         raise MissingWeightsError(
@@ -145,10 +225,7 @@ def load_hubert(weights: str | Path | None, architecture: str = "large") -> torc
     # Built on the meta device: random initialization of 300M parameters is wasted work here.
     with torch.device("meta"):
         model = factory()
-    try:
-        checkpoint = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
-    except Exception as error:  # a truncated or foreign file: name it, do not dump a traceback
-        raise ValueError(f"{path}: cannot read as a torch weight file ({type(error).__name__}: {error})") from None
+    checkpoint = read_weight_file(path)
     state = _match_keys(_checkpoint_state_dict(checkpoint, path), set(model.state_dict()), path, architecture)
     try:
         model.load_state_dict(state, strict=True, assign=True)
@@ -244,6 +321,16 @@ class HubertExtractor(AudioFeatureExtractor):
     @property
     def dim(self) -> int:
         return self._hubert.dim
+
+    def record(self) -> dict:
+        """The configuration with the weights' sha256 instead of their path (a path says nothing
+        about which weights another machine has); hashed once per extractor."""
+        if not hasattr(self, "_weights_sha256"):
+            self._weights_sha256 = weights_sha256(self.config.weights, self.config.architecture)
+        config = super().record()
+        config.pop("weights", None)
+        config.pop("device", None)
+        return {**config, "weights_sha256": self._weights_sha256}
 
     @property
     def device(self) -> torch.device:
