@@ -102,3 +102,27 @@ def test_no_invocation_shows_a_traceback_or_leaves_output(world, tmp_path, capsy
         if out.exists():
             failures.append(f"sarah-{command} {' '.join(args)}: left {out}")
     assert not failures, "\n".join(failures)
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_help_says_each_default_once_and_every_option_has_help(command, capsys):
+    import argparse
+
+    parser = importlib.import_module(f"sarah_cli.{command}").build_parser()
+    undocumented = [a.option_strings or [a.dest] for a in parser._actions
+                    if not a.help and not isinstance(a, argparse._HelpAction)]
+    assert not undocumented
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "(default: None)" not in text and "(default: False)" not in text
+    for action in parser._actions:
+        if action.help and "(default" in action.help:
+            assert text.count(action.help.split("(default")[0].strip()[:40]) >= 1
+
+
+def test_paper_size_training_on_a_cpu_says_so(world, tmp_path, capsys):
+    from sarah_cli.train import main
+
+    main(["--shards", str(world["missing"]), "--out", str(tmp_path / "run"), "--device", "cpu"])
+    assert "note: training the paper-size model on a CPU" in capsys.readouterr().err

@@ -398,3 +398,60 @@ def test_body_model_layout_and_its_checksum(prep_raw_dir, prepared_shards, tmp_p
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "made with body model SMPLX_NEUTRAL" in err[0]
     assert (out / "manifest.json").read_bytes() == before
+
+
+def test_a_corpus_with_every_real_world_quirk_at_once(prep_raw_dir, tmp_path, capsys):
+    """#19 acceptance 1: one tree holding the quirks of the real corpus at once (a dataset.json
+    with a byte-order mark, a scene name with a hyphen, a three-person entry, NaNs in untracked
+    frames, audio listed as null whose files are there, the locked-head SMPL-X layout, the body
+    model file named as smplx.create expects) gives a run that writes every recoverable
+    sequence and a report naming the rest."""
+    raw = tmp_path / "raw"
+    shutil.copytree(prep_raw_dir / "aiagent", raw / "aiagent")
+    section = raw / "aiagent"
+    manifest = json.loads((section / "dataset.json").read_text())
+    sequences = sorted({s for entries in manifest.values() for s in entries})
+    with_audio = [s for s in sequences if all(e.get(s, {}).get("audio") for e in manifest.values() if s in e)]
+    # A scene name with a hyphen ("High-Stakes"): folders, files and manifest keys renamed.
+    old = with_audio[0]
+    new = old.replace("AIAGENT_scene", "ACTING_High-Stakes_Heist_scene")
+    (section / old).rename(section / new)
+    for path in sorted((section / new).rglob(f"{old}*")):
+        path.rename(path.with_name(path.name.replace(old, new)))
+    for person, entries in manifest.items():
+        if old in entries:
+            entry = entries.pop(old)
+            entry["audio"] = entry["audio"].replace(old, new)
+            entries[new] = entry
+    # Audio listed as null, files on disk.
+    for entries in manifest.values():
+        if with_audio[1] in entries:
+            entries[with_audio[1]]["audio"] = None
+    # A three-person sequence (other sections have them): reported, not written.
+    crowd = ("c--20250301--0900--AAA111--BBB222--CCC333--pilot--MotionPrior3--ACTING_group_scene--000100-000109")
+    manifest.setdefault("AAA111", {})[crowd] = {"length": 10, "id": 1, "text": None,
+                                               "multiperson": ["BBB222", "CCC333"], "audio": None}
+    (section / "dataset.json").write_bytes(b"\xef\xbb\xbf" + json.dumps(manifest).encode())
+    # NaN/inf where the tracking mask says "do not use".
+    for mask_path in sorted(section.glob("*/*/missing/*.npy"))[:2]:
+        valid = load_mask(mask_path)
+        if (~valid).any():
+            pose_path = mask_path.parent.parent / "smplx_mesh_body_pose" / mask_path.name
+            pose = np.load(pose_path)
+            pose[~valid] = np.nan
+            np.save(pose_path, pose)
+    # The Embody 3D loader's locked-head layout, the file named as smplx.create expects.
+    nested = raw / "body_models" / "smplx_models_lockedhead" / "smplx"
+    nested.mkdir(parents=True)
+    shutil.copy(next((prep_raw_dir / "body_models").glob("*.npz")), nested / "SMPLX_NEUTRAL.npz")
+
+    out = tmp_path / "shards"
+    assert prep_main([str(raw), str(out), "-j", "1", "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "Traceback" not in printed and "lists no audio" in printed
+    written = json.loads((out / "manifest.json").read_text())["sequences"]
+    assert new in written and with_audio[1] in written
+    assert set(written) == set(with_audio) - {old} | {new}
+    report = json.loads((out / "report.json").read_text())
+    assert [s["kind"] for s in report["skipped"] if s.get("sequence") == crowd] == ["not-two-persons"]
+    assert verify_shards(out) == []
