@@ -57,7 +57,10 @@ class RunningServer:
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
-    return save_run(tmp_path_factory.mktemp("serve") / "run")
+    """A tiny random-weight run; SARAH_SERVE_RUN names a trained one instead (for the README's
+    screenshot, taken with SARAH_SCREENSHOT)."""
+    trained = os.environ.get("SARAH_SERVE_RUN")
+    return Path(trained) if trained else save_run(tmp_path_factory.mktemp("serve") / "run")
 
 
 @pytest.fixture(scope="module")
