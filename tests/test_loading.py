@@ -83,10 +83,6 @@ CASES = [
      r"is 3-D, shape \(8, 63, 1\); expected \(T, 63\)"),
     ("betas width", lambda p: np.save(param(p, "smplx_mesh_betas"), np.zeros((T, 10))),
      lambda p: param(p, "smplx_mesh_betas"), r"shape \(8, 10\); expected \(T, 300\)"),
-    ("NaN frames", lambda p: nan_frames(param(p)), param,
-     r"NaN/inf values in frames 2-3, 6 \(3 frames\)"),
-    ("inf frame", lambda p: nan_frames(param(p, "smplx_mesh_transl"), (7,), -np.inf, 3),
-     lambda p: param(p, "smplx_mesh_transl"), r"NaN/inf values in frames 7 \(1 frame\)"),
     ("too short", lambda p: np.save(param(p), np.zeros((T - 1, 63), np.float32)), param,
      r"has 7 frames, expected 8 \(shorter than the sequence\)"),
     ("too long", lambda p: np.save(param(p), np.zeros((T + 1, 63), np.float32)), param,
@@ -155,6 +151,24 @@ def test_bad_input_is_one_clear_data_problem(pair, name, breaks, culprit, reason
     assert re.search(reason, problem.reason), problem.reason
     # The partner's files are untouched and still load.
     assert load_person(pair, "WBM368").length == T
+
+
+def test_nonfinite_parameters_mark_tracked_frames_untracked(pair):
+    """NaN/inf in tracked frames: those frames become untracked, with a warning naming the file
+    and frames; in untracked frames: allowed. Both are filled, so every array is finite."""
+    nan_frames(param(pair), (2, 3, 6))
+    nan_frames(param(pair, "smplx_mesh_transl"), (7,), -np.inf, 3)
+    before = load_person(pair, "WBM368")  # the partner, untouched
+    valid = np.ones(T, np.uint8)
+    valid[6] = 0
+    np.save(mask(pair), valid)
+    arrays = load_person(pair, PERSON)
+    assert list(np.flatnonzero(~arrays.valid)) == [2, 3, 6, 7]
+    assert arrays.nonfinite == {"tracked": 3, "untracked": 1}
+    assert any(str(param(pair)) in w and "frames 2-3 (2 frames)" in w for w in arrays.warnings)
+    assert any("smplx_mesh_transl" in w and "frames 7 (1 frame)" in w for w in arrays.warnings)
+    assert all(np.isfinite(v).all() for v in arrays.params.values())
+    assert before.length == T
 
 
 def test_good_sequence_loads_read_only(pair):
