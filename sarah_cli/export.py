@@ -79,10 +79,11 @@ def _validate(args, parser) -> None:
 def export_one(motion, args, neutral) -> list[str]:
     """Build every requested output in memory first (so a failure writes nothing), then write
     each atomically; returns the lines to print."""
-    from sarah_data.export import bvh, smplx_params
+    from sarah_data.export import BodyShape, bvh, smplx_params
 
     if not motion.shape.known and neutral is not None:
-        motion.shape = neutral(motion.shape)
+        motion.shape = BodyShape(neutral.betas, neutral.rest_joints, neutral.gender,
+                                 f"{neutral.source} ({motion.shape.source})")
     built = []
     if "smplx" in args.format:
         arrays, fit = smplx_params.smplx_parameters(motion, args.up)
@@ -112,9 +113,12 @@ def main(argv: list[str] | None = None) -> int:
 
     neutral = None
     if args.body_model is not None:
-        neutral = _neutral_shape(args.body_model)
-        if isinstance(neutral, str):
-            print(f"sarah-export: error: {neutral}", file=sys.stderr)
+        from sarah_data.export.motion import neutral_shape
+
+        try:
+            neutral = neutral_shape(args.body_model)
+        except ExportError as error:
+            print(f"sarah-export: error: --body-model {error}", file=sys.stderr)
             return EXIT_ERROR
     if args.shards is not None:
         loaders = [(args.shards, lambda: motion_from_shards(args.shards, args.sequence, args.person,
@@ -133,28 +137,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"sarah-export: {failed} of {len(loaders)} sources not exported", file=sys.stderr)
         return 1
     return 0
-
-
-def _neutral_shape(path: Path):
-    """A function giving motion without a body shape this model's zero-betas skeleton, or the
-    reason the model cannot be loaded (a string)."""
-    import numpy as np
-
-    from sarah_data.body import BodyModel
-    from sarah_data.export.motion import BodyShape
-
-    try:
-        model = BodyModel.from_file(path, device="cpu")
-    except Exception as error:  # noqa: BLE001 - any unreadable model file is one line
-        return f"--body-model {path}: cannot load ({error})"
-    betas = np.zeros(model.num_betas)
-    rest = model.rest_joints(betas)
-
-    def fill(shape: BodyShape) -> BodyShape:
-        return BodyShape(betas, rest, model.gender,
-                         f"neutral zero betas of {model.name} ({shape.source})")
-
-    return fill
 
 
 if __name__ == "__main__":

@@ -41,6 +41,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     parser.add_argument("--speed", choices=MODES, default="fp32",
                         help="inference fast path: " + "; ".join(f"{k}: {v}" for k, v in MODE_HELP.items()))
+    parser.add_argument("--body-model", type=Path, default=None,
+                        help="a SMPL-X .npz: sessions that open with smplx: true also get SMPL-X "
+                             "parameters per frame (this model's body with zero betas)")
     parser.add_argument("--steps", type=int, default=d.steps, help="default solver steps per chunk")
     parser.add_argument("--cfg", type=float, default=d.cfg_scale, help="default guidance scale w")
     client = parser.add_argument_group("client (--client URL)")
@@ -113,9 +116,19 @@ def main(argv: list[str] | None = None) -> int:
     except (GenerateError, ValueError) as error:
         print(f"sarah-serve: error: {error}", file=sys.stderr)
         return EXIT_ERROR
+    body = None
+    if args.body_model is not None:
+        from sarah_data.export import ExportError
+        from sarah_data.export.motion import neutral_shape
+
+        try:
+            body = neutral_shape(args.body_model, "sarah-serve --body-model")
+        except ExportError as error:
+            print(f"sarah-serve: error: --body-model {error}", file=sys.stderr)
+            return EXIT_ERROR
     config = ServeConfig(host=args.host, port=args.port, max_sessions=args.max_sessions,
                          workers=args.workers, send_timeout=args.send_timeout)
-    server = LiveServer(models, config, defaults)
+    server = LiveServer(models, config, defaults, body=body)
     if not is_loopback(args.host):
         print(f"sarah-serve: warning: serving on {args.host}, reachable from other machines",
               file=sys.stderr)

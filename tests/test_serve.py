@@ -35,9 +35,9 @@ FRAMES = 60
 class RunningServer:
     """A LiveServer on a free loopback port, in a thread with its own event loop."""
 
-    def __init__(self, run: Path, **config):
+    def __init__(self, run: Path, body=None, **config):
         models, _ = load_server_models(run, device="cpu")
-        self.server = LiveServer(models, ServeConfig(port=0, **config), echo=lambda _: None)
+        self.server = LiveServer(models, ServeConfig(port=0, **config), echo=lambda _: None, body=body)
         self.loop = asyncio.new_event_loop()
         self.ready = self.loop.create_future()
         self.stop_future = self.loop.create_future()
@@ -64,8 +64,11 @@ def run_dir(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def server(run_dir):
-    running = RunningServer(run_dir, send_timeout=1.0, max_sessions=8)
+def server(run_dir, procedural_model_path):
+    from sarah_data.export.motion import neutral_shape
+
+    running = RunningServer(run_dir, body=neutral_shape(procedural_model_path), send_timeout=1.0,
+                            max_sessions=8)
     yield running
     running.stop()
 
@@ -277,3 +280,41 @@ def test_the_page_in_a_real_browser(server, tmp_path):
                 shutil.copy(shot, target)
         finally:
             browser.close()
+
+
+def test_smplx_parameters_on_request(server, procedural_model_path):
+    """open {"smplx": true}: each frames message also carries SMPL-X poses and trans (the
+    exporter's, on the server's --body-model with zero betas), which the smplx package turns
+    back into the streamed body's joints."""
+    import smplx
+    import torch
+
+    with open_session(server.url, smplx=True) as (ws, ready):
+        assert ready["smplx"]["gender"] == "neutral" and not any(ready["smplx"]["betas"])
+        ws.send(chunk(0, frames=8))
+        header, arrays = read_frames(ws.recv(timeout=30))
+    poses, trans = arrays["smplx_poses"], arrays["smplx_trans"]
+    assert poses.shape == (8, 165) and trans.shape == (8, 3)
+    model = smplx.SMPLX(model_path=str(procedural_model_path), ext="npz", gender="neutral",
+                        use_pca=False, flat_hand_mean=True, num_betas=len(ready["smplx"]["betas"]))
+    def t(array):
+        return torch.tensor(np.array(array))
+
+    out = model(global_orient=t(poses[:, :3]), body_pose=t(poses[:, 3:66]), jaw_pose=t(poses[:, 66:69]),
+                leye_pose=t(poses[:, 69:72]), reye_pose=t(poses[:, 72:75]),
+                left_hand_pose=t(poses[:, 75:120]), right_hand_pose=t(poses[:, 120:]), transl=t(trans),
+                betas=torch.zeros(8, len(ready["smplx"]["betas"])), expression=torch.zeros(8, 10))
+    joints = out.joints[:, :55].detach().numpy()
+    # The rigid body keeps the model's bones: its pelvis is exactly the streamed one.
+    np.testing.assert_allclose(joints[:, 0], arrays["joint_positions"][:, 0], atol=1e-4)
+
+
+
+def test_smplx_without_a_body_model_is_refused_by_name(run_dir):
+    plain = RunningServer(run_dir)
+    try:
+        with connect(plain.url) as ws:
+            ws.send(json.dumps({"type": "open", "version": 1, "smplx": True}))
+            assert "--body-model" in error_of(ws)["message"]
+    finally:
+        plain.stop()

@@ -50,6 +50,20 @@ class ExportMotion:
 MOTION_KEYS = ("joint_positions", "joint_rotations")
 
 
+def neutral_shape(body_model: str | Path, why: str = "") -> BodyShape:
+    """Zero betas and the rest skeleton they give with ``body_model`` (a SMPL-X .npz): the body
+    of motion that belongs to no captured person. ExportError when the file cannot be loaded."""
+    from sarah_data.body import BodyModel
+
+    try:
+        model = BodyModel.from_file(body_model, device="cpu")
+    except Exception as error:  # noqa: BLE001 - any unreadable model file is one line
+        raise ExportError(body_model, f"cannot load as a SMPL-X model ({error})") from None
+    betas = np.zeros(model.num_betas)
+    source = f"neutral zero betas of {model.name}" + (f" ({why})" if why else "")
+    return BodyShape(betas, model.rest_joints(betas), model.gender, source)
+
+
 def motion_from_file(path: str | Path) -> ExportMotion:
     """A motion.npz written by ``sarah-generate``; ExportError for anything else."""
     path = Path(path)

@@ -47,6 +47,7 @@ class OpenRequest:
     agent_start: tuple[float, float, float] = (0.0, 0.0, 0.0)
     audio_format: str = "s16le"
     features: bool = False  # also return the audio features the model used (for motion.npz)
+    smplx: bool = False  # also return SMPL-X parameters (needs the server's --body-model)
 
 
 @dataclass
@@ -86,7 +87,7 @@ def parse_open(message: dict[str, Any]) -> OpenRequest:
     if version != VERSION:
         raise ProtocolError("bad_version", f"protocol version {version!r}; this server speaks {VERSION}")
     known = {"type", "version", "gaze", "steps", "cfg", "seed", "agent_start", "audio_format",
-             "features"}
+             "features", "smplx"}
     unknown = sorted(set(message) - known)
     if unknown:
         raise ProtocolError("bad_open", f"unknown open fields {unknown}; known: {sorted(known)}")
@@ -118,6 +119,8 @@ def parse_open(message: dict[str, Any]) -> OpenRequest:
         request.audio_format = message["audio_format"]
     if "features" in message:
         request.features = bool(message["features"])
+    if "smplx" in message:
+        request.smplx = bool(message["smplx"])
     return request
 
 

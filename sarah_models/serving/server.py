@@ -62,7 +62,8 @@ def is_loopback(host: str) -> bool:
 class LiveSession:
     """One client's stream: settings from its open message, the generator's state, counters."""
 
-    def __init__(self, models, request: OpenRequest, defaults: StreamConfig, extractor):
+    def __init__(self, models, request: OpenRequest, defaults: StreamConfig, extractor,
+                 body=None):
         config = replace(defaults,
                          gaze=request.gaze if request.gaze_given else defaults.gaze,
                          steps=request.steps or defaults.steps,
@@ -74,6 +75,7 @@ class LiveSession:
                                        agent_anchor(request.agent_start))
         self.stream = StreamingSession(generator, extractor)
         self.layout = MotionLayout.from_width(generator.motion_dim)
+        self.body = body  # sarah_data.export BodyShape for SMPL-X parameters, when requested
         self.expected_seq = 0
         self.frames_out = 0
         self._heads = np.zeros((0, 2), np.float32)  # user positions of frames not yet generated
@@ -92,6 +94,12 @@ class LiveSession:
         if self.request.features:
             parts["agent_features"] = self.stream.features("agent")[used:]
             parts["user_features"] = self.stream.features("user")[used:]
+        if self.request.smplx and len(motion):
+            from sarah_data.export import ExportMotion, smplx_parameters
+
+            params, _ = smplx_parameters(ExportMotion("live", positions, rotations, self.body))
+            parts["smplx_poses"] = params["poses"].astype(np.float32)
+            parts["smplx_trans"] = params["trans"].astype(np.float32)
         header = {"type": "frames", "seq": chunk.seq, "first_frame": self.frames_out,
                   "frames": int(len(motion)), "gaze_score": [float(g) for g in gaze],
                   "gaze_target": self.stream.generator.gaze,
@@ -102,8 +110,9 @@ class LiveSession:
 
 class LiveServer:
     def __init__(self, models, config: ServeConfig, defaults: StreamConfig = StreamConfig(),
-                 echo: Callable[[str], None] = print):
+                 echo: Callable[[str], None] = print, body=None):
         self.models = models
+        self.body = body  # BodyShape (neutral betas of --body-model) for SMPL-X output, or None
         self.config = config
         self.defaults = defaults
         self.echo = echo
@@ -121,7 +130,10 @@ class LiveServer:
             "audio_formats": sorted(AUDIO_FORMATS), "max_chunk_frames": MAX_CHUNK_FRAMES,
             "motion_width": int(self.models.vae.motion_dim), "audio_dim": int(flow.audio_dim),
             "features": self.models.features, "joint_names": list(JOINT_NAMES),
-            "joint_parents": list(JOINT_PARENTS)})
+            "joint_parents": list(JOINT_PARENTS),
+            "smplx": None if self.body is None else {
+                "betas": [float(b) for b in self.body.betas], "gender": self.body.gender,
+                "source": self.body.source, "flat_hand_mean": True, "up_axis": "y"}})
 
     async def _send(self, ws, data) -> None:
         try:
@@ -149,8 +161,12 @@ class LiveServer:
                         if kind == "open":
                             if session is not None:
                                 raise ProtocolError("already_open", "this connection already has a session")
+                            opened = parse_open(request)
+                            if opened.smplx and self.body is None:
+                                raise ProtocolError("bad_open", "smplx output needs the server started "
+                                                                "with --body-model (a SMPL-X .npz)")
                             extractor = make_extractor(self.models.features)
-                            session = LiveSession(self.models, parse_open(request), self.defaults, extractor)
+                            session = LiveSession(self.models, opened, self.defaults, extractor, self.body)
                             await self._send(ws, self.ready_message())
                         elif kind == "gaze":
                             if session is None:
