@@ -220,10 +220,11 @@ class StreamingSession:
 
     Audio goes through the extractors' causal ``.stream()`` mode (features for completed frames,
     past audio only); user head positions arrive per frame. Whenever s frames of all three
-    inputs are available, one block is generated.
+    inputs are available, one block is generated. ``keep_features=False`` keeps only the last
+    push's features (``last_features``): a session that runs for hours must not keep them all.
     """
 
-    def __init__(self, generator: StreamingGenerator, extractor) -> None:
+    def __init__(self, generator: StreamingGenerator, extractor, keep_features: bool = True) -> None:
         if extractor.dim != generator.audio_dim:
             raise ValueError(f"audio extractor {extractor.name!r} gives {extractor.dim} channels, "
                              f"the model expects {generator.audio_dim}")
@@ -232,6 +233,9 @@ class StreamingSession:
         self._user = extractor.stream()
         self._buffers: dict[str, list[np.ndarray]] = {"head": [], "agent": [], "user": []}
         self._used: dict[str, list[np.ndarray]] = {"agent": [], "user": []}
+        self.keep_features = keep_features
+        empty = np.zeros((0, generator.audio_dim), np.float32)
+        self.last_features: dict[str, np.ndarray] = {"agent": empty, "user": empty}
 
     def _available(self, key: str) -> int:
         return sum(len(b) for b in self._buffers[key])
@@ -242,7 +246,8 @@ class StreamingSession:
         return data[:n]
 
     def features(self, person: str) -> np.ndarray:
-        """The audio features of ``person`` ("agent" or "user") used so far, (frames, Da)."""
+        """The audio features of ``person`` ("agent" or "user") used so far, (frames, Da)
+        (with ``keep_features``)."""
         used = self._used[person]
         return np.concatenate(used) if used else np.zeros((0, self.generator.audio_dim), np.float32)
 
@@ -254,10 +259,15 @@ class StreamingSession:
                                      ("user", self._user, user_samples)):
             feats = np.asarray(stream.push(np.asarray(samples, dtype=np.float32)), np.float32)
             self._buffers[key].append(feats.reshape(-1, self.generator.audio_dim))
-        s, out = self.generator.stride, []
+        s, out, used = self.generator.stride, [], {"agent": [], "user": []}
         while min(self._available(k) for k in self._buffers) >= s:
             head, a, b = (self._take(k, s) for k in ("head", "agent", "user"))
-            self._used["agent"].append(a)
-            self._used["user"].append(b)
+            used["agent"].append(a)
+            used["user"].append(b)
             out.append(self.generator.step(head, a, b))
+        for person, blocks in used.items():
+            self.last_features[person] = (np.concatenate(blocks) if blocks else
+                                          np.zeros((0, self.generator.audio_dim), np.float32))
+            if self.keep_features:
+                self._used[person] += blocks
         return np.concatenate(out) if out else np.zeros((0, self.generator.motion_dim), np.float32)

@@ -73,7 +73,7 @@ class LiveSession:
         self.request = request
         generator = StreamingGenerator(models.vae, models.flow, models.normalizer, config,
                                        agent_anchor(request.agent_start))
-        self.stream = StreamingSession(generator, extractor)
+        self.stream = StreamingSession(generator, extractor, keep_features=False)
         self.layout = MotionLayout.from_width(generator.motion_dim)
         self.body = body  # sarah_data.export BodyShape for SMPL-X parameters, when requested
         self.expected_seq = 0
@@ -82,7 +82,6 @@ class LiveSession:
 
     def push(self, chunk: Chunk) -> tuple[dict, list[np.ndarray]]:
         """Generate for one chunk; the frames message's header and arrays."""
-        used = len(self.stream.features("agent"))
         motion = self.stream.push(chunk.head, chunk.agent_audio, chunk.user_audio)
         positions, rotations = icosahedron.decode(self.layout.split(motion)[0])
         pending = np.concatenate([self._heads, chunk.head])
@@ -92,8 +91,8 @@ class LiveSession:
                  "joint_positions": positions.astype(np.float32),
                  "joint_rotations": rotations.astype(np.float32)}
         if self.request.features:
-            parts["agent_features"] = self.stream.features("agent")[used:]
-            parts["user_features"] = self.stream.features("user")[used:]
+            parts["agent_features"] = self.stream.last_features["agent"]
+            parts["user_features"] = self.stream.last_features["user"]
         if self.request.smplx and len(motion):
             from sarah_data.export import ExportMotion, smplx_parameters
 
