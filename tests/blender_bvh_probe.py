@@ -2,33 +2,24 @@
 import a BVH with Blender's own importer and write the frame range and every bone's head in
 world space at the first, middle and last frame."""
 
-import builtins
 import json
+import runpy
 import sys
+from pathlib import Path
 
 import bpy
 
-# Debian's Blender 3.4 BVH importer opens files with mode "rU", which Python 3.11 removed; newer
-# Blender releases open with "r". Dropping the "U" changes nothing else about the import.
-_open = builtins.open
-
-
-def _open_without_u(file, mode="r", *args, **kwargs):
-    return _open(file, mode.replace("U", ""), *args, **kwargs)
-
-
-builtins.open = _open_without_u
+# The README's import script: one owner of how our BVH goes into Blender.
+import_bvh = runpy.run_path(str(Path(__file__).resolve().parents[1] / "scripts" / "blender_import_bvh.py"))["import_bvh"]
 
 path, out = sys.argv[sys.argv.index("--") + 1:][:2]
 bpy.ops.wm.read_factory_settings(use_empty=True)
-bpy.ops.import_anim.bvh(filepath=path, global_scale=1.0, frame_start=1, use_fps_scale=False,
-                        rotate_mode="NATIVE", axis_forward="-Z", axis_up="Y")
-armature = next(o for o in bpy.context.scene.objects if o.type == "ARMATURE")
+armature = import_bvh(path)
 first, last = (int(round(f)) for f in armature.animation_data.action.frame_range)
 frames = sorted({first, (first + last) // 2, last})
 heads = {}
 for frame in frames:
     bpy.context.scene.frame_set(frame)
     heads[frame] = {bone.name: list(armature.matrix_world @ bone.head) for bone in armature.pose.bones}
-with _open(out, "w") as handle:
+with open(out, "w") as handle:
     json.dump({"frame_range": [first, last], "fps": bpy.context.scene.render.fps, "heads": heads}, handle)

@@ -134,7 +134,7 @@ def test_blender_imports_the_bvh(prepared_shards, shard_person, tmp_path):
                          capture_output=True, text=True, timeout=300)
     assert probe.is_file(), run.stdout[-2000:] + run.stderr[-2000:]
     data = json.loads(probe.read_text())
-    assert data["frame_range"] == [1, len(joints)]
+    assert data["frame_range"] == [1, len(joints)] and data["fps"] == 30
     wrist = JOINT_NAMES.index("left_wrist")
     for frame, heads in data["heads"].items():
         ours = joints[int(frame) - 1, wrist]
