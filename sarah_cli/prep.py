@@ -41,7 +41,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--extractors", default=",".join(defaults.extractors),
                         help="comma-separated audio feature extractors (logmel, hubert-large)")
     parser.add_argument("--hubert-weights", default=defaults.hubert_weights,
-                        help="local HuBERT-Large weight file (for the hubert-large extractor)")
+                        help="local HuBERT weights for the hubert-large extractor: torchaudio's .pth, "
+                             "fairseq's .pt, or a Hugging Face model folder")
+    parser.add_argument("--hubert-architecture", choices=("large", "base"),
+                        default=defaults.hubert_architecture,
+                        help="HuBERT size of those weights (the paper: large)")
     parser.add_argument("--shell-points", type=int, default=defaults.shell_points, help="mesh-shell points per frame")
     parser.add_argument("--split-seed", type=int, default=defaults.split_seed, help="seed of the session split")
     parser.add_argument("--max-shard-mb", type=float, default=defaults.max_shard_bytes / 2**20,
@@ -102,7 +106,8 @@ def main(argv: list[str] | None = None) -> int:
         import torch
         device = "cuda" if torch.cuda.is_available() else "cpu"
     config = PrepConfig(extractors=tuple(e.strip() for e in args.extractors.split(",") if e.strip()),
-                        hubert_weights=args.hubert_weights, shell_points=args.shell_points,
+                        hubert_weights=args.hubert_weights, hubert_architecture=args.hubert_architecture,
+                        shell_points=args.shell_points,
                         split_seed=args.split_seed, max_shard_bytes=int(args.max_shard_mb * 2**20),
                         device=device)
     problems = config.problems()

@@ -13,6 +13,7 @@ from .speaking import SpeakingConfig
 class PrepConfig:
     extractors: tuple[str, ...] = ("logmel",)  # the paper's is "hubert-large" (needs weights)
     hubert_weights: str | None = None  # a local HuBERT-Large weight file; never downloaded
+    hubert_architecture: str = "large"  # "base" for HuBERT-Base weights (the paper: large)
     shell_points: int = 256  # mesh-shell vertices kept per frame
     icosahedron_radius: float = DEFAULT_RADIUS
     speaking: SpeakingConfig = field(default_factory=SpeakingConfig)
@@ -26,7 +27,7 @@ class PrepConfig:
         """What makes this configuration unusable, one line each, checked before any work
         starts (a bad setting used to surface per sequence, after all the work)."""
         from .features import available_extractors
-        from .features.hubert import default_weights_path
+        from .features.hubert import HF_WEIGHT_FILES, default_weights_path
 
         found = []
         known = available_extractors()
@@ -38,10 +39,15 @@ class PrepConfig:
                              f"{', '.join(known)}")
         if "hubert-large" in self.extractors:
             weights = Path(self.hubert_weights).expanduser() if self.hubert_weights else \
-                default_weights_path("large")
+                default_weights_path(self.hubert_architecture)
+            if weights.is_dir():
+                weights = next((weights / n for n in HF_WEIGHT_FILES if (weights / n).is_file()), weights)
             if not weights.is_file():
                 found.append(f"--hubert-weights: {weights}: no such file (hubert-large needs a "
-                             f"local HuBERT-Large checkpoint; nothing is ever downloaded)")
+                             f"local HuBERT checkpoint: torchaudio's .pth, fairseq's .pt or a "
+                             f"Hugging Face folder; nothing is ever downloaded)")
+            if self.hubert_architecture not in ("large", "base"):
+                found.append(f"--hubert-architecture must be large or base, got {self.hubert_architecture!r}")
         if self.shell_points < 1:
             found.append(f"--shell-points must be at least 1, got {self.shell_points}")
         if self.max_shard_bytes <= 0:
@@ -54,9 +60,12 @@ class PrepConfig:
         return found
 
     def extractor_options(self, name: str) -> dict:
-        if name == "hubert-large" and self.hubert_weights:
-            return {"weights": self.hubert_weights}
-        return {}
+        if name != "hubert-large":
+            return {}
+        options = {"weights": self.hubert_weights} if self.hubert_weights else {}
+        if self.hubert_architecture != "large":
+            options["architecture"] = self.hubert_architecture
+        return options
 
 
 def device_problems(device: str) -> list[str]:

@@ -404,8 +404,9 @@ def test_a_corpus_with_every_real_world_quirk_at_once(prep_raw_dir, tmp_path, ca
     """#19 acceptance 1: one tree holding the quirks of the real corpus at once (a dataset.json
     with a byte-order mark, a scene name with a hyphen, a three-person entry, NaNs in untracked
     frames, audio listed as null whose files are there, the locked-head SMPL-X layout, the body
-    model file named as smplx.create expects) gives a run that writes every recoverable
-    sequence and a report naming the rest."""
+    model file named as smplx.create expects, HuBERT weights as a Hugging Face folder) gives a
+    run that writes every recoverable sequence and a report naming the rest; --audit reads the
+    same tree and finds the mask the right way round."""
     raw = tmp_path / "raw"
     shutil.copytree(prep_raw_dir / "aiagent", raw / "aiagent")
     section = raw / "aiagent"
@@ -445,10 +446,31 @@ def test_a_corpus_with_every_real_world_quirk_at_once(prep_raw_dir, tmp_path, ca
     nested.mkdir(parents=True)
     shutil.copy(next((prep_raw_dir / "body_models").glob("*.npz")), nested / "SMPLX_NEUTRAL.npz")
 
+    # HuBERT weights as users have them: a Hugging Face model folder (random base-size weights).
+    import torchaudio
+    from safetensors.torch import save_file
+    from test_features import _renamed
+
+    torch.manual_seed(0)
+    hf = tmp_path / "hubert-base-ls960"
+    hf.mkdir()
+    (hf / "config.json").write_text('{"model_type": "hubert"}')
+    state = torchaudio.models.hubert_base().state_dict()
+    save_file({k: v.contiguous() for k, v in _renamed(state, "hf").items()}, str(hf / "model.safetensors"))
+
     out = tmp_path / "shards"
-    assert prep_main([str(raw), str(out), "-j", "1", "--no-progress"]) == 0
+    assert prep_main([str(raw), str(out), "-j", "2", "--no-progress", "--extractors", "logmel,hubert-large",
+                      "--hubert-weights", str(hf), "--hubert-architecture", "base"]) == 0
     printed = capsys.readouterr().out
     assert "Traceback" not in printed and "lists no audio" in printed
+    shards = ShardSet(out)
+    record = shards.attrs.extractors["hubert-large"]
+    shards.close()
+    assert record["architecture"] == "base" and len(record["weights_sha256"]) == 64
+    assert str(hf) not in json.dumps(record)
+    assert prep_main(["--audit", str(raw), "--no-progress"]) == 0
+    audit = capsys.readouterr().out
+    assert "| aiagent |" in audit and "inverted" not in audit
     written = json.loads((out / "manifest.json").read_text())["sequences"]
     assert new in written and with_audio[1] in written
     assert set(written) == set(with_audio) - {old} | {new}

@@ -68,7 +68,7 @@ _CHECKPOINT_NAMES = [(re.compile(pattern), replacement) for pattern, replacement
     (r"^encoder\.layers\.(\d+)\.(.+)$", r"encoder.transformer.layers.\1.\2"),
 )]
 # Where a Hugging Face model folder keeps its weights, preferred first.
-_FOLDER_WEIGHTS = ("model.safetensors", "pytorch_model.bin")
+HF_WEIGHT_FILES = ("model.safetensors", "pytorch_model.bin")
 # Old-style weight norm (what torchaudio's bundle files store) -> the parametrization torchaudio uses now.
 _LEGACY_WEIGHT_NORM = {".weight_g": ".parametrizations.weight.original0",
                        ".weight_v": ".parametrizations.weight.original1"}
@@ -166,10 +166,10 @@ def weight_file(path: Path) -> Path:
     """The weight file itself: ``path``, or inside a Hugging Face model folder its
     model.safetensors / pytorch_model.bin."""
     if path.is_dir():
-        for name in _FOLDER_WEIGHTS:
+        for name in HF_WEIGHT_FILES:
             if (path / name).is_file():
                 return path / name
-        raise MissingWeightsError(f"{path}: a folder without {' or '.join(_FOLDER_WEIGHTS)} "
+        raise MissingWeightsError(f"{path}: a folder without {' or '.join(HF_WEIGHT_FILES)} "
                                   f"(a Hugging Face HuBERT folder such as hubert-large-ll60k has one)")
     return path
 
