@@ -90,6 +90,16 @@ def main(argv: list[str] | None = None) -> int:
     from sarah_data.loading import DataProblem
     from sarah_models.evaluation.runner import EvalConfig, EvalError, run_evaluation
 
+    problems = [f"--shards {args.shards}: no such folder"] if not args.shards.is_dir() else []
+    if args.out.exists() and not args.out.is_dir():
+        problems.append(f"--out {args.out} is a file, not a folder")
+    if args.device is not None:
+        from sarah_data.config import device_problems
+
+        problems += device_problems(args.device)
+    if problems:  # before anything loads: the first line names the first problem
+        print(f"sarah-eval: error: {problems[0]}", file=sys.stderr)
+        return EXIT_ERROR
     try:
         config = EvalConfig(split=args.split, windows=args.windows, window=args.window,
                             gaze=args.gaze, table1_gaze=args.table1_gaze, methods=args.methods,

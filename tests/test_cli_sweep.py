@@ -67,6 +67,7 @@ def cases(w):
         ("eval", ["--shards", w["shards"], "--out", o, "--device", "gpu"]),
         ("eval", ["--shards", w["shards"], "--out", o, "--methods", "gt,model"]),
         ("eval", ["--shards", w["shards"], "--out", o, "--run", w["run"], "--steps", "0"]),
+        ("eval", ["--shards", w["shards"], "--out", w["file"], "--run", w["run"]]),
         ("export", []), ("export", [w["file"], "--out", o]), ("export", [w["a"], "--out", o, "--format", "fbx"]),
         ("export", ["--shards", w["shards"], "--out", o]), ("export", [w["a"], "--out", o, "--frames", "0"]),
         ("export", [w["a"], "--out", o, "--start", "-1"]), ("export", [w["a"], "--out", o, "--up", "x"]),
@@ -126,3 +127,13 @@ def test_paper_size_training_on_a_cpu_says_so(world, tmp_path, capsys):
 
     main(["--shards", str(world["missing"]), "--out", str(tmp_path / "run"), "--device", "cpu"])
     assert "note: training the paper-size model on a CPU" in capsys.readouterr().err
+
+
+def test_eval_names_a_missing_shards_folder_first(world, tmp_path, capsys):
+    from sarah_cli.eval import main
+
+    assert main(["--shards", str(world["missing"]), "--out", str(tmp_path / "out")]) == 2
+    assert "--shards " + str(world["missing"]) + ": no such folder" in capsys.readouterr().err
+    assert main(["--shards", str(world["shards"]), "--out", str(tmp_path / "out"), "--device", "gpu"]) == 2
+    assert "'gpu' is not a device" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
