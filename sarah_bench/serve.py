@@ -128,6 +128,7 @@ async def _client(url: str, seconds: float, seed: int, stats: dict) -> None:
         await ws.send(json.dumps({"type": "open", "version": 1, "gaze": 0.8, "seed": seed}))
         json.loads(await ws.recv())
         in_flight = asyncio.Semaphore(2)
+        total = int(seconds * FPS / CHUNK)
 
         async def receive() -> None:
             nonlocal expected, frames
@@ -142,13 +143,12 @@ async def _client(url: str, seconds: float, seed: int, stats: dict) -> None:
                 rtts.append(now - sent.pop(header["seq"]))
                 frames += header["frames"]
                 in_flight.release()
-                if header["seq"] == stats_total - 1:
+                if header["seq"] == total - 1:
                     return
 
-        stats_total = int(seconds * FPS / CHUNK)
         receiver = asyncio.create_task(receive())
         start = time.perf_counter()
-        for seq in range(stats_total):
+        for seq in range(total):
             delay = start + seq * CHUNK / FPS - time.perf_counter()
             if delay > 0:
                 await asyncio.sleep(delay)
@@ -164,7 +164,7 @@ async def _client(url: str, seconds: float, seed: int, stats: dict) -> None:
             receiver.cancel()
         elapsed = time.perf_counter() - start
         await ws.send(json.dumps({"type": "close"}))
-    stats["chunks"] += stats_total
+    stats["chunks"] += total
     stats["lost"] += len(sent)
     stats["rtts"].append(np.asarray(rtts))
     stats["fps"].append(frames / elapsed)

@@ -69,7 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "topview.png and skeleton.gif to --out.")
     parser.add_argument("--run", required=True, type=Path, help="training run folder (runs/NAME)")
     parser.add_argument("--checkpoint", type=Path, default=None,
-                        help="checkpoint file (default: RUN/flow.pt)")
+                        help="checkpoint or model file (default: RUN/flow.pt, else RUN/model.safetensors)")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument("--gaze", default=str(d.gaze),
                         help="target gaze score in [-1, 1], or 'none' to drop it")

@@ -27,7 +27,7 @@ class PrepConfig:
         """What makes this configuration unusable, one line each, checked before any work
         starts (a bad setting used to surface per sequence, after all the work)."""
         from .features import available_extractors
-        from .features.hubert import HF_WEIGHT_FILES, default_weights_path
+        from .features.hubert import MissingWeightsError, default_weights_path, weight_file
 
         found = []
         known = available_extractors()
@@ -40,8 +40,10 @@ class PrepConfig:
         if "hubert-large" in self.extractors:
             weights = Path(self.hubert_weights).expanduser() if self.hubert_weights else \
                 default_weights_path(self.hubert_architecture)
-            if weights.is_dir():
-                weights = next((weights / n for n in HF_WEIGHT_FILES if (weights / n).is_file()), weights)
+            try:
+                weights = weight_file(weights)
+            except MissingWeightsError:
+                pass
             if not weights.is_file():
                 found.append(f"--hubert-weights: {weights}: no such file (hubert-large needs a "
                              f"local HuBERT checkpoint: torchaudio's .pth, fairseq's .pt or a "

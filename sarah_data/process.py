@@ -130,7 +130,8 @@ def process_pair(pair: PairRecord, body_model_path: str, config: PrepConfig
         arrays[prefix + "valid"] = arrays_in.valid.astype(np.uint8)
         arrays[prefix + "root_position"] = frames_out.joints[:, JOINT["pelvis"]].astype(np.float32)
         arrays[prefix + "root_rotation"] = frames_out.rotations[:, JOINT["pelvis"]].astype(np.float32)
-        betas, varies = person_betas(body.shape_betas(arrays_in.params["betas"]), arrays_in.valid)
+        betas, varies = person_betas(arrays_in.params["betas"], arrays_in.valid)
+        betas = body.shape_betas(betas)  # one row padded or cut to the model's count
         if varies:
             warnings.append(f"{pair.sequence}/{person}: betas vary over frames (up to {varies:.3g}); "
                             f"the shards keep their median for export")

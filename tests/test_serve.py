@@ -37,7 +37,7 @@ class RunningServer:
 
     def __init__(self, run: Path, body=None, **config):
         models, _ = load_server_models(run, device="cpu")
-        self.server = LiveServer(models, ServeConfig(port=0, **config), echo=lambda _: None, body=body)
+        self.server = LiveServer(models, ServeConfig(port=0, **config), body=body)
         self.loop = asyncio.new_event_loop()
         self.ready = self.loop.create_future()
         self.stop_future = self.loop.create_future()

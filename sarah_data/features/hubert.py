@@ -202,14 +202,9 @@ def read_weight_file(path: Path) -> dict:
 
 def weights_sha256(weights: str | Path | None, architecture: str = "large") -> str:
     """The sha256 of the weight file an extractor loads (what shards record, not its path)."""
-    import hashlib
+    from sarah_data.shards.h5io import file_sha256
 
-    path = weight_file(Path(weights).expanduser() if weights else default_weights_path(architecture))
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+    return file_sha256(weight_file(Path(weights).expanduser() if weights else default_weights_path(architecture)))
 
 
 def load_hubert(weights: str | Path | None, architecture: str = "large") -> torch.nn.Module:

@@ -18,7 +18,6 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from importlib import resources
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -109,15 +108,13 @@ class LiveSession:
 
 class LiveServer:
     def __init__(self, models, config: ServeConfig, defaults: StreamConfig = StreamConfig(),
-                 echo: Callable[[str], None] = print, body=None):
+                 body=None):
         self.models = models
         self.body = body  # BodyShape (neutral betas of --body-model) for SMPL-X output, or None
         self.config = config
         self.defaults = defaults
-        self.echo = echo
         self.executor = ThreadPoolExecutor(max_workers=config.workers, thread_name_prefix="sarah-serve")
         self.sessions = 0
-        self.served = 0
         self.stride = models.vae.stride
         make_extractor(models.features)  # fail at start, not at the first connection
 
@@ -148,7 +145,6 @@ class LiveServer:
             await ws.close(1013, f"server full ({self.config.max_sessions} sessions); try again later")
             return
         self.sessions += 1
-        self.served += 1
         loop = asyncio.get_running_loop()
         session: LiveSession | None = None
         try:
