@@ -27,16 +27,17 @@ from .training.checkpoint import build_models, unpack_models
 
 def random_models(size: str = "paper", audio_dim: int = 80, shell_points: int = 256,
                   seed: int = 0, motion_std: float = 0.1, *, init_std: float = 0.02,
-                  audio_mean: float = -5.0, audio_std: float = 3.0, latent_mean_std: float = 0.0
-                  ) -> tuple[CausalVAE, FlowModel, Normalizer]:
+                  audio_mean: float = -5.0, audio_std: float = 3.0, latent_mean_std: float = 0.0,
+                  overrides: tuple[str, ...] = ()) -> tuple[CausalVAE, FlowModel, Normalizer]:
     """VAE + flow of the ``size`` preset with random weights, in eval mode, with a normalizer.
 
     AdaLN-Zero starts every block and the output at zero, which would make the flow predict
     x1 = 0 whatever its input; those parameters are drawn N(0, init_std) so that conditioning,
     noise and history all matter, as in a trained model. The normalizer: a standing pose as the
     motion mean with per-coordinate std ``motion_std`` m, constant audio statistics, and latent
-    means drawn N(0, latent_mean_std) with unit std."""
-    config = RunConfig.preset(size)
+    means drawn N(0, latent_mean_std) with unit std. ``overrides``: ``section.field=value``
+    strings applied to the preset (``RunConfig.with_overrides``)."""
+    config = RunConfig.preset(size).with_overrides(overrides)
     layout = MotionLayout(shell_points=shell_points)
     dims = {"motion": layout.width, "audio": audio_dim}
     torch.manual_seed(seed)

@@ -150,3 +150,22 @@ def test_flow_loss_falls():
         opt.step()
     after = eval_loss()
     assert after < before / 3, (before, after)
+
+
+def test_attention_window_limits_each_layer_to_the_streaming_context():
+    """flow.attention_window = history + 1 limits every layer to the last 3 tokens, so token k
+    depends on tokens k - layers * 2 .. k only (receptive field of stacked windows)."""
+    torch.manual_seed(0)
+    config = FlowConfig(**{**FlowConfig.tiny().__dict__, "attention_window": 3})
+    model = trained_weights(FlowModel(config, DZ, S, DA))
+    reach = config.layers * (config.attention_window - 1)
+    g = torch.Generator().manual_seed(5)
+    z, cond = torch.randn(1, K, DZ, generator=g), make_cond(1, g)
+    base = model(z, 0.4, cond)
+    moved = z.clone()
+    moved[:, 0] += 3.0
+    out = model(moved, 0.4, cond)
+    assert torch.equal(out[:, reach + 1:], base[:, reach + 1:])
+    assert not torch.allclose(out[:, reach], base[:, reach])
+    with pytest.raises(ValueError, match="attention_window"):
+        FlowConfig(attention_window=0)

@@ -233,8 +233,12 @@ def test_fewer_steps_approach_the_many_step_stream(models):
     assert other_seed > 2 * deviation[2]
 
 
-def test_history_window_slides(models):
-    """With 2 history tokens the window equals full history for 3 chunks, then drops tokens."""
+def test_history_window_slides():
+    """With 2 history tokens the window equals full history for 3 chunks, then drops tokens
+    (a flow with full attention context, so that older tokens would matter)."""
+    models = random_models("tiny", 8, SHELL, 0, motion_std=0.02, init_std=0.05,
+                           audio_mean=0.0, audio_std=1.0, latent_mean_std=0.1,
+                           overrides=("flow.attention_window=None",))
     inputs = make_inputs(20)
     limited = stream(models, inputs, StreamConfig(history_tokens=2))
     full = stream(models, inputs, StreamConfig(history_tokens=None))

@@ -155,6 +155,9 @@ class FlowModel(nn.Module):
         past = 0 if caches is None else len(caches[0])
         if positions is None:
             positions = torch.arange(past, past + k, device=z_tau.device)
+        if attn_mask is None and self.config.attention_window is not None:
+            attn_mask = build_block_mask(k, past + k, window=self.config.attention_window,
+                                         device=z_tau.device)
         if cond_tokens is None:
             if cond is None:
                 raise ValueError("FlowModel.forward needs cond or cond_tokens")
