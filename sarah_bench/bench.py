@@ -33,37 +33,42 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from sarah_data.constants import SAMPLES_PER_FRAME
+from sarah_data.constants import FPS, SAMPLES_PER_FRAME
 from sarah_models.accel import (
     cpu_info,
     optimize_for_inference,
     resolve_decoder,
     warm_up,
 )
-from sarah_models.config import StreamConfig
+from sarah_models.accel.threads import ThreadPolicy, stream_probe
+from sarah_models.config import STRIDE, StreamConfig
 from sarah_models.sampling.stream import StreamingGenerator, generate_offline
 from sarah_models.testing import random_models, stream_deviation, synthetic_inputs
 
 from .config import CHUNK_FRAMES, BenchConfig
 from .data import bench_hubert_windows, bench_loader, bench_prep, write_random_hubert
 from .naive import NaiveStreamer
+from .load import BackgroundLoad
 from .report import check_goals
-from .timing import ChunkClock, StageHooks, torch_threads
+from .timing import ChunkClock, StageHooks, percentiles, torch_threads
 
 # --------------------------------------------------------------------------- model benchmarks
 
 
 def bench_offline(models, frames: int, inputs: dict[str, np.ndarray], features: np.ndarray,
-                  config: StreamConfig = StreamConfig(), repeats: int = 3) -> float:
+                  config: StreamConfig = StreamConfig(), repeats: int = 3,
+                  policy: ThreadPolicy | None = None) -> float:
     """Frames per second of ``generate_offline`` on ``frames`` frames at once (paper 4:
     T / time), the best of ``repeats`` runs (one run lasts about a second: a busy neighbour
-    process would otherwise decide the figure)."""
+    process would otherwise decide the figure). ``policy`` picks the threads before each run."""
     vae, flow, normalizer = models
     head = inputs["user_head"][:frames]
     a = b = features[:frames]
     generate_offline(vae, flow, normalizer, head[:8], a[:8], b[:8], config)  # warm-up
     best = float("inf")
     for _ in range(repeats):
+        if policy is not None:
+            policy.apply()
         tick = time.perf_counter()
         generate_offline(vae, flow, normalizer, head, a, b, config)
         best = min(best, time.perf_counter() - tick)
@@ -72,15 +77,18 @@ def bench_offline(models, frames: int, inputs: dict[str, np.ndarray], features: 
 
 def bench_streaming(models, frames: int, inputs: dict[str, np.ndarray], extractor,
                     config: StreamConfig = StreamConfig(),
-                    max_seconds: float = float("inf")) -> dict[str, Any]:
+                    max_seconds: float = float("inf"),
+                    policy: ThreadPolicy | None = None) -> dict[str, Any]:
     """Stream ``frames`` frames chunk by chunk from raw audio through the extractor's causal
     mode and ``StreamingGenerator``; fps, per-chunk latency and its split by stage. Stops
-    early once ``max_seconds`` have passed (``frames`` then says how many were streamed)."""
+    early once ``max_seconds`` have passed (``frames`` then says how many were streamed).
+    ``policy`` picks the threads before each chunk (its cost counts in the chunk's time)."""
     vae, flow, normalizer = models
     generator = StreamingGenerator(vae, flow, normalizer, config)
     s = generator.stride
     n = s * SAMPLES_PER_FRAME
     hooks = StageHooks(vae, flow)
+    threads_used: list[int] = []
     try:
         for phase in ("warm-up", "measure"):
             generator.reset()
@@ -88,10 +96,12 @@ def bench_streaming(models, frames: int, inputs: dict[str, np.ndarray], extracto
             count = 3 * s if phase == "warm-up" else frames
             clock = ChunkClock()
             hooks.take()
+            threads_used.clear()
             started = time.perf_counter()
             for i in range(0, count, s):
                 k = i * SAMPLES_PER_FRAME
                 tick = time.perf_counter()
+                threads_used.append(policy.apply() if policy is not None else torch.get_num_threads())
                 a = streams[0].push(inputs["agent_wave"][k:k + n])
                 b = streams[1].push(inputs["user_wave"][k:k + n])
                 heard = time.perf_counter()
@@ -103,7 +113,83 @@ def bench_streaming(models, frames: int, inputs: dict[str, np.ndarray], extracto
             total = time.perf_counter() - started
     finally:
         hooks.remove()
-    return clock.summary(s, total)
+    return {**clock.summary(s, total), "threads_used": threads_share(threads_used)}
+
+
+def threads_share(threads: list[int]) -> dict[str, float]:
+    """{"2": 0.97, "1": 0.03}: the share of chunks run with each thread count."""
+    counts = np.bincount(np.asarray(threads, dtype=np.int64)) if threads else np.zeros(0)
+    return {str(n): float(c) / len(threads) for n, c in enumerate(counts) if c}
+
+
+def bench_kernel(thread_counts: tuple[int, ...], calls: int = 300) -> dict[str, Any]:
+    """Why thread counts matter under load: one paper-size int8 Linear (1024 -> 4096, the 6 rows
+    of a streamed evaluation) timed call by call with each thread count. A chunk runs ~130 such
+    parallel kernels, each ending at a barrier that waits for every thread."""
+    from torch import nn
+
+    from sarah_models.accel.linears import Int8Linear
+
+    torch.manual_seed(0)
+    layer = Int8Linear(nn.Linear(1024, 4096))
+    x = torch.randn(6, 1024)
+    out: dict[str, Any] = {}
+    with torch_threads(1):
+        for threads in thread_counts:
+            torch.set_num_threads(threads)
+            for _ in range(20):
+                layer(x)
+            times = []
+            for _ in range(calls):
+                tick = time.perf_counter()
+                layer(x)
+                times.append(time.perf_counter() - tick)
+            out[str(threads)] = percentiles(times)
+    return out
+
+
+def bench_concurrent(models, counts: tuple[int, ...], inputs: dict[str, np.ndarray], extractor,
+                     seconds: float, policy: ThreadPolicy | None = None,
+                     config: StreamConfig = StreamConfig()) -> dict[str, Any]:
+    """K streams in one process, served round robin by one compute thread (what one
+    ``sarah-serve`` worker does with K sessions): each round gives every stream its next chunk
+    (raw audio through the causal extractor, then ``StreamingGenerator.step``). A stream holds
+    real time when it gets >= 30 fps and the p99 round (the longest a chunk can wait) is at most
+    one chunk period (133 ms). Counts are tried in order until one fails; ``fit`` is the most
+    streams that held."""
+    s = STRIDE
+    n = s * SAMPLES_PER_FRAME
+    period_ms = 1000.0 * s / FPS
+    total_frames = inputs["user_head"].shape[0]
+    rows = []
+    for count in counts:
+        generators = [StreamingGenerator(*models, config) for _ in range(count)]
+        streams = [(extractor.stream(), extractor.stream()) for _ in range(count)]
+        rounds: list[float] = []
+        started = time.perf_counter()
+        i = 0
+        while time.perf_counter() - started < seconds:
+            tick = time.perf_counter()
+            if policy is not None:
+                policy.apply()
+            j = i % (total_frames - total_frames % s)  # the inputs again from the start
+            k = j * SAMPLES_PER_FRAME
+            for generator, (agent, user) in zip(generators, streams):
+                a = agent.push(inputs["agent_wave"][k:k + n])
+                b = user.push(inputs["user_wave"][k:k + n])
+                generator.step(inputs["user_head"][j:j + s], a, b)
+            rounds.append(time.perf_counter() - tick)
+            i += s
+        elapsed = time.perf_counter() - started
+        fps_each = len(rounds) * s / elapsed
+        round_ms = percentiles(rounds)
+        held = fps_each >= FPS and round_ms["p99"] <= period_ms
+        rows.append({"streams": count, "fps_each": fps_each, "round_ms": round_ms,
+                     "real_time": bool(held)})
+        if not held:
+            break
+    fit = max((row["streams"] for row in rows if row["real_time"]), default=0)
+    return {"rows": rows, "fit": fit, "seconds_per_count": seconds}
 
 
 def bench_naive_streaming(models, frames: int, inputs: dict[str, np.ndarray], extractor,
@@ -131,52 +217,117 @@ def bench_naive_streaming(models, frames: int, inputs: dict[str, np.ndarray], ex
     return clock.summary(s, time.perf_counter() - started)
 
 
-def bench_model_size(size: str, cfg: BenchConfig, log: Callable[[str], None]) -> dict[str, Any]:
-    """Offline and streaming, optimized vs naive, and the optimized mode's deviation."""
-    from sarah_data.features import get_extractor
+class SizeBench:
+    """One model size's models, inputs and features, for the idle and the loaded sections."""
 
-    extractor = get_extractor("logmel")
-    plain = random_models(size, audio_dim=extractor.dim, seed=cfg.seed)
-    fast = optimize_for_inference(plain, cfg.mode, decoder=cfg.decoder)
-    frames = max(cfg.stream_frames, cfg.naive_frames, cfg.offline_frames)
-    inputs = synthetic_inputs(frames, cfg.seed)
-    features = extractor.extract(inputs["agent_wave"], frames)
+    def __init__(self, size: str, cfg: BenchConfig) -> None:
+        from sarah_data.features import get_extractor
+
+        self.size, self.cfg = size, cfg
+        self.extractor = get_extractor("logmel")
+        self.plain = random_models(size, audio_dim=self.extractor.dim, seed=cfg.seed)
+        self.fast = optimize_for_inference(self.plain, cfg.mode, decoder=cfg.decoder)
+        frames = max(cfg.stream_frames, cfg.naive_frames, cfg.offline_frames)
+        self.inputs = synthetic_inputs(frames, cfg.seed)
+        self.features = self.extractor.extract(self.inputs["agent_wave"], frames)
+        # Each size its own policy: a small model's kernels are too short to share threads.
+        self.policy = ThreadPolicy(cfg.threads)
+        self.calibration = {str(k): 1000.0 * v for k, v in
+                            self.policy.calibrate(stream_probe(self.fast)).items()}
+
+    def offline(self, policy: ThreadPolicy, naive: bool) -> dict[str, Any]:
+        cfg = self.cfg
+        row = {"frames": cfg.offline_frames,
+               "fps": bench_offline(self.fast, cfg.offline_frames, self.inputs, self.features,
+                                    policy=policy)}
+        if naive:
+            row["naive_fps"] = bench_offline(self.plain, cfg.offline_frames, self.inputs,
+                                             self.features, policy=policy)
+            row["ratio"] = row["fps"] / row["naive_fps"]
+        return row
+
+    def stream(self, policy: ThreadPolicy | None, config: StreamConfig = StreamConfig(),
+               max_seconds: float | None = None) -> dict[str, Any]:
+        cap = self.cfg.max_stream_seconds if max_seconds is None else max_seconds
+        return bench_streaming(self.fast, self.cfg.stream_frames, self.inputs, self.extractor,
+                               config, max_seconds=cap, policy=policy)
+
+    def concurrent(self, policy: ThreadPolicy) -> dict[str, Any]:
+        return bench_concurrent(self.fast, self.cfg.concurrent_streams, self.inputs,
+                                self.extractor, self.cfg.concurrent_seconds, policy)
+
+
+def bench_model_size(bench: SizeBench, log: Callable[[str], None]) -> dict[str, Any]:
+    """Offline and streaming, optimized vs naive, and the optimized mode's deviation."""
+    cfg, size, policy = bench.cfg, bench.size, bench.policy
     out: dict[str, Any] = {}
     log(f"[{size}] offline generation, {cfg.offline_frames} frames at once")
-    offline = {"frames": cfg.offline_frames,
-               "fps": bench_offline(fast, cfg.offline_frames, inputs, features),
-               "naive_fps": bench_offline(plain, cfg.offline_frames, inputs, features)}
-    offline["ratio"] = offline["fps"] / offline["naive_fps"]
-    out["offline"] = offline
+    out["offline"] = bench.offline(policy, naive=True)
     log(f"[{size}] streaming, {cfg.stream_frames} frames in chunks of {CHUNK_FRAMES} "
         f"(naive reference: {cfg.naive_frames} frames)")
     cap = cfg.max_stream_seconds
-    streaming = bench_streaming(fast, cfg.stream_frames, inputs, extractor, max_seconds=cap)
-    streaming["naive"] = bench_naive_streaming(plain, cfg.naive_frames, inputs, extractor,
-                                               max_seconds=cap / 2)
+    streaming = bench.stream(policy)
+    streaming["calibration_ms"] = bench.calibration
+    policy.apply()
+    streaming["naive"] = bench_naive_streaming(bench.plain, cfg.naive_frames, bench.inputs,
+                                               bench.extractor, max_seconds=cap / 2)
     streaming["ratio"] = streaming["fps"] / streaming["naive"]["fps"]
     if cfg.fewer_steps is not None:
         fewer = StreamConfig(steps=cfg.fewer_steps)
-        warm_up(fast[1], fewer)
+        warm_up(bench.fast[1], fewer)
         log(f"[{size}] streaming with {cfg.fewer_steps} midpoint steps "
             f"({2 * cfg.fewer_steps} NFE; changes the output, not an exact optimization)")
-        streaming["fewer_steps"] = {"steps": cfg.fewer_steps, **bench_streaming(
-            fast, cfg.stream_frames, inputs, extractor, fewer, max_seconds=cap / 2)}
+        streaming["fewer_steps"] = {"steps": cfg.fewer_steps,
+                                    **bench.stream(policy, fewer, cap / 2)}
         log(f"[{size}] deviation: {2 * cfg.fewer_steps} NFE {cfg.mode} vs the paper's 8 NFE fp32")
         streaming["fewer_steps"]["deviation"] = stream_deviation(
-            plain, fast, frames=cfg.deviation_frames, seed=cfg.seed,
+            bench.plain, bench.fast, frames=cfg.deviation_frames, seed=cfg.seed,
             optimized_config=fewer).as_dict()
     log(f"[{size}] tolerance: {cfg.mode} vs plain fp32 over {cfg.deviation_frames} frames")
-    streaming["deviation"] = stream_deviation(plain, fast, frames=cfg.deviation_frames,
+    streaming["deviation"] = stream_deviation(bench.plain, bench.fast, frames=cfg.deviation_frames,
                                               seed=cfg.seed).as_dict()
     out["streaming"] = streaming
+    if size == "tiny" and cfg.concurrent_streams:
+        log(f"[{size}] concurrent streams in one process: {cfg.concurrent_streams}")
+        out["concurrent"] = bench.concurrent(policy)
+    if size == "paper":
+        out["kernel"] = bench_kernel(tuple(range(1, len(policy.cpus) + 1)))
+    return out
+
+
+def bench_loaded_size(bench: SizeBench, log: Callable[[str], None]) -> dict[str, Any]:
+    """The timed figures of ``bench_model_size`` again, while the background load runs, plus
+    the stream with a fixed thread count of every core (what the default was before the
+    thread policy) for comparison."""
+    cfg, size, policy = bench.cfg, bench.size, bench.policy
+    policy.measure(0.3)  # the load just changed: decide from it, not from before
+    out: dict[str, Any] = {}
+    log(f"[{size}, loaded] offline generation")
+    out["offline"] = bench.offline(policy, naive=False)
+    log(f"[{size}, loaded] streaming")
+    out["streaming"] = bench.stream(policy)
+    if cfg.fewer_steps is not None:
+        out["streaming"]["fewer_steps"] = {"steps": cfg.fewer_steps, **bench.stream(
+            policy, StreamConfig(steps=cfg.fewer_steps), cfg.max_stream_seconds / 2)}
+    if policy.automatic:
+        every_core = ThreadPolicy(threads=len(policy.cpus))
+        log(f"[{size}, loaded] streaming with a fixed {len(policy.cpus)} threads (at most "
+            f"{cfg.loaded_fixed_seconds:g} s)")
+        out["streaming"]["fixed_threads"] = {
+            "threads": len(policy.cpus),
+            **bench.stream(every_core, max_seconds=cfg.loaded_fixed_seconds)}
+    if size == "tiny" and cfg.concurrent_streams:
+        log(f"[{size}, loaded] concurrent streams in one process")
+        out["concurrent"] = bench.concurrent(policy)
+    if size == "paper":
+        out["kernel"] = bench_kernel(tuple(range(1, len(policy.cpus) + 1)))
     return out
 
 
 # --------------------------------------------------------------------------- the whole run
 
 
-def environment(threads: int) -> dict[str, Any]:
+def environment(threads: int | str) -> dict[str, Any]:
     cpu = cpu_info("model name") or platform.processor() or "unknown"
     return {"date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
             "cpu": cpu, "cores": os.cpu_count(), "threads": threads, "torch": torch.__version__,
@@ -191,8 +342,9 @@ def run_bench(cfg: BenchConfig = BenchConfig(), workdir: Path | None = None,
     from sarah_data.fixtures.dyads import make_fixtures
 
     threads_before = torch.get_num_threads()
-    torch.set_num_threads(cfg.threads)
-    results: dict[str, Any] = {"environment": environment(cfg.threads), "config": asdict(cfg)}
+    policy = ThreadPolicy(cfg.threads)
+    fixed_threads = policy.apply()  # prep and the loader run with this count throughout
+    results: dict[str, Any] = {"environment": environment(cfg.threads or "auto"), "config": asdict(cfg)}
     results["config"]["decoder_precision"] = resolve_decoder(cfg.decoder, cfg.mode,
                                                              torch.device("cpu"))
     started = time.perf_counter()
@@ -215,11 +367,11 @@ def run_bench(cfg: BenchConfig = BenchConfig(), workdir: Path | None = None,
             if cfg.prep:
                 log(f"prep (logmel): -j 1 and -j {cfg.prep_jobs}")
                 results["prep"] = {"logmel": bench_prep(raw, shards, PrepConfig(), cfg.prep_jobs,
-                                                        cfg.threads)}
+                                                        fixed_threads)}
             if cfg.loader and not (work / "shards" / "manifest.json").exists():
                 from sarah_data.prep import prepare
 
-                with torch_threads(cfg.threads):
+                with torch_threads(fixed_threads):
                     prepare([work / "raw"], work / "shards", PrepConfig(), jobs=cfg.prep_jobs,
                             progress=False, log=lambda *_: None)
             shutil.rmtree(work / "raw_prep", ignore_errors=True)
@@ -233,10 +385,18 @@ def run_bench(cfg: BenchConfig = BenchConfig(), workdir: Path | None = None,
             loader = results["loader"]
             loader["ratio"] = (loader["workers_2"]["windows_per_s"]
                                / loader["workers_0"]["windows_per_s"])
-        for size in cfg.sizes:
-            sized = bench_model_size(size, cfg, log)
-            for section, values in sized.items():
-                results.setdefault(section, {})[size] = values
+        benches = [SizeBench(size, cfg) for size in cfg.sizes]
+        for bench in benches:
+            for section, values in bench_model_size(bench, log).items():
+                results.setdefault(section, {})[bench.size] = values
+        if cfg.background_load:
+            log(f"background load: {cfg.background_load} busy processes")
+            loaded: dict[str, Any] = {"processes": cfg.background_load}
+            with BackgroundLoad(cfg.background_load):
+                for bench in benches:
+                    for section, values in bench_loaded_size(bench, log).items():
+                        loaded.setdefault(section, {})[bench.size] = values
+            results["loaded"] = loaded
         if cfg.hubert:
             weights = work / "hubert_large_random.pt"
             log("HuBERT-Large: random weights")
@@ -247,9 +407,9 @@ def run_bench(cfg: BenchConfig = BenchConfig(), workdir: Path | None = None,
                               seconds=cfg.hubert_prep_seconds, seed=cfg.seed + 1)
                 hubert_prep = PrepConfig(extractors=("hubert-large",), hubert_weights=str(weights))
                 results["prep"]["hubert-large"] = bench_prep(
-                    work / "raw_hubert", work / "shards_hubert", hubert_prep, 2, cfg.threads)
+                    work / "raw_hubert", work / "shards_hubert", hubert_prep, 2, fixed_threads)
             log(f"HuBERT-Large streaming cost per chunk, windows {cfg.hubert_windows_s} s")
-            with torch_threads(cfg.threads):
+            with torch_threads(fixed_threads):
                 results["hubert_streaming"] = bench_hubert_windows(weights, cfg.hubert_windows_s)
     finally:
         if own_dir:

@@ -19,6 +19,15 @@ GOALS = (  # (key, description, target, "min" = at least / "max" = below)
     ("streaming.paper.fewer_steps.latency_ms.p99",
      "chunk latency p99, paper size, fewer solver steps (ms)", 33.0, "max"),
     ("offline.paper.fps", "offline fps, paper size (paper: 600)", 600.0, "min"),
+    # #20: the same machine with another process keeping a core busy (--background-load 1),
+    # and idle at twice real time.
+    ("streaming.paper.fps@120", "streaming fps, paper size, idle (2x real time)", 120.0, "min"),
+    ("loaded.streaming.paper.fps", "streaming fps, paper size, under background load", 60.0, "min"),
+    ("loaded.streaming.paper.latency_ms.p99", "chunk latency p99, paper, under load (ms)", 50.0,
+     "max"),
+    ("loaded.offline.paper.fps", "offline fps, paper size, under background load", 600.0, "min"),
+    ("loaded.concurrent.tiny.fit", "real-time tiny streams in one process, under load", 4.0,
+     "min"),
     ("prep.logmel.rtf", "prep real-time factor, logmel, -j 2", 100.0, "min"),
     ("loader.workers_2.windows_per_s", "loader windows/s, 2 workers", 1000.0, "min"),
 )
@@ -28,7 +37,7 @@ GOALS = (  # (key, description, target, "min" = at least / "max" = below)
 class BenchConfig:
     """What ``sarah-bench`` runs; ``quick()`` is the CI smoke run (tiny model, small inputs)."""
 
-    threads: int = 2
+    threads: int | None = None  # None: accel.threads.ThreadPolicy (cores others leave free)
     mode: str = "int8"  # the optimized path (fast.MODES)
     decoder: str = "auto"  # the VAE decoder's precision in that path (fast.DECODER_PRECISIONS)
     sizes: tuple[str, ...] = ("paper", "tiny")
@@ -53,11 +62,21 @@ class BenchConfig:
     hubert: bool = True
     hubert_prep_seconds: float = 6.0
     hubert_windows_s: tuple[float, ...] = (1.0, 2.0, 4.0, 13.2)  # 13.2 s = T = 396 + 4 frames
+    # Busy processes of the bench's own beside a second pass of the timed figures (0: none).
+    background_load: int = 0
+    loaded_fixed_seconds: float = 20.0  # the every-core stream under load (it crawls) stops here
+    # Tiny streams served round robin in one process (the server's figure), tried in order.
+    concurrent_streams: tuple[int, ...] = (1, 2, 4, 6, 8, 12)
+    concurrent_seconds: float = 8.0
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.threads < 1:
-            raise ValueError(f"threads must be >= 1, got {self.threads}")
+        if self.threads is not None and self.threads < 1:
+            raise ValueError(f"threads must be >= 1 (or None: automatic), got {self.threads}")
+        if self.background_load < 0:
+            raise ValueError(f"background_load must be >= 0, got {self.background_load}")
+        if any(n < 1 for n in self.concurrent_streams) or self.concurrent_seconds <= 0:
+            raise ValueError("concurrent_streams must be counts >= 1 and concurrent_seconds > 0")
         if self.mode not in MODES:
             raise ValueError(f"unknown mode {self.mode!r}; choose from {MODES}")
         resolve_decoder(self.decoder, self.mode, torch.device("cpu"))  # raises on a bad pair
@@ -74,5 +93,6 @@ class BenchConfig:
                    fewer_steps=1,
                    deviation_frames=16, prep_sessions=1, prep_sequences_per_session=2,
                    prep_seconds=14.0, prep_corpus=None, loader_windows=32, loader_batch=8,
-                   hubert=False)
+                   hubert=False, concurrent_streams=(1, 2), concurrent_seconds=1.0,
+                   loaded_fixed_seconds=2.0)
         return replace(base, **overrides)

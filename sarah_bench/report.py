@@ -98,12 +98,72 @@ def format_report(results: dict[str, Any]) -> str:
                              f"{_f(r['latency_ms']['p99']):>8}   {stage_text}")
             lines.append(f"  {size} ratio fast/naive {_f(row['ratio'], 2)}; "
                          f"{_deviation_text(results['config']['mode'], row['deviation'])}")
+            if row.get("calibration_ms"):
+                lines.append(f"  {size} thread calibration, chunk p50 ms by threads: " + ", ".join(
+                    f"{k}: {_f(v)}" for k, v in row["calibration_ms"].items())
+                    + f"; threads used {row.get('threads_used')}")
             if "deviation" in row.get("fewer_steps", {}):
                 nfe = 2 * row["fewer_steps"]["steps"]
                 text = _deviation_text(f"{nfe} NFE {results['config']['mode']}",
                                        row["fewer_steps"]["deviation"], "8 NFE fp32")
                 lines.append(f"  {size} {text}"
                              f" (fewer steps change the output: quality in docs/results.md)")
+    concurrent = results.get("concurrent", {})
+    loaded = results.get("loaded", {})
+    for size, row in concurrent.items():
+        lines += ["", f"concurrent {size} streams in one process, round robin (real time: >= 30 fps "
+                      "each and p99 round <= 133 ms)",
+                  f"  {'streams':>8}  {'idle fps each':>14}  {'p99 round ms':>12}"
+                  + (f"   {'loaded fps each':>15}  {'p99 round ms':>12}" if loaded else "")]
+        loaded_rows = {r["streams"]: r for r in loaded.get("concurrent", {}).get(size, {}).get("rows", [])}
+        for r in row["rows"]:
+            text = f"  {r['streams']:>8}  {_f(r['fps_each']):>14}  {_f(r['round_ms']['p99']):>12}"
+            if r["streams"] in loaded_rows:
+                lr = loaded_rows[r["streams"]]
+                text += f"   {_f(lr['fps_each']):>15}  {_f(lr['round_ms']['p99']):>12}"
+            lines.append(text)
+        fit = f"  streams that hold real time: idle {row['fit']}"
+        if size in loaded.get("concurrent", {}):
+            fit += f", under load {loaded['concurrent'][size]['fit']}"
+        lines.append(fit)
+    if loaded:
+        lines += ["", f"under background load ({loaded['processes']} busy processes of the bench's "
+                      "own), side by side with idle",
+                  f"  {'figure':<34}{'idle':>10}  {'loaded':>10}   loaded / idle"]
+        for size, row in loaded.get("streaming", {}).items():
+            idle = results["streaming"][size]
+            pairs = [(f"{size} stream fps", idle["fps"], row["fps"]),
+                     (f"{size} chunk p50 ms", idle["latency_ms"]["p50"], row["latency_ms"]["p50"]),
+                     (f"{size} chunk p99 ms", idle["latency_ms"]["p99"], row["latency_ms"]["p99"])]
+            if "fewer_steps" in row and "fewer_steps" in idle:
+                nfe = 2 * row["fewer_steps"]["steps"]
+                pairs += [(f"{size} {nfe} NFE fps", idle["fewer_steps"]["fps"], row["fewer_steps"]["fps"]),
+                          (f"{size} {nfe} NFE p99 ms", idle["fewer_steps"]["latency_ms"]["p99"],
+                           row["fewer_steps"]["latency_ms"]["p99"])]
+            if size in loaded.get("offline", {}):
+                pairs.append((f"{size} offline fps", results["offline"][size]["fps"],
+                              loaded["offline"][size]["fps"]))
+            for label, a, b in pairs:
+                lines.append(f"  {label:<34}{_f(a):>10}  {_f(b):>10}   {_f(b / a, 2)}")
+            lines.append(f"  {size} threads used per chunk: idle {idle.get('threads_used')}, "
+                         f"loaded {row.get('threads_used')}")
+            fixed = row.get("fixed_threads")
+            if fixed:
+                lines.append(f"  {size} loaded with a fixed {fixed['threads']} threads: "
+                             f"{_f(fixed['fps'])} fps, p50 {_f(fixed['latency_ms']['p50'])} ms, "
+                             f"p99 {_f(fixed['latency_ms']['p99'])} ms ({fixed['frames']} frames)")
+    kernel = results.get("kernel", {}).get("paper")
+    if kernel:
+        loaded_kernel = loaded.get("kernel", {}).get("paper", {})
+        lines += ["", "one paper-size int8 Linear (1024 -> 4096, 6 rows), per call"
+                      + (": idle | under load" if loaded_kernel else ""),
+                  "  threads   p50 us   p99 us" + ("   | p50 us    p99 us" if loaded_kernel else "")]
+        for threads, row in kernel.items():
+            text = f"  {threads:>7}  {_f(1000 * row['p50'], 0):>7}  {_f(1000 * row['p99'], 0):>7}"
+            if threads in loaded_kernel:
+                lr = loaded_kernel[threads]
+                text += f"   | {_f(1000 * lr['p50'], 0):>6}  {_f(1000 * lr['p99'], 0):>8}"
+            lines.append(text)
     hubert = results.get("hubert_streaming")
     if hubert:
         lines += ["", "HuBERT-Large causal streaming: one pass per 4-frame chunk (133 ms of audio)",

@@ -41,7 +41,7 @@ class ServeBenchConfig:
     p99_goal_ms: float = 100.0
     mode: str = "int8"
     steps: int = 4  # solver steps per chunk (the paper's)
-    threads: int = 2
+    threads: int | None = None  # the server's --threads (None: its automatic policy)
     seed: int = 0
 
 
@@ -85,10 +85,12 @@ def _save_random_run(folder: Path, size: str, seed: int) -> Path:
 
 class ServerProcess:
     def __init__(self, run: Path, cfg: ServeBenchConfig):
-        env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": str(cfg.threads)}
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        threads = [] if cfg.threads is None else ["--threads", str(cfg.threads)]
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "sarah_cli.serve", "--run", str(run), "--port", "0", "--device",
-             "cpu", "--speed", cfg.mode, "--steps", str(cfg.steps), "--max-sessions", "256"],
+             "cpu", "--speed", cfg.mode, "--steps", str(cfg.steps), "--max-sessions", "256",
+             *threads],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
         line = self.proc.stdout.readline()
         match = re.search(r"ws://127\.0\.0\.1:(\d+)/", line)
@@ -227,7 +229,7 @@ def run_serve_bench(cfg: ServeBenchConfig = ServeBenchConfig(),
                     log: Callable[[str], None] = print) -> ServeBenchResult:
     from .bench import environment
 
-    result = ServeBenchResult(config=asdict(cfg), environment=environment(cfg.threads))
+    result = ServeBenchResult(config=asdict(cfg), environment=environment(cfg.threads or "auto"))
     with tempfile.TemporaryDirectory() as tmp:
         for size in cfg.sizes:
             server = ServerProcess(_save_random_run(Path(tmp) / size, size, cfg.seed), cfg)
@@ -253,7 +255,7 @@ def run_serve_bench(cfg: ServeBenchConfig = ServeBenchConfig(),
 def format_serve_report(result: ServeBenchResult) -> str:
     env = result.environment
     lines = [f"sarah-serve under load, {env.get('date', '')}, {env.get('cpu', '')}, "
-             f"{result.config['threads']} threads, {result.config['mode']}, "
+             f"{result.config['threads'] or 'automatic'} threads, {result.config['mode']}, "
              f"{result.config['steps']} midpoint steps, chunks of {CHUNK} frames",
              "", "| size | sessions | chunks | lost | reordered | p50 ms | worst p99 ms | slowest fps | real time |",
              "|---|---:|---:|---:|---:|---:|---:|---:|:---:|"]

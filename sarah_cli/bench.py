@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import HelpFormatter
+from sarah_cli.arguments import HelpFormatter, non_negative_int, positive_int
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -20,8 +20,14 @@ def build_parser() -> argparse.ArgumentParser:
                     "generation (paper and tiny sizes, random weights) and HuBERT-Large "
                     "streaming cost, each against a naive reference in the same run; print a "
                     "table (and JSON with --json). Takes a few minutes; --quick is a smoke run.")
-    parser.add_argument("--threads", type=int, default=defaults.threads,
-                        help="torch intra-op threads for the whole run")
+    parser.add_argument("--threads", type=positive_int, default=defaults.threads,
+                        help="torch intra-op threads for the whole run (default: automatic, "
+                             "every core other processes leave free, re-measured as it runs)")
+    parser.add_argument("--background-load", type=non_negative_int,
+                        default=defaults.background_load, metavar="N",
+                        help="also measure every timed generation figure with N busy processes "
+                             "of the bench's own beside it (ended by the bench), side by side "
+                             "with the idle figures")
     parser.add_argument("--mode", choices=MODES, default=defaults.mode,
                         help="optimization of the fast path: "
                              + "; ".join(f"{m}: {h}" for m, h in MODE_HELP.items()))
@@ -80,7 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     from sarah_bench.config import BenchConfig
     from sarah_bench.report import append_history, format_report, history_row, write_json
 
-    overrides = {"threads": args.threads, "mode": args.mode, "decoder": args.decoder}
+    overrides = {"threads": args.threads, "mode": args.mode, "decoder": args.decoder,
+                 "background_load": args.background_load}
     if args.sizes != ",".join(BenchConfig().sizes) or not args.quick:
         overrides["sizes"] = tuple(s.strip() for s in args.sizes.split(",") if s.strip())
     if args.no_prep:

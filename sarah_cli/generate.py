@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import HelpFormatter, non_negative_int
+from sarah_cli.arguments import HelpFormatter, non_negative_int, positive_int
 from sarah_models.accel import MODE_HELP, MODES
 
 EXIT_ERROR = 2
@@ -80,7 +80,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--history", type=_history, default=d.history_tokens,
                         help="history tokens kept (or 'all')")
     parser.add_argument("--seed", type=int, default=d.seed,
-                        help="noise seed: the same seed and inputs give the same motion")
+                        help="noise seed: the same seed and inputs give the same motion (bit "
+                             "for bit with the same --threads; other thread counts round "
+                             "differently, ~1e-7 m)")
     parser.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     parser.add_argument("--offline", action="store_true",
                         help="the offline protocol: all tokens denoised jointly")
@@ -89,6 +91,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--speed", choices=MODES, default="fp32",
                         help="inference fast path: " + "; ".join(f"{k}: {v}" for k, v in MODE_HELP.items())
                              + " (int8 stays within 1 mm of fp32; see docs/performance.md)")
+    parser.add_argument("--threads", type=positive_int, default=None,
+                        help="CPU intra-op threads (default: automatic, every core other "
+                             "processes leave free, re-measured while streaming; give a count to "
+                             "compare outputs bit for bit)")
     shard = parser.add_argument_group("shard input")
     shard.add_argument("--shards", type=Path, default=None, help="shards folder")
     shard.add_argument("--split", default="test", help="split of --shards to take the window from")
@@ -145,7 +151,8 @@ def main(argv: list[str] | None = None) -> int:
             start=args.start, frames=args.frames, trajectory=args.user_trajectory,
             agent_audio=args.agent_audio, user_audio=args.user_audio,
             agent_start=args.agent_start, feature_options=dict(args.feature_option),
-            offline=args.offline, animation=not args.no_animation, speed=args.speed, pad=args.pad)
+            offline=args.offline, animation=not args.no_animation, speed=args.speed, pad=args.pad,
+            threads=args.threads)
     except (GenerateError, DataProblem) as exc:
         print(f"sarah-generate: error: {exc}", file=sys.stderr)
         return EXIT_ERROR

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from sarah_models.accel import MODE_HELP, MODES
-from sarah_cli.arguments import HelpFormatter
+from sarah_cli.arguments import HelpFormatter, positive_int
 
 EXIT_ERROR = 2
 
@@ -36,6 +36,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--max-sessions", type=int, default=s.max_sessions,
                         help="concurrent sessions; more are refused with close code 1013")
     parser.add_argument("--workers", type=int, default=s.workers, help="compute threads")
+    parser.add_argument("--threads", type=positive_int, default=s.threads,
+                        help="CPU intra-op threads of each compute thread (default: automatic, "
+                             "every core other processes leave free, re-measured as it serves)")
     parser.add_argument("--send-timeout", type=float, default=s.send_timeout,
                         help="seconds a send may wait on a client that does not read before it is closed")
     parser.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
@@ -127,7 +130,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"sarah-serve: error: --body-model {error}", file=sys.stderr)
             return EXIT_ERROR
     config = ServeConfig(host=args.host, port=args.port, max_sessions=args.max_sessions,
-                         workers=args.workers, send_timeout=args.send_timeout)
+                         workers=args.workers, send_timeout=args.send_timeout,
+                         threads=args.threads)
     server = LiveServer(models, config, defaults, body=body)
     if not is_loopback(args.host):
         print(f"sarah-serve: warning: serving on {args.host}, reachable from other machines",
@@ -138,7 +142,8 @@ def main(argv: list[str] | None = None) -> int:
         task = asyncio.create_task(server.serve(ready))
         port = await ready
         host = f"[{args.host}]" if ":" in args.host else args.host
-        print(f"sarah-serve: {path} (step {models.step}, {args.speed}) on http://{host}:{port}/ "
+        threads = "" if server.threads is None else f", threads {server.threads.describe()}"
+        print(f"sarah-serve: {path} (step {models.step}, {args.speed}{threads}) on http://{host}:{port}/ "
               f"(WebSocket ws://{host}:{port}/, protocol v1: docs/protocol.md); Ctrl-C stops",
               flush=True)
         await task

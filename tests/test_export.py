@@ -248,7 +248,8 @@ def test_model_file_generates_what_the_checkpoint_does(tmp_path, monkeypatch):
     np.savetxt(raw / "traj.csv", np.stack([np.linspace(1, 2, 30), np.full(30, 1.5)], 1),
                delimiter=",", header="x,z", comments="")
     argv = ["--user-trajectory", str(raw / "traj.csv"), "--agent-audio", str(raw / "agent.wav"),
-            "--user-audio", str(raw / "user.wav"), "--no-animation", "--seed", "3"]
+            "--user-audio", str(raw / "user.wav"), "--no-animation", "--seed", "3",
+            "--threads", "1"]
     assert generate(["--run", str(run), "--out", str(tmp_path / "a"), *argv]) == 0
 
     def refuse(*args, **kwargs):

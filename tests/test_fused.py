@@ -90,6 +90,16 @@ def test_rope_table_is_bit_identical(start, length):
         assert torch.equal(table(scattered), angles(scattered))
 
 
+def test_rope_table_memory_is_bounded_however_long_the_stream():
+    angles = RopeAngles(16)
+    table = RopeTable(angles, block=256, max_blocks=3)
+    with torch.inference_mode():
+        for start in range(0, 50_000, 5):  # a decoder step's positions, stream after stream
+            positions = torch.arange(start, start + 5)
+            assert torch.equal(table(positions), angles(positions))
+    assert table.cached_positions <= 3 * 256
+
+
 def test_decoder_rope_tables_stream_identical_frames(models):
     vae, flow, normalizer = models
     tabled = copy.deepcopy(vae)

@@ -67,8 +67,9 @@ def run_dir(tmp_path_factory):
 def server(run_dir, procedural_model_path):
     from sarah_data.export.motion import neutral_shape
 
+    # One thread, as the sarah-generate runs it is compared with: thread counts round differently.
     running = RunningServer(run_dir, body=neutral_shape(procedural_model_path), send_timeout=1.0,
-                            max_sessions=8)
+                            max_sessions=8, threads=1)
     yield running
     running.stop()
 
@@ -94,7 +95,8 @@ def test_streaming_through_the_server_is_sarah_generate(server, run_dir, raw, tm
     assert serve_main(["--client", server.url, *files(raw), "--out", str(tmp_path / "served"),
                        "--seed", "5", "--gaze", gaze]) == 0
     assert generate(["--run", str(run_dir), *files(raw), "--out", str(tmp_path / "direct"),
-                     "--seed", "5", "--gaze", gaze, "--no-animation", "--device", "cpu"]) == 0
+                     "--seed", "5", "--gaze", gaze, "--no-animation", "--device", "cpu",
+                     "--threads", "1"]) == 0
     served, direct = (np.load(tmp_path / name / "motion.npz", allow_pickle=False)
                       for name in ("served", "direct"))
     assert served["icosahedra"].shape[0] == FRAMES
@@ -216,7 +218,8 @@ def test_two_server_processes_share_nothing(run_dir, raw, tmp_path):
     try:
         for _ in range(2):
             proc = subprocess.Popen([sys.executable, "-m", "sarah_cli.serve", "--run", str(run_dir),
-                                     "--port", "0", "--device", "cpu"], stdout=subprocess.PIPE,
+                                     "--port", "0", "--device", "cpu", "--threads", "1"],
+                                    stdout=subprocess.PIPE,
                                     stderr=subprocess.STDOUT, text=True, env=env)
             procs.append(proc)
         for proc in procs:

@@ -10,6 +10,7 @@ from .optimize import (
                        resolve_decoder,
                        warm_up,
 )
+from .threads import ThreadPolicy
 
 __all__ = ["DECODER_PRECISIONS", "MODES", "MODE_HELP", "cpu_info", "optimize_for_inference",
-           "prefer_bf16_decoder", "resolve_decoder", "warm_up"]
+           "prefer_bf16_decoder", "resolve_decoder", "warm_up", "ThreadPolicy"]

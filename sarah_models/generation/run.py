@@ -69,9 +69,11 @@ def load_run(run: str | Path, checkpoint: str | Path | None = None,
 
 
 def generate(models: LoadedModels, inputs: Inputs, config: StreamConfig, offline: bool = False,
-             extractor=None) -> Result:
-    """Run the streaming generator chunk by chunk (or the offline protocol) on ``inputs``."""
+             extractor=None, policy=None) -> Result:
+    """Run the streaming generator chunk by chunk (or the offline protocol) on ``inputs``.
+    ``policy`` (an ``accel.ThreadPolicy``) sets the intra-op threads before every chunk."""
     vae, flow, normalizer = models.vae, models.flow, models.normalizer
+    apply_threads = (lambda: None) if policy is None else policy.apply
     s, count = vae.stride, inputs.frames
     if inputs.agent_audio is None:
         extractor = extractor or make_extractor(models.features)
@@ -83,6 +85,7 @@ def generate(models: LoadedModels, inputs: Inputs, config: StreamConfig, offline
             a, b = (extractor.extract(w, count) for w in (inputs.agent_wave, inputs.user_wave))
         else:
             a, b = inputs.agent_audio, inputs.user_audio
+        apply_threads()
         tick = time.perf_counter()
         motion = generate_offline(vae, flow, normalizer, inputs.user_head, a, b, config,
                                   inputs.anchor)
@@ -95,6 +98,7 @@ def generate(models: LoadedModels, inputs: Inputs, config: StreamConfig, offline
         a, b = inputs.agent_audio, inputs.user_audio
         for i in range(0, count, s):
             tick = time.perf_counter()
+            apply_threads()
             chunks.append(generator.step(inputs.user_head[i:i + s], a[i:i + s], b[i:i + s]))
             _synchronize(flow)
             latencies.append(time.perf_counter() - tick)
@@ -104,6 +108,7 @@ def generate(models: LoadedModels, inputs: Inputs, config: StreamConfig, offline
         for i in range(0, count, s):
             k = i * SAMPLES_PER_FRAME
             tick = time.perf_counter()
+            apply_threads()
             chunks.append(session.push(inputs.user_head[i:i + s], inputs.agent_wave[k:k + n],
                                        inputs.user_wave[k:k + n]))
             _synchronize(flow)
@@ -129,12 +134,16 @@ def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
         user_audio: str | Path | None = None,
         agent_start: tuple[float, float, float] = (0.0, 0.0, 0.0),
         feature_options: dict[str, Any] | None = None, offline: bool = False, pad: bool = False,
-        animation: bool = True, speed: str = "fp32", echo: Callable[[str], None] = print) -> Summary:
+        animation: bool = True, speed: str = "fp32", threads: int | None = None,
+        echo: Callable[[str], None] = print) -> Summary:
     """Everything ``sarah-generate`` does: load, read inputs, generate, write, plot.
 
     speed: the inference fast path of ``accel.optimize_for_inference`` ("fp32" is exact; "int8"
-    stays within 1 mm of it and is the real-time setting on a CPU; "none" the plain models)."""
-    from ..accel import optimize_for_inference
+    stays within 1 mm of it and is the real-time setting on a CPU; "none" the plain models).
+    threads: intra-op threads on a CPU; None picks them from the cores other processes leave
+    free (``accel.ThreadPolicy``), re-measured while streaming."""
+    from ..accel import ThreadPolicy, optimize_for_inference
+    from ..accel.threads import stream_probe
     from .plots import animate_skeleton, plot_topview
 
     try:
@@ -165,9 +174,15 @@ def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
         extractor = make_extractor(models.features, feature_options)
     where = (f"{inputs.source['sequence']} (agent {inputs.source['agent']}, from frame "
              f"{inputs.source['start']})" if shards is not None else "raw files")
+    policy, on = None, str(next(models.flow.parameters()).device)
+    if on == "cpu":
+        policy = ThreadPolicy(threads)
+        if not offline:
+            policy.calibrate(stream_probe(models, config))
+        on = f"cpu, threads {policy.describe()}"
     echo(f"checkpoint {ckpt} (step {models.step}, features {models.features!r}) on "
-         f"{next(models.flow.parameters()).device}; {inputs.frames} frames of {where}")
-    result = generate(models, inputs, config, offline, extractor)
+         f"{on}; {inputs.frames} frames of {where}")
+    result = generate(models, inputs, config, offline, extractor, policy)
 
     positions, rotations = icosahedron.decode(MotionLayout.from_width(result.motion.shape[-1])
                                               .split(result.motion)[0])

@@ -25,6 +25,7 @@ from sarah_data import icosahedron
 from sarah_data.constants import AUDIO_SAMPLE_RATE, FPS, JOINT_NAMES, JOINT_PARENTS, SAMPLES_PER_FRAME
 from sarah_data.skeleton import MotionLayout
 
+from ..accel.threads import ThreadPolicy, stream_probe
 from ..config import StreamConfig
 from ..generation.inputs import agent_anchor, make_extractor
 from ..generation.outputs import head_gaze
@@ -47,6 +48,7 @@ class ServeConfig:
     send_timeout: float = 10.0  # seconds a send may wait on a client that does not read
     max_message_bytes: int = 4 * 1024 * 1024  # a chunk of MAX_CHUNK_FRAMES f32 frames fits
     max_queue: int = 4  # messages read ahead per connection before its socket is left unread
+    threads: int | None = None  # intra-op threads per compute thread (None: accel.ThreadPolicy)
 
 
 def is_loopback(host: str) -> bool:
@@ -114,6 +116,10 @@ class LiveServer:
         self.config = config
         self.defaults = defaults
         self.executor = ThreadPoolExecutor(max_workers=config.workers, thread_name_prefix="sarah-serve")
+        self.threads = None
+        if next(models.flow.parameters()).device.type == "cpu":
+            self.threads = ThreadPolicy(config.threads)
+            self.threads.calibrate(stream_probe(models, defaults))
         self.sessions = 0
         self.stride = models.vae.stride
         make_extractor(models.features)  # fail at start, not at the first connection
@@ -184,7 +190,8 @@ class LiveServer:
                             raise ProtocolError("bad_seq", f"chunk seq {chunk.seq}, expected "
                                                            f"{session.expected_seq}", chunk.seq)
                         tick = time.perf_counter()
-                        header, arrays = await loop.run_in_executor(self.executor, session.push, chunk)
+                        header, arrays = await loop.run_in_executor(self.executor, self._compute,
+                                                                    session, chunk)
                         session.expected_seq += 1
                         header["latency_ms"] = 1000.0 * (time.perf_counter() - tick)
                         await self._send(ws, pack(header, *arrays))
@@ -194,6 +201,13 @@ class LiveServer:
             pass
         finally:
             self.sessions -= 1
+
+    def _compute(self, session: LiveSession, chunk: Chunk):
+        """One chunk on a compute thread, with the intra-op threads that the other processes
+        leave free (set per compute thread: torch keeps the count per thread)."""
+        if self.threads is not None:
+            self.threads.apply()
+        return session.push(chunk)
 
     def process_request(self, connection, request):
         """Plain HTTP GETs get the browser page; WebSocket upgrades go on to ``handler``."""
