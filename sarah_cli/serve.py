@@ -113,6 +113,12 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(problem)
     if args.send_timeout <= 0:
         parser.error(f"--send-timeout must be positive, got {args.send_timeout}")
+    import torch
+
+    # This thread runs the event loop; chunks are computed on the executor's threads. Once this
+    # thread had run a 2-thread kernel, the executor's 2-thread chunks took ~1.6x longer on the
+    # 2-core VMs (paper size, p50 57-70 -> 100-108 ms; docs/performance.md), so it keeps one.
+    torch.set_num_threads(1)
     try:
         defaults = replace(StreamConfig(), steps=args.steps, cfg_scale=args.cfg)
         models, path = load_server_models(args.run, args.checkpoint, args.device, args.speed, defaults)

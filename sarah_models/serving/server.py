@@ -119,7 +119,8 @@ class LiveServer:
         self.threads = None
         if next(models.flow.parameters()).device.type == "cpu":
             self.threads = ThreadPolicy(config.threads)
-            self.threads.calibrate(stream_probe(models, defaults))
+            # Timed where chunks will run: a compute thread's kernels, not this thread's.
+            self.executor.submit(self.threads.calibrate, stream_probe(models, defaults)).result()
         self.sessions = 0
         self.stride = models.vae.stride
         make_extractor(models.features)  # fail at start, not at the first connection
