@@ -252,9 +252,18 @@ class SizeBench:
         return bench_streaming(self.fast, self.cfg.stream_frames, self.inputs, self.extractor,
                                config, max_seconds=cap, policy=policy)
 
-    def concurrent(self, policy: ThreadPolicy) -> dict[str, Any]:
-        return bench_concurrent(self.fast, self.cfg.concurrent_streams, self.inputs,
-                                self.extractor, self.cfg.concurrent_seconds, policy)
+    def thread_figures(self, label: str, log: Callable[[str], None]) -> dict[str, Any]:
+        """Concurrent streams in one process (tiny) and the per-kernel cost of each thread
+        count (paper size)."""
+        out: dict[str, Any] = {}
+        if self.size == "tiny" and self.cfg.concurrent_streams:
+            log(f"[{label}] concurrent streams in one process: {self.cfg.concurrent_streams}")
+            out["concurrent"] = bench_concurrent(self.fast, self.cfg.concurrent_streams,
+                                                 self.inputs, self.extractor,
+                                                 self.cfg.concurrent_seconds, self.policy)
+        if self.size == "paper":
+            out["kernel"] = bench_kernel(tuple(range(1, len(self.policy.cpus) + 1)))
+        return out
 
 
 def bench_model_size(bench: SizeBench, log: Callable[[str], None]) -> dict[str, Any]:
@@ -287,11 +296,7 @@ def bench_model_size(bench: SizeBench, log: Callable[[str], None]) -> dict[str, 
     streaming["deviation"] = stream_deviation(bench.plain, bench.fast, frames=cfg.deviation_frames,
                                               seed=cfg.seed).as_dict()
     out["streaming"] = streaming
-    if size == "tiny" and cfg.concurrent_streams:
-        log(f"[{size}] concurrent streams in one process: {cfg.concurrent_streams}")
-        out["concurrent"] = bench.concurrent(policy)
-    if size == "paper":
-        out["kernel"] = bench_kernel(tuple(range(1, len(policy.cpus) + 1)))
+    out.update(bench.thread_figures(size, log))
     return out
 
 
@@ -316,11 +321,7 @@ def bench_loaded_size(bench: SizeBench, log: Callable[[str], None]) -> dict[str,
         out["streaming"]["fixed_threads"] = {
             "threads": len(policy.cpus),
             **bench.stream(every_core, max_seconds=cfg.loaded_fixed_seconds)}
-    if size == "tiny" and cfg.concurrent_streams:
-        log(f"[{size}, loaded] concurrent streams in one process")
-        out["concurrent"] = bench.concurrent(policy)
-    if size == "paper":
-        out["kernel"] = bench_kernel(tuple(range(1, len(policy.cpus) + 1)))
+    out.update(bench.thread_figures(f"{size}, loaded", log))
     return out
 
 

@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -262,6 +264,37 @@ def test_bench_quick_runs_end_to_end(tmp_path):
     assert lines[3].startswith("| ") and "int8" in lines[3] and lines[-1] == "after the table"
 
 
+def test_bench_background_load_reports_both_sides(tmp_path, capsys):
+    """--background-load 1 (automatic threads): every timed figure again beside a busy process,
+    the fixed every-core stream for comparison, concurrent streams both ways; the busy process
+    is gone afterwards."""
+    from sarah_cli.bench import main
+
+    out = tmp_path / "bench.json"
+    assert main(["--quick", "--no-prep", "--no-loader", "--background-load", "1",
+                 "--json", str(out)]) == 0
+    results = json.loads(out.read_text())
+    assert results["environment"]["threads"] == "auto"
+    idle, loaded = results["streaming"]["tiny"], results["loaded"]["streaming"]["tiny"]
+    for row in (idle, loaded, loaded["fixed_threads"]):
+        assert row["fps"] > 0 and sum(row["threads_used"].values()) == pytest.approx(1.0)
+    assert set(idle["calibration_ms"]) <= {str(n) for n in range(1, os.cpu_count() + 1)}
+    assert loaded["fixed_threads"]["threads"] == len(os.sched_getaffinity(0))
+    assert results["loaded"]["offline"]["tiny"]["fps"] > 0
+    for side in (results["concurrent"]["tiny"], results["loaded"]["concurrent"]["tiny"]):
+        assert side["rows"][0]["streams"] == 1 and side["fit"] in (0, 1, 2)
+    report = capsys.readouterr().out
+    assert "under background load (1 busy processes" in report and "loaded / idle" in report
+    spinning = []
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            if b"while time.monotonic() < end" in cmdline.read_bytes():
+                spinning.append(cmdline.parent.name)
+        except OSError:  # a process that ended while we looked
+            pass
+    assert spinning == []
+
+
 def test_bench_config_rejects_bad_values():
     from sarah_bench.config import BenchConfig
 
@@ -269,4 +302,8 @@ def test_bench_config_rejects_bad_values():
         BenchConfig(stream_frames=10)
     with pytest.raises(ValueError, match="sizes"):
         BenchConfig(sizes=("huge",))
+    with pytest.raises(ValueError, match="background_load"):
+        BenchConfig(background_load=-1)
+    with pytest.raises(ValueError, match="threads"):
+        BenchConfig(threads=0)
     assert dataclasses.replace(BenchConfig.quick(), threads=1).sizes == ("tiny",)
