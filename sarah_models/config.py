@@ -132,19 +132,11 @@ class FlowConfig:
     # windows is layers * 2 + 1 tokens). On the fixture benchmark (docs/results.md, ninth run)
     # it cut the streamed FGD_acc 4x at equal budget, so the tiny preset uses it.
     attention_window: int | None = None
-    # Not in the paper (None = the paper). Exactly streaming's context: every token's output is
-    # computed from itself and the token_context - 1 tokens before it only, as a separate
-    # sequence per token (attention_window's stacked layers reach further back). Costs about
-    # token_context times the flow's compute in training and offline; streaming is unchanged.
-    token_context: int | None = None
 
     def __post_init__(self) -> None:
-        for name in ("attention_window", "token_context"):
-            value = getattr(self, name)
-            if value is not None and value < 1:
-                raise ValueError(f"FlowConfig.{name} must be >= 1 or None, got {value}")
-        if self.attention_window is not None and self.token_context is not None:
-            raise ValueError("FlowConfig: set attention_window or token_context, not both")
+        if self.attention_window is not None and self.attention_window < 1:
+            raise ValueError(f"FlowConfig.attention_window must be >= 1 or None, got "
+                             f"{self.attention_window}")
 
     @classmethod
     def paper(cls) -> "FlowConfig":

@@ -170,24 +170,3 @@ def test_attention_window_limits_each_layer_to_the_streaming_context():
     with pytest.raises(ValueError, match="attention_window"):
         FlowConfig(attention_window=0)
 
-
-@pytest.mark.parametrize("per_token_tau", [False, True])
-def test_token_context_computes_each_token_from_its_own_window(per_token_tau):
-    """flow.token_context = 3: token k's output equals the model run on tokens k-2..k alone
-    (what streaming with 2 history tokens computes), for every k."""
-    torch.manual_seed(0)
-    config = FlowConfig(**{**FlowConfig.tiny().__dict__, "attention_window": None,
-                           "token_context": 3})
-    model = trained_weights(FlowModel(config, DZ, S, DA))
-    g = torch.Generator().manual_seed(6)
-    z, cond = torch.randn(2, K, DZ, generator=g), make_cond(2, g)
-    tau = torch.rand(2, K, generator=g) if per_token_tau else torch.tensor([0.3, 0.7])
-    tokens = model.encode_condition(cond)
-    out = model(z, tau, cond_tokens=tokens)
-    for k in range(K):
-        lo = max(0, k - 2)
-        alone = model(z[:, lo:k + 1], tau[:, lo:k + 1] if per_token_tau else tau,
-                      cond_tokens=tokens[:, lo:k + 1])
-        torch.testing.assert_close(out[:, k], alone[:, -1], atol=1e-5, rtol=1e-5)
-    with pytest.raises(ValueError, match="not both"):
-        FlowConfig(attention_window=3, token_context=3)

@@ -168,28 +168,6 @@ class FlowModel(nn.Module):
             tau = tau.expand(b)
         t = self.time_mlp(self.time_embedding(tau)).to(cond_tokens.dtype)
         x = self.latent_in(z_tau.to(cond_tokens.dtype)) + cond_tokens
-        w = self.config.token_context
-        if w is not None and caches is None and attn_mask is None and k > w:
-            return self.out(self._token_windows(x, t, w), t)
         for i, block in enumerate(self.blocks):
             x = block(x, t, attn_mask, positions, None if caches is None else caches[i], commit)
         return self.out(x, t)
-
-    def _token_windows(self, x: Tensor, t: Tensor, w: int) -> Tensor:
-        """The blocks' output for every token computed from its own last ``w`` tokens only:
-        the first w - 1 tokens as one causal sequence (their windows are their prefixes), every
-        later token as its own sequence of w tokens (batched), of which the last is kept. RoPE
-        is relative, so each window's positions start at 0."""
-        b, k, h = x.shape
-        head = x[:, :w - 1]
-        positions = torch.arange(w, device=x.device)
-        for block in self.blocks:
-            head = block(head, t[:, :w - 1] if t.dim() == 3 else t, None, positions[:w - 1])
-        windows = x.unfold(1, w, 1).permute(0, 1, 3, 2).reshape(-1, w, h)  # (b * (k-w+1), w, h)
-        if t.dim() == 3:  # per-token flow time: each window keeps its tokens' own
-            tw = t.unfold(1, w, 1).permute(0, 1, 3, 2).reshape(-1, w, t.shape[-1])
-        else:
-            tw = t.repeat_interleave(k - w + 1, dim=0)
-        for block in self.blocks:
-            windows = block(windows, tw, None, positions)
-        return torch.cat([head, windows[:, -1].reshape(b, k - w + 1, h)], dim=1)
