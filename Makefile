@@ -23,7 +23,7 @@ test: setup
 demo: setup
 	$(BIN)/sarah-fixtures $(DEMO)/raw --sessions 5 --seconds 60 --seed 0
 	$(BIN)/sarah-prep $(DEMO)/raw $(DEMO)/shards
-	$(BIN)/sarah-train --stage all --config tiny --shards $(DEMO)/shards --out $(DEMO)/runs/tiny --resume
+	$(BIN)/sarah-train --stage all --config tiny --shards $(DEMO)/shards --out $(DEMO)/runs/tiny --resume --replace-changed
 	$(BIN)/sarah-generate --run $(DEMO)/runs/tiny --shards $(DEMO)/shards --split test --gaze 0.8 --out $(DEMO)/generated
 
 # The live agent on the demo's trained run: prints the page's URL (Ctrl-C stops).

@@ -32,6 +32,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, required=True, help="run folder, e.g. runs/NAME")
     parser.add_argument("--resume", action="store_true",
                         help="continue from OUT/<stage>.pt (exactly: same data order and noise)")
+    parser.add_argument("--replace-changed", action="store_true",
+                        help="with --resume: a stage whose checkpoint in OUT was trained with "
+                             "another config (say, after an upgrade changed a preset) is moved "
+                             "to OUT/replaced-<time>/ and trained afresh, its flow too when the "
+                             "VAE changed; nothing is deleted (make demo uses it)")
     parser.add_argument("--init-from", type=Path, default=None, metavar="CKPT",
                         help="fine-tune: start each trained stage from the weights of CKPT (a "
                              "checkpoint, or a run folder with vae.pt / flow.pt) with a fresh "
@@ -69,7 +74,10 @@ def run_config(args: argparse.Namespace) -> RunConfig:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.replace_changed and not args.resume:
+        parser.error("--replace-changed goes with --resume (it decides what a resume keeps)")
     try:
         config = run_config(args)
     except ValueError as exc:
@@ -93,6 +101,14 @@ def main(argv: list[str] | None = None) -> int:
 
     stages = ("vae", "flow") if args.stage == "all" else (args.stage,)
     try:
+        if args.replace_changed and is_main_process():
+            from sarah_models.training.stages import set_aside, stale_stages
+
+            stale = stale_stages(Path(args.out), config, stages)
+            aside = set_aside(Path(args.out), stale)
+            if aside is not None:
+                print(f"sarah-train: {', '.join(stale)} of {args.out} had another config: "
+                      f"moved to {aside}, training afresh", file=sys.stderr)
         for stage in stages:
             path = train(stage, config, args.shards, args.out, resume=args.resume,
                          device=args.device, init_from=args.init_from,

@@ -52,6 +52,9 @@ def cases(w):
         ("train", ["--shards", w["shards"], "--out", o, "--set", "train.lr=abc"]),
         ("train", ["--shards", w["shards"], "--out", o, "--device", "gpu", "--config", "tiny"]),
         ("train", ["--shards", w["shards"], "--out", o, "--config", "tiny", "--init-from", w["missing"]]),
+        ("train", ["--shards", w["shards"], "--out", o, "--config", "tiny", "--replace-changed"]),
+        ("train", ["--shards", w["shards"], "--out", o, "--config", "tiny", "--set",
+                   "flow.attention_window=0"]),
         ("generate", []), ("generate", ["--run", w["missing"], "--out", o, *raw]),
         ("generate", [*gen, "--gaze", "2"]), ("generate", [*gen, "--frames", "0"]),
         ("generate", [*gen, "--history", "abc"]), ("generate", [*gen, "--steps", "0"]),
@@ -59,6 +62,7 @@ def cases(w):
         ("generate", [*gen, "--shards", w["shards"]]), ("generate", [*gen, "--agent-start", "1,2"]),
         ("generate", ["--run", w["run"], "--out", o, "--user-trajectory", w["traj"]]),
         ("generate", [*gen, "--cfg", "nan"]), ("generate", [*gen, "--start", "-5"]),
+        ("generate", [*gen, "--threads", "0"]),
         ("eval", []), ("eval", ["--shards", w["missing"], "--out", o]),
         ("eval", ["--shards", w["shards"], "--out", o, "--windows", "0"]),
         ("eval", ["--shards", w["shards"], "--out", o, "--methods", "bogus"]),
@@ -77,7 +81,7 @@ def cases(w):
         ("serve", ["--run", w["run"], "--max-sessions", "0"]), ("serve", ["--run", w["run"], "--device", "gpu"]),
         ("serve", ["--client", "ws://127.0.0.1:9/", *raw, "--out", o]),
         ("bench", ["--threads", "0"]), ("bench", ["--mode", "x"]), ("bench", ["--sizes", "huge"]),
-        ("bench", ["--serve", "--serve-seconds", "0"]),
+        ("bench", ["--serve", "--serve-seconds", "0"]), ("bench", ["--background-load", "-1"]),
     ]
 
 

@@ -273,6 +273,39 @@ def test_resume_repeats_the_uninterrupted_run_exactly(tmp_path):
     assert load_checkpoint(straight / "flow.pt")["flow"]["out.proj.weight"].abs().sum() > 0
 
 
+def test_resume_compares_config_meanings_and_replace_changed_sets_stale_stages_aside(tmp_path):
+    """A checkpoint saved before a config field existed resumes under that field's default; a
+    stage trained with another config is moved aside (never deleted) by set_aside, its flow with
+    it when the VAE changed."""
+    from sarah_models.training.checkpoint import save_checkpoint
+    from sarah_models.training.stages import set_aside, stale_stages
+
+    out = tmp_path / "run"
+    config = tiny_config(3)
+    config = replace(config, flow=replace(config.flow, attention_window=None))
+    common = dict(device="cpu", dataset=SyntheticWindows(), stats=STATS, progress=False,
+                  echo=lambda _: None)
+    train("vae", config, None, out, **common)
+    train("flow", config, None, out, **common)
+    old = load_checkpoint(out / "flow.pt")
+    del old["config"]["flow"]["attention_window"]  # as written before the field existed
+    save_checkpoint(out / "flow.pt", old)
+    train("flow", config, None, out, resume=True, **common)  # the same meaning: accepted
+
+    windowed = replace(config, flow=replace(config.flow, attention_window=3))
+    with pytest.raises(ValueError, match="differs from the requested"):
+        train("flow", windowed, None, out, resume=True, **common)
+    assert stale_stages(out, config, ("vae", "flow")) == []
+    assert stale_stages(out, windowed, ("vae", "flow")) == ["flow"]
+    aside = set_aside(out, ["flow"])
+    assert sorted(p.name for p in aside.iterdir()) == ["flow.pt", "flow_log.jsonl", "flow_loss.png"]
+    assert (out / "vae.pt").is_file() and not (out / "flow.pt").exists()
+    train("flow", windowed, None, out, resume=True, **common)
+    new_vae = replace(windowed, vae=replace(windowed.vae, beta=1e-3))
+    assert stale_stages(out, new_vae, ("vae", "flow")) == ["vae", "flow"]
+    assert stale_stages(out, new_vae, ("vae",)) == ["vae", "flow"]  # its flow learned those latents
+
+
 def test_init_from_fine_tunes_with_a_new_loss_and_schedule(tmp_path):
     base, tuned = tmp_path / "base", tmp_path / "tuned"
     run("vae", base, 4)

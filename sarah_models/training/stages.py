@@ -95,6 +95,49 @@ def _silent(_: str) -> None:
     pass
 
 
+def stored_config(checkpoint: Mapping[str, Any]) -> dict[str, Any]:
+    """A checkpoint's run config with every field spelled out: runs saved before a field
+    existed get its default (the value they were trained with), so comparing with the
+    requested config compares meanings, not key sets."""
+    return RunConfig.from_dict(checkpoint["config"]).to_dict()
+
+
+def stale_stages(out_dir: Path, config: RunConfig, stages: tuple[str, ...]) -> list[str]:
+    """The stages among ``stages`` whose checkpoint in ``out_dir`` was trained with another
+    config of that stage; a changed VAE makes its flow stale too (the flow learned its latents)."""
+    stale: list[str] = []
+    for stage in STAGES:
+        path = out_dir / f"{stage}.pt"
+        if stage not in stages or not path.is_file():
+            continue
+        if stale or stored_config(load_checkpoint(path))[stage] != config.to_dict()[stage]:
+            stale.append(stage)
+    if "vae" in stale and (out_dir / "flow.pt").is_file() and "flow" not in stale:
+        stale.append("flow")
+    return stale
+
+
+def set_aside(out_dir: Path, stages: list[str]) -> Path | None:
+    """Move the files of ``stages`` (checkpoint, log, loss plot; the model file with the flow)
+    into ``out_dir/replaced-<UTC time>/``; nothing is deleted. Returns that folder."""
+    if not stages:
+        return None
+    import datetime
+    import shutil
+
+    stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    aside = out_dir / f"replaced-{stamp}"
+    aside.mkdir()
+    for stage in stages:
+        names = [f"{stage}.pt", f"{stage}_log.jsonl", f"{stage}_loss.png"]
+        if stage == "flow":
+            names.append("model.safetensors")
+        for name in names:
+            if (out_dir / name).exists():
+                shutil.move(str(out_dir / name), str(aside / name))
+    return aside
+
+
 def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
     if wanted != stored:
         raise ValueError(f"{path}: stored {name} config {stored} differs from the requested "
@@ -185,7 +228,7 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
     if stage == "vae":
         dims = feature_dims(dataset, tcfg.window)
         if previous is not None:
-            _check_same("vae", config.to_dict()["vae"], previous["config"]["vae"], ckpt_path)
+            _check_same("vae", config.to_dict()["vae"], stored_config(previous)["vae"], ckpt_path)
             normalizer = Normalizer.from_state_dict(previous["normalizer"])
         elif source is not None:
             _check_compatible(source, "vae", config, dims, tcfg.audio_features)
@@ -224,7 +267,7 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
         vae, flow = build_models(run_config, dims)
         vae.load_state_dict(vae_ckpt["vae"])
         if previous is not None:
-            _check_same("flow", config.to_dict()["flow"], previous["config"]["flow"], ckpt_path)
+            _check_same("flow", config.to_dict()["flow"], stored_config(previous)["flow"], ckpt_path)
             flow.load_state_dict(previous["flow"])
             normalizer = Normalizer.from_state_dict(previous["normalizer"])
         else:
