@@ -42,7 +42,7 @@ from sarah_models.accel import (
 )
 from sarah_models.accel.threads import ThreadPolicy, stream_probe
 from sarah_models.config import STRIDE, StreamConfig
-from sarah_models.sampling.stream import StreamingGenerator, generate_offline
+from sarah_models.sampling.stream import StreamingGenerator, StreamingSession, generate_offline
 from sarah_models.testing import random_models, stream_deviation, synthetic_inputs
 
 from .config import CHUNK_FRAMES, BenchConfig
@@ -152,8 +152,8 @@ def bench_concurrent(models, counts: tuple[int, ...], inputs: dict[str, np.ndarr
                      seconds: float, policy: ThreadPolicy | None = None,
                      config: StreamConfig = StreamConfig()) -> dict[str, Any]:
     """K streams in one process, served round robin by one compute thread (what one
-    ``sarah-serve`` worker does with K sessions): each round gives every stream its next chunk
-    (raw audio through the causal extractor, then ``StreamingGenerator.step``). A stream holds
+    ``sarah-serve`` worker does with K sessions): each round pushes every stream's next chunk
+    (raw audio and the user's positions) into its ``StreamingSession``. A stream holds
     real time when it gets >= 30 fps and the p99 round (the longest a chunk can wait) is at most
     one chunk period (133 ms). Counts are tried in order until one fails; ``fit`` is the most
     streams that held."""
@@ -163,8 +163,8 @@ def bench_concurrent(models, counts: tuple[int, ...], inputs: dict[str, np.ndarr
     total_frames = inputs["user_head"].shape[0]
     rows = []
     for count in counts:
-        generators = [StreamingGenerator(*models, config) for _ in range(count)]
-        streams = [(extractor.stream(), extractor.stream()) for _ in range(count)]
+        sessions = [StreamingSession(StreamingGenerator(*models, config), extractor,
+                                     keep_features=False) for _ in range(count)]
         rounds: list[float] = []
         started = time.perf_counter()
         i = 0
@@ -174,10 +174,9 @@ def bench_concurrent(models, counts: tuple[int, ...], inputs: dict[str, np.ndarr
                 policy.apply()
             j = i % (total_frames - total_frames % s)  # the inputs again from the start
             k = j * SAMPLES_PER_FRAME
-            for generator, (agent, user) in zip(generators, streams):
-                a = agent.push(inputs["agent_wave"][k:k + n])
-                b = user.push(inputs["user_wave"][k:k + n])
-                generator.step(inputs["user_head"][j:j + s], a, b)
+            for session in sessions:
+                session.push(inputs["user_head"][j:j + s], inputs["agent_wave"][k:k + n],
+                             inputs["user_wave"][k:k + n])
             rounds.append(time.perf_counter() - tick)
             i += s
         elapsed = time.perf_counter() - started
@@ -235,22 +234,23 @@ class SizeBench:
         self.calibration = {str(k): 1000.0 * v for k, v in
                             self.policy.calibrate(stream_probe(self.fast)).items()}
 
-    def offline(self, policy: ThreadPolicy, naive: bool) -> dict[str, Any]:
+    def offline(self, naive: bool) -> dict[str, Any]:
         cfg = self.cfg
         row = {"frames": cfg.offline_frames,
                "fps": bench_offline(self.fast, cfg.offline_frames, self.inputs, self.features,
-                                    policy=policy)}
+                                    policy=self.policy)}
         if naive:
             row["naive_fps"] = bench_offline(self.plain, cfg.offline_frames, self.inputs,
-                                             self.features, policy=policy)
+                                             self.features, policy=self.policy)
             row["ratio"] = row["fps"] / row["naive_fps"]
         return row
 
-    def stream(self, policy: ThreadPolicy | None, config: StreamConfig = StreamConfig(),
-               max_seconds: float | None = None) -> dict[str, Any]:
+    def stream(self, config: StreamConfig = StreamConfig(), max_seconds: float | None = None,
+               policy: ThreadPolicy | None = None) -> dict[str, Any]:
+        """The optimized stream, with this size's policy unless ``policy`` is given."""
         cap = self.cfg.max_stream_seconds if max_seconds is None else max_seconds
         return bench_streaming(self.fast, self.cfg.stream_frames, self.inputs, self.extractor,
-                               config, max_seconds=cap, policy=policy)
+                               config, max_seconds=cap, policy=policy or self.policy)
 
     def thread_figures(self, label: str, log: Callable[[str], None]) -> dict[str, Any]:
         """Concurrent streams in one process (tiny) and the per-kernel cost of each thread
@@ -271,11 +271,11 @@ def bench_model_size(bench: SizeBench, log: Callable[[str], None]) -> dict[str, 
     cfg, size, policy = bench.cfg, bench.size, bench.policy
     out: dict[str, Any] = {}
     log(f"[{size}] offline generation, {cfg.offline_frames} frames at once")
-    out["offline"] = bench.offline(policy, naive=True)
+    out["offline"] = bench.offline(naive=True)
     log(f"[{size}] streaming, {cfg.stream_frames} frames in chunks of {CHUNK_FRAMES} "
         f"(naive reference: {cfg.naive_frames} frames)")
     cap = cfg.max_stream_seconds
-    streaming = bench.stream(policy)
+    streaming = bench.stream()
     streaming["calibration_ms"] = bench.calibration
     policy.apply()
     streaming["naive"] = bench_naive_streaming(bench.plain, cfg.naive_frames, bench.inputs,
@@ -287,7 +287,7 @@ def bench_model_size(bench: SizeBench, log: Callable[[str], None]) -> dict[str, 
         log(f"[{size}] streaming with {cfg.fewer_steps} midpoint steps "
             f"({2 * cfg.fewer_steps} NFE; changes the output, not an exact optimization)")
         streaming["fewer_steps"] = {"steps": cfg.fewer_steps,
-                                    **bench.stream(policy, fewer, cap / 2)}
+                                    **bench.stream(fewer, cap / 2)}
         log(f"[{size}] deviation: {2 * cfg.fewer_steps} NFE {cfg.mode} vs the paper's 8 NFE fp32")
         streaming["fewer_steps"]["deviation"] = stream_deviation(
             bench.plain, bench.fast, frames=cfg.deviation_frames, seed=cfg.seed,
@@ -308,19 +308,19 @@ def bench_loaded_size(bench: SizeBench, log: Callable[[str], None]) -> dict[str,
     policy.measure(0.3)  # the load just changed: decide from it, not from before
     out: dict[str, Any] = {}
     log(f"[{size}, loaded] offline generation")
-    out["offline"] = bench.offline(policy, naive=False)
+    out["offline"] = bench.offline(naive=False)
     log(f"[{size}, loaded] streaming")
-    out["streaming"] = bench.stream(policy)
+    out["streaming"] = bench.stream()
     if cfg.fewer_steps is not None:
         out["streaming"]["fewer_steps"] = {"steps": cfg.fewer_steps, **bench.stream(
-            policy, StreamConfig(steps=cfg.fewer_steps), cfg.max_stream_seconds / 2)}
+            StreamConfig(steps=cfg.fewer_steps), cfg.max_stream_seconds / 2)}
     if policy.automatic:
         every_core = ThreadPolicy(threads=len(policy.cpus))
         log(f"[{size}, loaded] streaming with a fixed {len(policy.cpus)} threads (at most "
             f"{cfg.loaded_fixed_seconds:g} s)")
         out["streaming"]["fixed_threads"] = {
             "threads": len(policy.cpus),
-            **bench.stream(every_core, max_seconds=cfg.loaded_fixed_seconds)}
+            **bench.stream(max_seconds=cfg.loaded_fixed_seconds, policy=every_core)}
     out.update(bench.thread_figures(f"{size}, loaded", log))
     return out
 

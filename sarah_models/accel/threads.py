@@ -84,7 +84,6 @@ class ThreadPolicy:
         self.cpus = usable_cpus()
         self.others_cores = 0.0  # the last measured load of other processes, in cores
         self.threads = threads if threads is not None else len(self.cpus)
-        self.changes = 0
         self.ceiling: int | None = None  # the most threads worth using (``calibrate``)
         self._lock = threading.Lock()  # sarah-serve's compute threads share one policy
         self._last = self._sample()
@@ -117,18 +116,15 @@ class ThreadPolicy:
 
     def _decide(self) -> None:
         with self._lock:
-            self._decide_locked()
-
-    def _decide_locked(self) -> None:
-        sample = self._sample()
-        if sample is None or self._last is None:
-            return
-        elapsed = sample.wall - self._last.wall
-        others = (sample.busy - self._last.busy) - (sample.ours - self._last.ours)
-        self._last = sample
-        if elapsed > 0:
-            self.others_cores = max(0.0, others / elapsed)
-            self.threads = self.threads_for(self.others_cores)
+            sample = self._sample()
+            if sample is None or self._last is None:
+                return
+            elapsed = sample.wall - self._last.wall
+            others = (sample.busy - self._last.busy) - (sample.ours - self._last.ours)
+            self._last = sample
+            if elapsed > 0:
+                self.others_cores = max(0.0, others / elapsed)
+                self.threads = self.threads_for(self.others_cores)
 
     def threads_for(self, others_cores: float) -> int:
         """Every usable core but one per core of others' load beyond the tolerance, and never
@@ -169,7 +165,6 @@ class ThreadPolicy:
         threads = self.update()
         if torch.get_num_threads() != threads:
             torch.set_num_threads(threads)
-            self.changes += 1
         return threads
 
     def describe(self) -> str:

@@ -234,8 +234,9 @@ class StreamingSession:
         self._buffers: dict[str, list[np.ndarray]] = {"head": [], "agent": [], "user": []}
         self._used: dict[str, list[np.ndarray]] = {"agent": [], "user": []}
         self.keep_features = keep_features
-        empty = np.zeros((0, generator.audio_dim), np.float32)
-        self.last_features: dict[str, np.ndarray] = {"agent": empty, "user": empty}
+        self._no_features = np.zeros((0, generator.audio_dim), np.float32)
+        self.last_features: dict[str, np.ndarray] = {"agent": self._no_features,
+                                                     "user": self._no_features}
 
     def _available(self, key: str) -> int:
         return sum(len(b) for b in self._buffers[key])
@@ -249,7 +250,7 @@ class StreamingSession:
         """The audio features of ``person`` ("agent" or "user") used so far, (frames, Da)
         (with ``keep_features``)."""
         used = self._used[person]
-        return np.concatenate(used) if used else np.zeros((0, self.generator.audio_dim), np.float32)
+        return np.concatenate(used) if used else self._no_features
 
     def push(self, user_head, agent_samples, user_samples) -> np.ndarray:
         """Feed new inputs (any lengths); returns the frames generated now, (k*s, Dx)."""
@@ -266,8 +267,7 @@ class StreamingSession:
             used["user"].append(b)
             out.append(self.generator.step(head, a, b))
         for person, blocks in used.items():
-            self.last_features[person] = (np.concatenate(blocks) if blocks else
-                                          np.zeros((0, self.generator.audio_dim), np.float32))
+            self.last_features[person] = np.concatenate(blocks) if blocks else self._no_features
             if self.keep_features:
                 self._used[person] += blocks
         return np.concatenate(out) if out else np.zeros((0, self.generator.motion_dim), np.float32)
