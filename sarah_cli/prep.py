@@ -99,6 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         return _error(f"{', '.join(missing)}: no such input folder")
     if args.jobs < 1:
         return _error(f"-j/--jobs must be at least 1, got {args.jobs}")
+    from sarah_data.atomic import OutOfSpace, out_of_space
     from sarah_data.prep import PrepError, prepare
 
     device = args.device
@@ -122,6 +123,13 @@ def main(argv: list[str] | None = None) -> int:
     except PrepError as error:
         print(f"sarah-prep: error: {error}", file=sys.stderr)
         return EXIT_USAGE
+    except (OutOfSpace, OSError, RuntimeError) as error:  # a task's full disk, or the shards'/manifest's
+        if not (isinstance(error, OutOfSpace) or out_of_space(error)):
+            raise
+        where = error if isinstance(error, OutOfSpace) else f"{args.paths[-1]}: no space left on the device"
+        print(f"sarah-prep: error: {where}; free some and run the same command again (finished sequences "
+              "are kept and reused)", file=sys.stderr)
+        return 1
     hours = ", ".join(f"{name} {h:.2f} h" for name, h in result.hours.items())
     rate = result.dyad_seconds / max(result.wall_seconds, 1e-9)
     print(f"sarah-prep: wrote {len(result.written)} sequences ({hours}) in {len(result.shards)} shard files "

@@ -11,9 +11,24 @@ before the rename, for files a resumed run trusts (shards, manifests, work files
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 from pathlib import Path
 from typing import Iterator
+
+
+class OutOfSpace(BaseException):
+    """The disk being written is full: a problem of the machine, not of one input, so a long run
+    stops with one line instead of reporting every remaining input as failed. A BaseException,
+    like KeyboardInterrupt, so that per-task ``except Exception`` reporting lets it through."""
+
+
+def out_of_space(error: BaseException) -> bool:
+    # h5py reports HDF5's failed writes as an OSError without errno, or (copying objects) a
+    # RuntimeError: the text carries the OS's words.
+    if isinstance(error, OSError) and error.errno == errno.ENOSPC:
+        return True
+    return isinstance(error, (OSError, RuntimeError)) and "No space left on device" in str(error)
 
 
 def temporary_name(path: Path) -> Path:

@@ -20,8 +20,10 @@ class SerialExecutor(Executor):
         future: Future = Future()
         try:
             future.set_result(fn(*args, **kwargs))
-        except BaseException as error:  # noqa: BLE001 - handed to the caller through the future
+        except Exception as error:  # noqa: BLE001 - handed to the caller through the future
             future.set_exception(error)
+        # Anything else (Ctrl-C, a full disk) propagates now: caught here, every later task
+        # would still run before the caller saw it.
         return future
 
 

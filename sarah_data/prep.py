@@ -239,10 +239,15 @@ def _run_tasks(pairs, split_of, model_path, model_sha, config, work_dir, jobs, e
             results[pair.sequence] = future.result()
             on_result(results)
             bar.update(round(pair.length / FPS))
-    finally:
-        bar.close()
+    except BaseException:
+        if own_executor:  # a full disk or Ctrl-C: queued tasks would only fail the same way
+            pool.shutdown(cancel_futures=True)
+        raise
+    else:
         if own_executor:
             pool.shutdown()
+    finally:
+        bar.close()
     return results
 
 

@@ -26,7 +26,7 @@ from .config import PrepConfig
 from .constants import JOINT, JOINT_NAMES
 from .embody3d import PairRecord, load_person
 from .loading import DataProblem
-from .atomic import atomic_write_bytes
+from .atomic import OutOfSpace, atomic_write_bytes, out_of_space
 from .shards import (ProcessedSequence, ShardAttrs, atomic_h5, create_group,
                      file_sha256, write_sequence)
 
@@ -185,6 +185,8 @@ def run_task(pair: PairRecord, split: str, body_model_path: str, body_model_sha:
     except DataProblem as problem:
         result.status, result.reason = "skipped", str(problem)
     except Exception as error:  # noqa: BLE001 - a bug must not stop a long run; it is reported
+        if out_of_space(error):
+            raise OutOfSpace(f"{work_dir}: no space left on the device (writing {pair.sequence})") from None
         result.status = "failed"
         result.reason = f"{pair.sequence}: unexpected {type(error).__name__}: {error}"
         result.detail = traceback.format_exc()

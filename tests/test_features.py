@@ -7,6 +7,7 @@ its output; the remaining HuBERT properties run on the 12-layer base architectur
 
 from __future__ import annotations
 
+import gc
 import json
 import math
 from dataclasses import asdict, dataclass
@@ -184,22 +185,25 @@ def _expected_at_motion_frames(hidden: torch.Tensor, num_frames: int) -> np.ndar
 
 
 def _saved_hubert(tmp_path_factory, architecture: str, seed: int):
-    """A torchaudio HuBERT with random weights and the state-dict file it was saved to."""
+    """A torchaudio HuBERT with random weights and the state-dict file it was saved to; the file
+    (1.2 GB for large) is removed when the module is done, so a whole run fits a small disk."""
     torch.manual_seed(seed)
     model = getattr(torchaudio.models, f"hubert_{architecture}")().eval()
     path = tmp_path_factory.mktemp("hubert") / f"{architecture}.pth"
     torch.save(model.state_dict(), path)
-    return path, model
+    yield path, model
+    path.unlink(missing_ok=True)
+    gc.collect()  # extractors map their weight file: the space is freed once the last one is gone
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def hubert_large_file(tmp_path_factory):
-    return _saved_hubert(tmp_path_factory, "large", 0)
+    yield from _saved_hubert(tmp_path_factory, "large", 0)
 
 
 @pytest.fixture(scope="module")
 def hubert_base_file(tmp_path_factory):
-    return _saved_hubert(tmp_path_factory, "base", 1)
+    yield from _saved_hubert(tmp_path_factory, "base", 1)
 
 
 @pytest.fixture(scope="module")
@@ -253,6 +257,9 @@ def test_hubert_accepts_bundle_and_pretraining_layouts(tmp_path, hubert_base_fil
         torch.save(payload, path)
         loaded = get_extractor("hubert-large", weights=str(path), architecture="base", device="cpu")
         np.testing.assert_array_equal(loaded.extract(wave, 10), reference)
+        del loaded  # its tensors map the file: one 360 MB copy on disk at a time
+        gc.collect()
+        path.unlink()
 
 
 def test_hubert_intermediate_layer(hubert_base_file, speech):
@@ -352,24 +359,28 @@ def test_hubert_accepts_fairseq_and_hugging_face_checkpoints(tmp_path, hubert_ba
     wave = speech[: 10 * SPF]
     reference = hubert_base.extract(wave, 10)
     state = model.state_dict()
-    hf_safe, hf_bin = tmp_path / "hf_safe", tmp_path / "hf_bin"
-    for folder in (hf_safe, hf_bin):
-        folder.mkdir()
-        (folder / "config.json").write_text('{"model_type": "hubert"}')
     hf = {f"hubert.{k}" if i % 2 else k: v.contiguous() for i, (k, v) in enumerate(_renamed(state, "hf").items())}
     hf["masked_spec_embed"] = torch.zeros(768)
-    save_file(hf, str(hf_safe / "model.safetensors"))
-    torch.save(hf, hf_bin / "pytorch_model.bin")
-    fairseq = tmp_path / "hubert_base_ls960.pt"
-    torch.save({"args": argparse.Namespace(label_rate=50), "model": {
-        **_renamed(state, "fairseq"), "label_embs_concat": torch.zeros(3), "final_proj.weight": torch.zeros(2)}},
-        fairseq)
-    for weights in (hf_safe, hf_bin, fairseq):
+    fairseq = {"args": argparse.Namespace(label_rate=50), "model": {
+        **_renamed(state, "fairseq"), "label_embs_concat": torch.zeros(3), "final_proj.weight": torch.zeros(2)}}
+    writers = {"hf_safe/model.safetensors": lambda path: save_file(hf, str(path)),
+               "hf_bin/pytorch_model.bin": lambda path: torch.save(hf, path),
+               "hubert_base_ls960.pt": lambda path: torch.save(fairseq, path)}
+    for name, write in writers.items():  # one 360 MB copy on disk at a time
+        path = tmp_path / name
+        path.parent.mkdir(exist_ok=True)
+        if path.parent != tmp_path:
+            (path.parent / "config.json").write_text('{"model_type": "hubert"}')
+        write(path)
+        weights = path.parent if path.parent != tmp_path else path
         loaded = get_extractor("hubert-large", weights=str(weights), architecture="base",
                                past_frames=4, device="cpu")
         np.testing.assert_array_equal(loaded.extract(wave, 10), reference, err_msg=str(weights))
-    record = loaded.record()
-    assert "weights" not in record and len(record["weights_sha256"]) == 64
+        record = loaded.record()
+        assert "weights" not in record and len(record["weights_sha256"]) == 64
+        del loaded  # its tensors map the file: the space is freed when both are gone
+        gc.collect()
+        path.unlink()
 
     import datetime
 

@@ -101,6 +101,43 @@ def test_kill_and_resume_equals_uninterrupted_run(prepared_shards, prep_raw_dir,
     assert all(mtimes[name] > 0 for name in kept)
 
 
+def test_a_full_disk_stops_the_run_with_one_line_and_the_same_command_then_finishes(
+        prepared_shards, prep_raw_dir, tmp_path, monkeypatch, capsys):
+    """A full disk is the machine's problem, not an input's: the run stops at the first failed
+    write with one line (it used to report every remaining sequence as failed, each with HDF5's
+    multi-line error), finished work is kept, and the same command afterwards completes."""
+    import errno
+
+    from sarah_data import process
+    from sarah_data.atomic import out_of_space
+
+    real, calls = process.write_work_file, []
+
+    def disk_fills_after_two(path, *args):
+        calls.append(path)
+        if len(calls) > 2:
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        real(path, *args)
+
+    monkeypatch.setattr(process, "write_work_file", disk_fills_after_two)
+    out = tmp_path / "shards"
+    assert prep_main([str(prep_raw_dir), str(out), "-j", "1", "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no space left" in err and "run the same command again" in err, err
+    assert len(calls) == 3, "tasks kept running after the disk was full"
+    assert len(list((out / ".work").glob("*.h5"))) == 2 and not (out / "manifest.json").exists()
+    assert not list(out.rglob(".*.tmp-*"))
+    monkeypatch.setattr(process, "write_work_file", real)
+    assert prep_main([str(prep_raw_dir), str(out), "-j", "1", "--no-progress"]) == 0
+    assert _digests(out) == _digests(prepared_shards)
+    # h5py's form of the same error: no errno, the OS's words inside HDF5's message
+    assert out_of_space(OSError("Can't close file (file write failed: ..., errno = 28, error message = "
+                                "'No space left on device', ...)"))
+    assert out_of_space(RuntimeError("Object copy failed (file write failed: ..., errno = 28, error message = "
+                                     "'No space left on device', ...)"))  # h5py copying into a shard
+    assert not out_of_space(OSError(errno.EACCES, "Permission denied"))
+
+
 def test_bad_input_is_reported_and_the_rest_is_written(prep_raw_dir, tmp_path, capsys):
     raw = tmp_path / "raw"
     shutil.copytree(prep_raw_dir, raw)
@@ -281,6 +318,30 @@ def test_local_pool_shares_work_between_this_process_and_a_worker():
         assert pool.submit(pow, 2, 10).result(timeout=120) == 1024
     finally:
         pool.shutdown()
+
+
+def test_serial_executor_stops_at_ctrl_c_instead_of_running_every_later_task():
+    from sarah_data.atomic import OutOfSpace
+    from sarah_data.executors import make_executor
+
+    pool, ran = make_executor("process", 1), []
+
+    def task(what):
+        ran.append(what)
+        if what == "bug":
+            raise ValueError("one task's bug")
+        if what == "ctrl-c":
+            raise KeyboardInterrupt
+        if what == "full":
+            raise OutOfSpace("disk full")
+        return what
+
+    assert isinstance(pool.submit(task, "bug").exception(), ValueError)  # reported, the run goes on
+    assert pool.submit(task, "ok").result() == "ok"
+    for stop, error in (("ctrl-c", KeyboardInterrupt), ("full", OutOfSpace)):
+        with pytest.raises(error):  # at once, from submit: the caller stops submitting
+            pool.submit(task, stop)
+    assert ran == ["bug", "ok", "ctrl-c", "full"]
 
 
 @pytest.mark.parametrize("extra, message", [
