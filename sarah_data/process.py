@@ -188,7 +188,8 @@ def run_task(pair: PairRecord, split: str, body_model_path: str, body_model_sha:
         if out_of_space(error):
             raise OutOfSpace(f"{work_dir}: no space left on the device (writing {pair.sequence})") from None
         result.status = "failed"
-        result.reason = f"{pair.sequence}: unexpected {type(error).__name__}: {error}"
+        # One line (HDF5's messages span several); the traceback goes to report.json.
+        result.reason = f"{pair.sequence}: unexpected {type(error).__name__}: {' '.join(str(error).split())}"
         result.detail = traceback.format_exc()
     result_seconds = time.perf_counter() - start
     marker = {**asdict(result), "fingerprint": fingerprint(pair, split, body_model_sha, config),

@@ -320,6 +320,29 @@ def test_local_pool_shares_work_between_this_process_and_a_worker():
         pool.shutdown()
 
 
+def test_a_bug_in_one_task_is_one_reported_line_and_the_run_goes_on(prep_raw_dir, tmp_path, monkeypatch, capsys):
+    from sarah_data import process
+
+    real, victim = process.write_work_file, []
+
+    def fails_once(path, *args):
+        if not victim:
+            victim.append(path.stem)
+            raise RuntimeError("Object copy failed (HDF5's text\n, spanning lines)")
+        real(path, *args)
+
+    monkeypatch.setattr(process, "write_work_file", fails_once)
+    out = tmp_path / "shards"
+    prep_main([str(prep_raw_dir), str(out), "-j", "1", "--no-progress"])
+    lines = [line for line in capsys.readouterr().out.splitlines() if victim[0] in line]
+    assert len(lines) == 1 and "unexpected RuntimeError: Object copy failed (HDF5's text , spanning lines)" in lines[0]
+    report = json.loads((out / "report.json").read_text())
+    failed = [s for s in report["skipped"] if s["kind"] == "failed"]
+    assert [s["sequence"] for s in failed] == victim and "Traceback" in failed[0]["traceback"]
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert victim[0] not in manifest["sequences"] and len(manifest["sequences"]) >= 1
+
+
 def test_serial_executor_stops_at_ctrl_c_instead_of_running_every_later_task():
     from sarah_data.atomic import OutOfSpace
     from sarah_data.executors import make_executor
