@@ -170,6 +170,13 @@ class TrainConfig:
     freeze_encoder: bool = False
     vae_steps: int = 200_000
     flow_steps: int = 300_000
+    # Not in the paper (0 = the paper): the VAE stage's first `vae_short_steps` steps train on
+    # windows of `vae_short_window` frames, the rest on `window`. Short windows cost a fraction
+    # per step (attention grows with the square of the length), but a causal VAE trained only on
+    # them loses the agent's place past their length; the last steps on `window` teach it
+    # (docs/models.md; docs/results.md, eleventh run).
+    vae_short_steps: int = 0
+    vae_short_window: int = 100
     latent: str = "mean"  # flow target from the frozen encoder: "mean" (mu) or "sample"
     latent_stats_batches: int = 64  # batches used to standardize latents before the flow stage
     log_every: int = 50
@@ -188,12 +195,12 @@ class TrainConfig:
         if not 0.0 <= self.final_lr_ratio <= 1.0:
             raise ValueError(f"TrainConfig.final_lr_ratio must be in [0, 1], got {self.final_lr_ratio}")
         for name in ("batch_size", "vae_steps", "flow_steps", "window", "log_every",
-                     "checkpoint_every", "latent_stats_batches"):
+                     "checkpoint_every", "latent_stats_batches", "vae_short_window"):
             if getattr(self, name) < 1:
                 raise ValueError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
-        if self.num_workers < 0 or self.warmup_steps < 0 or self.seed < 0:
-            raise ValueError("TrainConfig.num_workers, warmup_steps and seed must be >= 0, got "
-                             f"{self.num_workers}, {self.warmup_steps}, {self.seed}")
+        if self.num_workers < 0 or self.warmup_steps < 0 or self.seed < 0 or self.vae_short_steps < 0:
+            raise ValueError("TrainConfig.num_workers, warmup_steps, seed and vae_short_steps must be >= 0, "
+                             f"got {self.num_workers}, {self.warmup_steps}, {self.seed}, {self.vae_short_steps}")
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise ValueError(f"TrainConfig.lr must be a positive number, got {self.lr}")
 

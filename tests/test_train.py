@@ -549,3 +549,60 @@ def test_cli_trains_both_stages_on_real_shards(tmp_path, capsys):
     assert shared.step == 2 and shared.dims == models.dims
     for name, value in models.flow.state_dict().items():
         assert torch.equal(value, shared.flow.state_dict()[name]), name
+
+
+def test_phased_batches_take_the_first_steps_then_the_rest_and_close_the_first():
+    from sarah_models.training.batches import phased_batches
+
+    closed = []
+
+    def first():
+        try:
+            yield from ("a0", "a1", "a2", "a3")
+        finally:
+            closed.append(True)
+
+    batches = phased_batches(first(), 2, iter(("b0", "b1")))
+    assert next(batches) == "a0" and next(batches) == "a1" and not closed
+    assert list(batches) == ["b0", "b1"] and closed == [True]
+    assert list(phased_batches(first(), 0, iter(("b0",)))) == ["b0"]  # resumed past the switch
+
+
+def test_vae_short_windows_first_then_full_ones_resuming_across_the_switch(tmp_path, monkeypatch):
+    """train.vae_short_steps: the VAE's first steps read short windows from the shards, the rest
+    full ones; a run stopped before the switch and resumed equals the uninterrupted one."""
+    from sarah_models.training import stages
+
+    shards = tmp_path / "shards"
+    shards.mkdir()
+    _write_shards(shards)
+    lengths: list[int] = []
+    real_loop = stages.train_loop
+
+    def watched(model, batches, *args, **kwargs):
+        def spy():
+            for batch in batches:
+                lengths.append(batch["motion"].shape[1])
+                yield batch
+        return real_loop(model, spy(), *args, **kwargs)
+
+    monkeypatch.setattr(stages, "train_loop", watched)
+
+    def vae(out: Path, steps: int, resume: bool = False, short_steps: int = 3) -> dict:
+        config = tiny_config(steps, vae_short_steps=short_steps, vae_short_window=8)
+        train("vae", config, shards, out, resume=resume, device="cpu", progress=False, echo=lambda _: None)
+        return load_checkpoint(out / "vae.pt")["vae"]
+
+    straight = vae(tmp_path / "straight", 6)
+    assert lengths == [8, 8, 8, WINDOW, WINDOW, WINDOW]
+    lengths.clear()
+    vae(tmp_path / "broken", 2)
+    resumed = vae(tmp_path / "broken", 6, resume=True)
+    assert lengths == [8, 8, 8, WINDOW, WINDOW, WINDOW]
+    assert all(torch.equal(value, resumed[key]) for key, value in straight.items())
+    assert losses(tmp_path / "straight", "vae") == losses(tmp_path / "broken", "vae")
+    without = vae(tmp_path / "full", 6, short_steps=0)
+    assert not all(torch.equal(value, without[key]) for key, value in straight.items())
+    with pytest.raises(ValueError, match="vae_short_window 6 is not a multiple of the VAE stride 4"):
+        config = tiny_config(6, vae_short_steps=3, vae_short_window=6)
+        train("vae", config, shards, tmp_path / "bad", device="cpu", progress=False, echo=lambda _: None)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Iterator
+from typing import Iterable, Iterator
 
 import torch
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
@@ -64,3 +64,17 @@ class EpochBatches:
                                 generator=torch.Generator().manual_seed(self.seed * 1_000_003 + epoch))
             yield from loader
             epoch, skip = epoch + 1, 0
+
+
+def phased_batches(first: Iterable[dict], first_steps: int, then: Iterable[dict]) -> Iterator[dict]:
+    """``first_steps`` batches of ``first``, then those of ``then`` (the VAE's short-window
+    phase, then its full-length one). ``first`` is closed before ``then`` starts, so its loader
+    workers are gone."""
+    if first_steps > 0:
+        batches = iter(first)
+        try:
+            for _ in range(first_steps):
+                yield next(batches)
+        finally:
+            getattr(batches, "close", lambda: None)()
+    yield from then

@@ -22,6 +22,7 @@ is minimised), ``batches.py`` (data order), ``loop.py`` (the loop), ``checkpoint
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -33,7 +34,7 @@ from sarah_data.atomic import atomic_write_text
 
 from ..config import RunConfig, TrainConfig
 from ..nn.normalizer import Normalizer
-from .batches import EpochBatches
+from .batches import EpochBatches, phased_batches
 from .checkpoint import (
     build_models,
     capture_rng_state,
@@ -327,13 +328,36 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
             payload["init_from"] = origin
         save_checkpoint(ckpt_path, payload)
 
-    loader = EpochBatches(dataset, tcfg, info, start_batch=start)
+    loader = _stage_batches(stage, dataset, tcfg, info, start, total, shards_dir, dims, run_config.vae.stride)
     train_loop(model, loader, optimizer, tcfg, total_steps=total, start_step=start,
                device=info.device, rank=info.rank, log=log, on_checkpoint=save,
                progress=progress and info.is_main)
     if info.world_size > 1:
         dist.barrier()
     return ckpt_path
+
+
+def _stage_batches(stage: str, dataset: Dataset, config: TrainConfig, info: DistInfo, start: int,
+                   total: int, shards_dir: str | Path | None, dims: Mapping[str, int], stride: int):
+    """The stage's batches from step ``start``. The VAE's first ``vae_short_steps`` steps take
+    windows of ``vae_short_window`` frames, numbered on their own, so a resumed run continues
+    whichever phase it stopped in."""
+    short = min(config.vae_short_steps, total) if stage == "vae" else 0
+    if short == 0 or config.vae_short_window == config.window:
+        return EpochBatches(dataset, config, info, start_batch=start)
+    if shards_dir is None:
+        raise ValueError("train.vae_short_steps reads its short windows from the shards: give shards_dir")
+    if config.vae_short_window % stride:
+        raise ValueError(f"train.vae_short_window {config.vae_short_window} is not a multiple of the VAE "
+                         f"stride {stride}")
+    short_config = replace(config, window=config.vae_short_window)
+    short_dataset, _ = load_data(shards_dir, short_config, info.world_size)
+    if feature_dims(short_dataset, short_config.window) != dict(dims):
+        raise ValueError(f"{shards_dir}: windows of {short_config.window} frames have other widths "
+                         f"than those of {config.window}")
+    return phased_batches(EpochBatches(short_dataset, short_config, info, start_batch=min(start, short)),
+                          short - start,
+                          EpochBatches(dataset, config, info, start_batch=max(0, start - short)))
 
 
 @torch.no_grad()
