@@ -22,7 +22,7 @@ is minimised), ``batches.py`` (data order), ``loop.py`` (the loop), ``checkpoint
 from __future__ import annotations
 
 import json
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -52,11 +52,10 @@ STAGES = ("vae", "flow")
 MIN_EPOCH_BATCHES = 100  # small corpora: draw more random windows per epoch than pairs
 
 
-def load_data(shards_dir: str | Path, config: TrainConfig,
-              world_size: int = 1) -> tuple[Dataset, dict[str, tuple]]:
-    """The training WindowDataset and the model statistics from the shards' stats.h5."""
+def training_windows(shards_dir: str | Path, config: TrainConfig, world_size: int = 1) -> Dataset:
+    """The training WindowDataset of ``config.window`` frames, with at least enough windows for
+    MIN_EPOCH_BATCHES batches per epoch."""
     from sarah_data.dataset import WindowDataset
-    from sarah_data.stats import load_stats
 
     def make(length: int | None) -> Dataset:
         return WindowDataset(shards_dir, config.split, extractor=config.audio_features,
@@ -66,7 +65,16 @@ def load_data(shards_dir: str | Path, config: TrainConfig,
     wanted = MIN_EPOCH_BATCHES * config.batch_size * world_size
     if len(dataset) < wanted:  # same windows distribution, just longer epochs
         dataset = make(wanted)
-    return dataset, model_stats(load_stats(shards_dir), config.audio_features, shards_dir)
+    return dataset
+
+
+def load_data(shards_dir: str | Path, config: TrainConfig,
+              world_size: int = 1) -> tuple[Dataset, dict[str, tuple]]:
+    """The training WindowDataset and the model statistics from the shards' stats.h5."""
+    from sarah_data.stats import load_stats
+
+    return (training_windows(shards_dir, config, world_size),
+            model_stats(load_stats(shards_dir), config.audio_features, shards_dir))
 
 
 def model_stats(raw: Mapping[str, Any], features: str,
@@ -226,8 +234,10 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
 
     # Initial weights are a function of the seed (resumed runs load theirs over them).
     torch.manual_seed(tcfg.seed + STAGES.index(stage))
+    short = None
     if stage == "vae":
         dims = feature_dims(dataset, tcfg.window)
+        short = _short_windows(tcfg, total, shards_dir, dims, config.vae.stride, info.world_size)
         if previous is not None:
             _check_same("vae", config.to_dict()["vae"], stored_config(previous)["vae"], ckpt_path)
             normalizer = Normalizer.from_state_dict(previous["normalizer"])
@@ -328,7 +338,12 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
             payload["init_from"] = origin
         save_checkpoint(ckpt_path, payload)
 
-    loader = _stage_batches(stage, dataset, tcfg, info, start, total, shards_dir, dims, run_config.vae.stride)
+    # Each phase's batches are numbered on their own, so a resumed run continues either phase.
+    done_short = min(start, short.steps) if short else 0
+    loader = EpochBatches(dataset, tcfg, info, start_batch=start - done_short)
+    if short is not None:
+        loader = phased_batches(EpochBatches(short.dataset, short.config, info, start_batch=done_short),
+                                short.steps - done_short, loader)
     train_loop(model, loader, optimizer, tcfg, total_steps=total, start_step=start,
                device=info.device, rank=info.rank, log=log, on_checkpoint=save,
                progress=progress and info.is_main)
@@ -337,27 +352,32 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
     return ckpt_path
 
 
-def _stage_batches(stage: str, dataset: Dataset, config: TrainConfig, info: DistInfo, start: int,
-                   total: int, shards_dir: str | Path | None, dims: Mapping[str, int], stride: int):
-    """The stage's batches from step ``start``. The VAE's first ``vae_short_steps`` steps take
-    windows of ``vae_short_window`` frames, numbered on their own, so a resumed run continues
-    whichever phase it stopped in."""
-    short = min(config.vae_short_steps, total) if stage == "vae" else 0
-    if short == 0 or config.vae_short_window == config.window:
-        return EpochBatches(dataset, config, info, start_batch=start)
+@dataclass(frozen=True)
+class ShortWindows:
+    """The VAE's first ``steps`` steps: windows of ``config.window`` frames (train.vae_short_*)."""
+
+    steps: int
+    config: TrainConfig
+    dataset: Dataset
+
+
+def _short_windows(config: TrainConfig, total: int, shards_dir: str | Path | None,
+                   dims: Mapping[str, int], stride: int, world_size: int) -> ShortWindows | None:
+    """The VAE's short-window phase, checked before any training; None when there is none."""
+    steps = min(config.vae_short_steps, total)
+    if steps == 0 or config.vae_short_window == config.window:
+        return None
     if shards_dir is None:
         raise ValueError("train.vae_short_steps reads its short windows from the shards: give shards_dir")
     if config.vae_short_window % stride:
         raise ValueError(f"train.vae_short_window {config.vae_short_window} is not a multiple of the VAE "
                          f"stride {stride}")
     short_config = replace(config, window=config.vae_short_window)
-    short_dataset, _ = load_data(shards_dir, short_config, info.world_size)
-    if feature_dims(short_dataset, short_config.window) != dict(dims):
+    dataset = training_windows(shards_dir, short_config, world_size)
+    if feature_dims(dataset, short_config.window) != dict(dims):
         raise ValueError(f"{shards_dir}: windows of {short_config.window} frames have other widths "
                          f"than those of {config.window}")
-    return phased_batches(EpochBatches(short_dataset, short_config, info, start_batch=min(start, short)),
-                          short - start,
-                          EpochBatches(dataset, config, info, start_batch=max(0, start - short)))
+    return ShortWindows(steps, short_config, dataset)
 
 
 @torch.no_grad()
