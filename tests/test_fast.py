@@ -307,3 +307,18 @@ def test_bench_config_rejects_bad_values():
     with pytest.raises(ValueError, match="threads"):
         BenchConfig(threads=0)
     assert dataclasses.replace(BenchConfig.quick(), threads=1).sizes == ("tiny",)
+
+
+def test_every_kernel_of_the_kernel_bench_computes_the_same_product():
+    """sarah_bench.kernels compares kernels' speed; the comparison is fair only if each computes
+    the same int8-weight product (to its rounding: fbgemm and _int_mm quantize the rows too)."""
+    from sarah_bench.kernels import kernels
+
+    table = kernels(shapes=[(64, 96), (96, 64)], rows=6)
+    reference = table["fp32 (MKL)"]()
+    compared = [name for name in table if "floor" not in name]
+    assert len(compared) == 5
+    for name in compared:
+        for out, ref in zip(table[name](), reference, strict=True):
+            assert out.shape == ref.shape, name
+            assert ((out - ref).abs().max() / ref.abs().max()).item() < 0.05, name

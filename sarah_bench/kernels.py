@@ -1,0 +1,97 @@
+"""Which CPU matmul kernel reads the paper-size flow's weights fastest for a streamed evaluation.
+
+One flow evaluation of a streamed chunk multiplies 6 rows (2 guidance branches x 3 tokens) by
+every Linear of the 4 transformer blocks (qkv 1024->3072, out 1024->1024, MLP 1024->4096->1024:
+48 M weights). This times that stack per evaluation with each kernel torch offers on this CPU,
+next to the time to merely read the same number of int8 bytes, so a reader can see how far the
+kernel in use (`accel.linears.Int8Linear`, fbgemm's dynamic int8) is from the memory floor.
+
+    python -m sarah_bench.kernels [--threads 1 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from typing import Callable
+
+import torch
+from torch import Tensor, nn
+
+from sarah_models.accel.linears import Int8Linear
+
+from sarah_cli.arguments import HelpFormatter, positive_int
+
+from .timing import percentiles, torch_threads
+
+HIDDEN, ROWS, BLOCKS = 1024, 6, 4
+SHAPES = [(HIDDEN, 3 * HIDDEN), (HIDDEN, HIDDEN), (HIDDEN, 4 * HIDDEN), (4 * HIDDEN, HIDDEN)] * BLOCKS
+
+
+def median_ms(step, repeats: int = 40, seconds: float = 3.0) -> float:
+    """Median of up to ``repeats`` timed calls after two warm-up calls; a kernel 100x slower
+    than the rest gets at least 5 calls, not ``repeats``."""
+    step(), step()
+    times: list[float] = []
+    while len(times) < repeats and (len(times) < 5 or sum(times) < seconds):
+        start = time.perf_counter()
+        step()
+        times.append(time.perf_counter() - start)
+    return percentiles(times)["p50"]
+
+
+def kernels(shapes=SHAPES, rows: int = ROWS, seed: int = 0) -> dict[str, Callable[[], list[Tensor]]]:
+    """name -> one evaluation's products with that kernel: the same int8 weights (per output
+    channel scales) times the same rows, so every kernel returns the same numbers up to its
+    rounding (``tests/test_fast.py`` checks that), except the memory floor, which only reads."""
+    generator = torch.Generator().manual_seed(seed)
+    weights = [torch.randint(-127, 128, (o, i), generator=generator, dtype=torch.int8) for i, o in shapes]
+    scales = [torch.rand(o, generator=generator) * 1e-2 + 1e-3 for _, o in shapes]
+    x = {i: torch.randn(rows, i, generator=generator) for i in {i for i, _ in shapes}}
+    linears = []
+    for w, s in zip(weights, scales):
+        linear = nn.Linear(w.shape[1], w.shape[0], bias=False)
+        linear.weight.data = w.float() * s[:, None]
+        linears.append(linear)
+    fbgemm = [Int8Linear(linear) for linear in linears]
+    x_bf16 = {i: v.bfloat16() for i, v in x.items()}
+    # _int_mm wants int8 rows too (at least 8 of them): rows quantized per row, padded to 8
+    row_scale = {i: v.abs().amax(1, keepdim=True) / 127 for i, v in x.items()}
+    x_int8 = {i: torch.zeros(max(rows, 8), i, dtype=torch.int8) for i in x}
+    for i, v in x.items():
+        x_int8[i][:rows] = (v / row_scale[i]).round().to(torch.int8)
+    weights_t = [w.t().contiguous() for w in weights]
+    floor = torch.zeros(sum(i * o for i, o in shapes) // 8, dtype=torch.int64)
+    return {
+        "read the int8 bytes (memory floor)": lambda: [floor.sum()],
+        "fbgemm dynamic int8 (in use)": lambda: [m(x[m.in_features]) for m in fbgemm],
+        "fp32 (MKL)": lambda: [m(x[m.in_features]) for m in linears],
+        "_weight_int8pack_mm, bf16 rows": lambda: [
+            torch.ops.aten._weight_int8pack_mm(x_bf16[w.shape[1]], w, s.bfloat16()).float()
+            for w, s in zip(weights, scales)],
+        "_weight_int8pack_mm, fp32 rows": lambda: [
+            torch.ops.aten._weight_int8pack_mm(x[w.shape[1]], w, s) for w, s in zip(weights, scales)],
+        "_int_mm (int8 x int8)": lambda: [
+            torch._int_mm(x_int8[w.shape[0]], w)[:rows].float() * row_scale[w.shape[0]] * s
+            for w, s in zip(weights_t, scales)],
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(prog="python -m sarah_bench.kernels", formatter_class=HelpFormatter,
+                                     description=__doc__.split("\n\n")[0])
+    parser.add_argument("--threads", type=positive_int, nargs="+", default=[1, 2],
+                        help="intra-op thread counts to time")
+    args = parser.parse_args()
+    megabytes = sum(i * o for i, o in SHAPES) / 2**20
+    print(f"one paper-size flow evaluation: {ROWS} rows x {megabytes:.0f} MB of int8 weights")
+    for threads in args.threads:
+        with torch_threads(threads):
+            timed = {name: median_ms(step) for name, step in kernels().items()}
+        for name, ms in timed.items():
+            print(f"threads {threads}  {name:34s} {ms:8.2f} ms / evaluation "
+                  f"({megabytes / 1024 / (ms / 1e3):5.1f} GB/s counted in int8 bytes)")
+
+
+if __name__ == "__main__":
+    main()
