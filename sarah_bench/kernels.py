@@ -18,14 +18,24 @@ from typing import Callable
 import torch
 from torch import Tensor, nn
 
-from sarah_models.accel.linears import Int8Linear
-
 from sarah_cli.arguments import HelpFormatter, positive_int
+from sarah_models.accel.linears import Int8Linear
+from sarah_models.config import HISTORY_TOKENS, STRIDE, FlowConfig, VAEConfig
+from sarah_models.nn.flow import FlowModel
 
 from .timing import percentiles, torch_threads
 
-HIDDEN, ROWS, BLOCKS = 1024, 6, 4
-SHAPES = [(HIDDEN, 3 * HIDDEN), (HIDDEN, HIDDEN), (HIDDEN, 4 * HIDDEN), (4 * HIDDEN, HIDDEN)] * BLOCKS
+ROWS = 2 * (HISTORY_TOKENS + 1)  # guidance branches x tokens a streamed evaluation sees
+
+
+def block_shapes(config: FlowConfig) -> list[tuple[int, int]]:
+    """(in, out) of the Linears a streamed evaluation reads in the flow's transformer blocks:
+    all but the AdaLN modulation, which the fast path's time cache computes once per solver step
+    grid (docs/performance.md)."""
+    model = FlowModel(config, VAEConfig.paper().latent_dim, STRIDE, audio_dim=1)
+    return [(m.in_features, m.out_features) for name, m in model.blocks.named_modules()
+            if isinstance(m, nn.Linear) and "modulation" not in name]
+
 
 
 def median_ms(step, repeats: int = 40, seconds: float = 3.0) -> float:
@@ -40,7 +50,7 @@ def median_ms(step, repeats: int = 40, seconds: float = 3.0) -> float:
     return percentiles(times)["p50"]
 
 
-def kernels(shapes=SHAPES, rows: int = ROWS, seed: int = 0) -> dict[str, Callable[[], list[Tensor]]]:
+def kernels(shapes: list[tuple[int, int]], rows: int = ROWS, seed: int = 0) -> dict[str, Callable[[], list[Tensor]]]:
     """name -> one evaluation's products with that kernel: the same int8 weights (per output
     channel scales) times the same rows, so every kernel returns the same numbers up to its
     rounding (``tests/test_fast.py`` checks that), except the memory floor, which only reads."""
@@ -55,11 +65,9 @@ def kernels(shapes=SHAPES, rows: int = ROWS, seed: int = 0) -> dict[str, Callabl
         linears.append(linear)
     fbgemm = [Int8Linear(linear) for linear in linears]
     x_bf16 = {i: v.bfloat16() for i, v in x.items()}
-    # _int_mm wants int8 rows too (at least 8 of them): rows quantized per row, padded to 8
+    # _int_mm multiplies int8 by int8: the rows are quantized too, one scale per row
     row_scale = {i: v.abs().amax(1, keepdim=True) / 127 for i, v in x.items()}
-    x_int8 = {i: torch.zeros(max(rows, 8), i, dtype=torch.int8) for i in x}
-    for i, v in x.items():
-        x_int8[i][:rows] = (v / row_scale[i]).round().to(torch.int8)
+    x_int8 = {i: (v / row_scale[i]).round().to(torch.int8) for i, v in x.items()}
     weights_t = [w.t().contiguous() for w in weights]
     floor = torch.zeros(sum(i * o for i, o in shapes) // 8, dtype=torch.int64)
     return {
@@ -72,7 +80,7 @@ def kernels(shapes=SHAPES, rows: int = ROWS, seed: int = 0) -> dict[str, Callabl
         "_weight_int8pack_mm, fp32 rows": lambda: [
             torch.ops.aten._weight_int8pack_mm(x[w.shape[1]], w, s) for w, s in zip(weights, scales)],
         "_int_mm (int8 x int8)": lambda: [
-            torch._int_mm(x_int8[w.shape[0]], w)[:rows].float() * row_scale[w.shape[0]] * s
+            torch._int_mm(x_int8[w.shape[0]], w).float() * row_scale[w.shape[0]] * s
             for w, s in zip(weights_t, scales)],
     }
 
@@ -83,11 +91,12 @@ def main() -> None:
     parser.add_argument("--threads", type=positive_int, nargs="+", default=[1, 2],
                         help="intra-op thread counts to time")
     args = parser.parse_args()
-    megabytes = sum(i * o for i, o in SHAPES) / 2**20
+    shapes = block_shapes(FlowConfig.paper())
+    megabytes = sum(i * o for i, o in shapes) / 2**20
     print(f"one paper-size flow evaluation: {ROWS} rows x {megabytes:.0f} MB of int8 weights")
     for threads in args.threads:
         with torch_threads(threads):
-            timed = {name: median_ms(step) for name, step in kernels().items()}
+            timed = {name: median_ms(step) for name, step in kernels(shapes).items()}
         for name, ms in timed.items():
             print(f"threads {threads}  {name:34s} {ms:8.2f} ms / evaluation "
                   f"({megabytes / 1024 / (ms / 1e3):5.1f} GB/s counted in int8 bytes)")

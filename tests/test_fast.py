@@ -312,9 +312,10 @@ def test_bench_config_rejects_bad_values():
 def test_every_kernel_of_the_kernel_bench_computes_the_same_product():
     """sarah_bench.kernels compares kernels' speed; the comparison is fair only if each computes
     the same int8-weight product (to its rounding: fbgemm and _int_mm quantize the rows too)."""
-    from sarah_bench.kernels import kernels
+    from sarah_bench.kernels import block_shapes, kernels
+    from sarah_models.config import FlowConfig
 
-    table = kernels(shapes=[(64, 96), (96, 64)], rows=6)
+    table = kernels(block_shapes(FlowConfig.tiny()))
     reference = table["fp32 (MKL)"]()
     compared = [name for name in table if "floor" not in name]
     assert len(compared) == 5
