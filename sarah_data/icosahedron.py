@@ -39,6 +39,22 @@ def encode(positions, rotations, radius: float = DEFAULT_RADIUS):
     return template @ np.swapaxes(np.asarray(rotations, dtype), -1, -2) + np.asarray(positions, dtype)[..., None, :]
 
 
+def axis(icosahedra, column: int):
+    """icosahedra (...,J,12,3) -> radius * the rotation's ``column`` (...,J,3), linear in the vertices.
+
+    The template's second moment is isotropic (sum_v u_v u_v^T = 4 I for the 12 unit vertices),
+    so sum_v (x_v - centroid) u_v^T / 4 = radius * R exactly for a rigid icosahedron. Unlike
+    ``decode``'s SVD this is cheap and smooth to differentiate, which a training loss needs.
+    """
+    if isinstance(icosahedra, torch.Tensor):
+        weights = torch.as_tensor(TEMPLATE[:, column] / 4.0, dtype=icosahedra.dtype,
+                                  device=icosahedra.device)
+        centred = icosahedra - icosahedra.mean(dim=-2, keepdim=True)
+        return torch.einsum("...vi,v->...i", centred, weights)
+    x = np.asarray(icosahedra)
+    return np.einsum("...vi,v->...i", x - x.mean(axis=-2, keepdims=True), TEMPLATE[:, column] / 4.0)
+
+
 def decode(icosahedra):
     """icosahedra (...,J,12,3) -> (positions (...,J,3), rotations (...,J,3,3)).
 

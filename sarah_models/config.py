@@ -79,6 +79,12 @@ class VAEConfig:
     # standard foot-contact loss of motion generation (e.g. MDM), for a metric the position
     # MSE cannot see: 1 mm per frame decides whether a planted foot "slides".
     contact_weight: float = 0.0
+    # Not in the paper (0 = the paper): weight of the head-facing term, the squared error of the
+    # head's horizontal facing direction (the gaze score's d_x, a unit vector). The head's
+    # orientation is 12 of ~900 points' offsets of 10 cm, so a position loss leaves it loose: a
+    # VAE trained without it reconstructed the gaze score with correlation 0.59 to the truth
+    # (docs/models.md), and a flow cannot be steered by gaze through latents that lose it.
+    head_weight: float = 0.0
     # Not in the paper (0 = the paper): Gaussian noise added to the decoder's latent input in
     # training, as a fraction of the batch's per-channel latent std. The decoder then maps a
     # neighbourhood of each latent to the same motion, so a flow sample that is slightly off

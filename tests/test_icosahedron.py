@@ -57,3 +57,19 @@ def test_mirrored_icosahedron_decodes_to_a_rotation():
     mirrored = icosahedron.encode(np.zeros((1, 3)), np.eye(3)[None]) * np.array([-1.0, 1.0, 1.0])
     _, rot = icosahedron.decode(mirrored)
     assert np.linalg.det(rot[0]) > 0.999
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), radius=st.floats(0.01, 1.0), column=st.integers(0, 2))
+def test_axis_is_radius_times_the_rotation_column_linear_in_the_vertices(seed, radius, column):
+    rng = np.random.default_rng(seed)
+    rotations = Rotation.random(6, random_state=seed).as_matrix()
+    positions = rng.normal(size=(6, 3))
+    ico = icosahedron.encode(positions, rotations, radius)
+    np.testing.assert_allclose(icosahedron.axis(ico, column), radius * rotations[..., column], atol=1e-12)
+    torch_axis = icosahedron.axis(torch.from_numpy(ico), column)
+    np.testing.assert_allclose(torch_axis.numpy(), radius * rotations[..., column], atol=1e-12)
+    # linear: the axis of a sum of vertex offsets is the sum of the axes
+    other = icosahedron.encode(positions, rotations[::-1].copy(), radius)
+    np.testing.assert_allclose(icosahedron.axis(ico + other, column),
+                               icosahedron.axis(ico, column) + icosahedron.axis(other, column), atol=1e-12)

@@ -17,7 +17,7 @@ from sarah_models.config import FlowConfig, RunConfig, TrainConfig, VAEConfig
 from sarah_models.training.batches import EpochBatches
 from sarah_models.training.distributed import DistInfo
 from sarah_models.training.loop import lr_at
-from sarah_models.training.objectives import PlantedFeet, VAEObjective
+from sarah_models.training.objectives import HeadFacing, PlantedFeet, VAEObjective
 from sarah_models.training.stages import model_stats, train
 
 WINDOW, DX, DA = 16, 21, 6
@@ -154,6 +154,72 @@ def test_vae_objective_adds_the_weighted_contact_term():
     assert out["contact"].item() > 0
     assert out["loss"].item() == pytest.approx((plain + 0.5 * out["contact"]).item(), rel=1e-5)
     out["loss"].backward()  # differentiable through the de-standardization
+    assert objective.vae.frame_out.weight.grad.abs().sum() > 0
+
+
+def _head_motion(yaw: np.ndarray, radius: float = 0.1) -> torch.Tensor:
+    """(1, T, Dx) motion whose head turns by ``yaw`` (radians about y) per frame."""
+    from scipy.spatial.transform import Rotation
+
+    from sarah_data import icosahedron
+    from sarah_data.constants import JOINT, NUM_JOINTS
+
+    frames = len(yaw)
+    rotations = np.broadcast_to(np.eye(3), (frames, NUM_JOINTS, 3, 3)).copy()
+    rotations[:, JOINT["head"]] = Rotation.from_euler("y", yaw[:, None]).as_matrix()
+    positions = np.zeros((frames, NUM_JOINTS, 3))
+    positions[:, JOINT["head"], 1] = 1.6
+    ico = icosahedron.encode(positions, rotations, radius)
+    motion = np.concatenate([ico.reshape(frames, -1), np.zeros((frames, 12))], axis=1)
+    return torch.tensor(motion[None], dtype=torch.float32)
+
+
+def test_head_facing_term_is_the_squared_error_of_the_horizontal_facing_unit_vector():
+    from sarah_data.constants import NUM_JOINTS
+
+    true = _head_motion(np.zeros(6))
+    term = HeadFacing(true.shape[-1])
+    assert float(term(true, true)) == 0.0
+    # A head turned by angle a faces a unit vector |2 sin(a/2)| away, at any icosahedron radius.
+    for angle in (0.1, 0.5, np.pi):
+        turned = _head_motion(np.full(6, angle))
+        assert float(term(turned, true)) == pytest.approx((2 * np.sin(angle / 2)) ** 2, rel=1e-4)
+    big = _head_motion(np.zeros(6), radius=0.3)
+    assert float(term(_head_motion(np.full(6, 0.5), radius=0.3), big)) == pytest.approx(
+        (2 * np.sin(0.25)) ** 2, rel=1e-4)
+    # Nodding (about x) tilts the facing axis out of the floor plane: only its x, z count.
+    from scipy.spatial.transform import Rotation
+
+    from sarah_data.skeleton import MotionLayout
+
+    nod = true.clone()
+    layout = MotionLayout.from_width(true.shape[-1])
+    head = layout.joint_slice("head")
+    points = true[0, :, head].reshape(6, 12, 3)
+    centre = points.mean(1, keepdim=True)
+    tilt = torch.tensor(Rotation.from_euler("x", 0.3).as_matrix(), dtype=torch.float32)
+    nod[0, :, head] = ((points - centre) @ tilt.T + centre).reshape(6, -1)
+    assert float(term(nod, true)) == pytest.approx((1 - np.cos(0.3)) ** 2, rel=1e-3)
+    with pytest.raises(ValueError, match="icosahedron motion layout"):
+        HeadFacing(NUM_JOINTS * 36 - 1)
+
+
+def test_vae_objective_adds_the_weighted_head_term():
+    from sarah_models.nn.normalizer import Normalizer
+    from sarah_models.nn.vae import CausalVAE
+
+    motion = _head_motion(np.linspace(0, 1, 8))
+    dx = motion.shape[-1]
+    stats = {"motion": (np.zeros(dx), np.full(dx, 0.3))}
+    config = replace(tiny_config(1).vae, hidden=32, latent_dim=8, encoder_layers=1,
+                     decoder_layers=1, head_weight=0.25)
+    torch.manual_seed(0)
+    objective = VAEObjective(CausalVAE(config, dx), Normalizer(stats))
+    out = objective({"motion": motion}, torch.Generator().manual_seed(0))
+    plain = out["recon"] + config.beta * out["kl"] + config.velocity_weight * out["velocity"]
+    assert "contact" not in out and out["head"].item() > 0
+    assert out["loss"].item() == pytest.approx((plain + 0.25 * out["head"]).item(), rel=1e-5)
+    out["loss"].backward()
     assert objective.vae.frame_out.weight.grad.abs().sum() > 0
 
 

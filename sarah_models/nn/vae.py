@@ -37,8 +37,8 @@ beta = 1e-4 keeps its paper meaning of "a small KL weight" independent of T, Dx 
 ``latent_noise`` > 0 adds noise to the decoder's input latents in training (0 in the paper).
 ``recon_units="metres"`` weights each channel's squared error by its variance (the objective
 passes ``channel_weight``), so the loss counts a millimetre the same on every axis.
-The planted-foot term (``contact_weight``) needs the motion layout and metres, so the training
-objective adds it (``training.objectives.VAEObjective``).
+The planted-foot term (``contact_weight``) and the head-facing term (``head_weight``) need the
+motion layout and metres, so the training objective adds them (``training.objectives.VAEObjective``).
 """
 
 from __future__ import annotations

@@ -1,7 +1,8 @@
 """Training objectives: a batch of windows in, a dict of scalar losses out ("loss" optimised).
 
 * ``VAEObjective``: standardize the motion, the VAE's reconstruction + KL (``CausalVAE.forward``),
-  plus the planted-foot term (``PlantedFeet``) when ``vae.contact_weight`` > 0.
+  plus the planted-foot term (``PlantedFeet``) when ``vae.contact_weight`` > 0 and the
+  head-facing term (``HeadFacing``) when ``vae.head_weight`` > 0.
 * ``FlowObjective``: encode with the frozen VAE, standardize the latents, then
   ``flow_matching_loss`` (eq. 4-5: x1-prediction on the straight path with CFG dropout).
 """
@@ -13,8 +14,9 @@ from typing import Mapping
 import torch
 from torch import Tensor, nn
 
+from sarah_data import icosahedron
 from sarah_data.constants import FPS
-from sarah_data.skeleton import FEET, MotionLayout
+from sarah_data.skeleton import FEET, HEAD, ICOSAHEDRON_POINTS, MotionLayout
 
 from ..nn.flow import FlowModel
 from ..nn.normalizer import Normalizer
@@ -25,12 +27,14 @@ from ..sampling.path import interpolate
 
 class VAEObjective(nn.Module):
     """Standardize the motion of a batch and return the VAE loss dict (plus the planted-foot
-    term when ``vae.config.contact_weight`` > 0)."""
+    term when ``vae.config.contact_weight`` > 0, the head-facing term when
+    ``vae.config.head_weight`` > 0)."""
 
     def __init__(self, vae: CausalVAE, normalizer: Normalizer) -> None:
         super().__init__()
         self.vae, self.normalizer = vae, normalizer
         self.contact = PlantedFeet(vae.motion_dim) if vae.config.contact_weight > 0 else None
+        self.head = HeadFacing(vae.motion_dim) if vae.config.head_weight > 0 else None
         weight = None
         if vae.config.recon_units == "metres":
             variance = normalizer.motion_std.float().square()
@@ -45,11 +49,17 @@ class VAEObjective(nn.Module):
         device = self.normalizer.motion_mean.device
         motion = self.normalizer.normalize_batch({"motion": batch["motion"]}, device)["motion"]
         out = self.vae(motion, generator, self.channel_weight)
-        if self.contact is None:
+        if self.contact is None and self.head is None:
             return out
-        to_metres = lambda x: self.normalizer.denormalize("motion", x.float())  # noqa: E731
-        term = self.contact(to_metres(out["x_hat"]), to_metres(motion))
-        return {**out, "loss": out["loss"] + self.vae.config.contact_weight * term, "contact": term}
+        decoded = self.normalizer.denormalize("motion", out["x_hat"].float())
+        true = self.normalizer.denormalize("motion", motion.float())
+        loss, terms = out["loss"], {}
+        for name, term, weight in (("contact", self.contact, self.vae.config.contact_weight),
+                                   ("head", self.head, self.vae.config.head_weight)):
+            if term is not None:
+                terms[name] = term(decoded, true)
+                loss = loss + weight * terms[name]
+        return {**out, "loss": loss, **terms}
 
 
 class PlantedFeet(nn.Module):
@@ -82,6 +92,32 @@ class PlantedFeet(nn.Module):
                    & (true_step.norm(dim=-1) < self.step)).float()
         error = (pred_step - true_step).square().sum(-1) / self.step ** 2
         return (error * planted).sum() / planted.sum().clamp_min(1.0)
+
+
+class HeadFacing(nn.Module):
+    """Squared error of the head's horizontal facing direction, a unit vector.
+
+    Facing is the head rotation's z axis (``gaze.head_points``: what the gaze score reads),
+    taken linearly from the head icosahedron's vertices (``icosahedron.axis``) and divided by
+    the true icosahedron's radius, so the truth's is a unit vector; only x and z count, as in the
+    gaze score. Inputs: motion in metres, icosahedra first."""
+
+    def __init__(self, motion_dim: int) -> None:
+        super().__init__()
+        try:
+            self.channels = MotionLayout.from_width(motion_dim).joint_slice(HEAD)
+        except ValueError as error:
+            raise ValueError(f"vae.head_weight needs the icosahedron motion layout: {error}") from None
+
+    def facing(self, motion: Tensor) -> Tensor:
+        points = motion[..., self.channels].unflatten(-1, (ICOSAHEDRON_POINTS, 3))
+        return icosahedron.axis(points, 2)  # (B, T, 3): radius * the facing axis
+
+    def forward(self, decoded: Tensor, true: Tensor) -> Tensor:
+        gt = self.facing(true)
+        radius = gt.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        error = (self.facing(decoded) - gt)[..., [0, 2]] / radius
+        return error.square().sum(-1).mean()
 
 
 class FlowObjective(nn.Module):

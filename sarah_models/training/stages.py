@@ -154,7 +154,8 @@ def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
 
 
 # Fields a fine-tune may change: they shape the loss, not the weights.
-LOSS_FIELDS = {"vae": ("beta", "velocity_weight", "contact_weight", "latent_noise", "recon_units"),
+LOSS_FIELDS = {"vae": ("beta", "velocity_weight", "contact_weight", "head_weight", "latent_noise",
+                       "recon_units"),
                "flow": ("drop_prob", "min_denominator")}
 
 
