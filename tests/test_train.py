@@ -136,27 +136,6 @@ def test_planted_feet_term_counts_only_planted_steps_in_threshold_units():
         PlantedFeet(NUM_JOINTS * 36 - 1)
 
 
-def test_vae_objective_adds_the_weighted_contact_term():
-    from sarah_models.nn.normalizer import Normalizer
-
-    frames = 8
-    motion = _feet_motion(np.zeros((frames, 2)), np.full(frames, 0.03), frames)
-    dx = motion.shape[-1]
-    stats = {"motion": (np.zeros(dx), np.full(dx, 0.3))}
-    config = replace(tiny_config(1).vae, hidden=32, latent_dim=8, encoder_layers=1,
-                     decoder_layers=1, contact_weight=0.5)
-    from sarah_models.nn.vae import CausalVAE
-
-    torch.manual_seed(0)
-    objective = VAEObjective(CausalVAE(config, dx), Normalizer(stats))
-    out = objective({"motion": motion}, torch.Generator().manual_seed(0))
-    plain = out["recon"] + config.beta * out["kl"] + config.velocity_weight * out["velocity"]
-    assert out["contact"].item() > 0
-    assert out["loss"].item() == pytest.approx((plain + 0.5 * out["contact"]).item(), rel=1e-5)
-    out["loss"].backward()  # differentiable through the de-standardization
-    assert objective.vae.frame_out.weight.grad.abs().sum() > 0
-
-
 def _head_motion(yaw: np.ndarray, radius: float = 0.1) -> torch.Tensor:
     """(1, T, Dx) motion whose head turns by ``yaw`` (radians about y) per frame."""
     from scipy.spatial.transform import Rotation
@@ -204,23 +183,27 @@ def test_head_facing_term_is_the_squared_error_of_the_horizontal_facing_unit_vec
         HeadFacing(NUM_JOINTS * 36 - 1)
 
 
-def test_vae_objective_adds_the_weighted_head_term():
+def test_vae_objective_adds_the_weighted_contact_and_head_terms():
     from sarah_models.nn.normalizer import Normalizer
     from sarah_models.nn.vae import CausalVAE
 
-    motion = _head_motion(np.linspace(0, 1, 8))
+    motion = _head_motion(np.linspace(0, 1, 8))  # feet on the floor: planted; the head turns
     dx = motion.shape[-1]
     stats = {"motion": (np.zeros(dx), np.full(dx, 0.3))}
     config = replace(tiny_config(1).vae, hidden=32, latent_dim=8, encoder_layers=1,
-                     decoder_layers=1, head_weight=0.25)
+                     decoder_layers=1, contact_weight=0.5, head_weight=0.25)
     torch.manual_seed(0)
     objective = VAEObjective(CausalVAE(config, dx), Normalizer(stats))
     out = objective({"motion": motion}, torch.Generator().manual_seed(0))
     plain = out["recon"] + config.beta * out["kl"] + config.velocity_weight * out["velocity"]
-    assert "contact" not in out and out["head"].item() > 0
-    assert out["loss"].item() == pytest.approx((plain + 0.25 * out["head"]).item(), rel=1e-5)
-    out["loss"].backward()
+    assert out["contact"].item() > 0 and out["head"].item() > 0
+    expected = plain + 0.5 * out["contact"] + 0.25 * out["head"]
+    assert out["loss"].item() == pytest.approx(expected.item(), rel=1e-5)
+    out["loss"].backward()  # differentiable through the de-standardization
     assert objective.vae.frame_out.weight.grad.abs().sum() > 0
+    plain_objective = VAEObjective(CausalVAE(replace(config, contact_weight=0.0, head_weight=0.0), dx),
+                                   Normalizer(stats))
+    assert not {"contact", "head"} & set(plain_objective({"motion": motion}))
 
 
 def test_vae_loss_in_metres_weights_channels_by_their_variance():
