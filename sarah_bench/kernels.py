@@ -37,7 +37,6 @@ def block_shapes(config: FlowConfig) -> list[tuple[int, int]]:
             if isinstance(m, nn.Linear) and "modulation" not in name]
 
 
-
 def median_ms(step, repeats: int = 40, seconds: float = 3.0) -> float:
     """Median of up to ``repeats`` timed calls after two warm-up calls; a kernel 100x slower
     than the rest gets at least 5 calls, not ``repeats``."""

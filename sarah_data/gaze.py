@@ -13,6 +13,7 @@ import numpy as np
 # Front and back of the head: the head joint moved this far along the head's facing axis (its
 # global +z, the rest pose's facing direction). One definition for data and metrics alike.
 HEAD_HALF_DEPTH = 0.10
+FACING_AXIS = 2  # the column of the head's global rotation that it faces along (+z)
 
 _EPS = 1e-8
 
@@ -24,7 +25,7 @@ def head_trajectory(eye_mid: np.ndarray) -> np.ndarray:
 
 def head_points(head_position: np.ndarray, head_rotation: np.ndarray):
     """Head joint position (...,3) and global rotation (...,3,3) -> (front (...,3), back (...,3))."""
-    axis = np.asarray(head_rotation)[..., :, 2] * HEAD_HALF_DEPTH
+    axis = np.asarray(head_rotation)[..., :, FACING_AXIS] * HEAD_HALF_DEPTH
     return head_position + axis, head_position - axis
 
 

@@ -82,7 +82,7 @@ class VAEConfig:
     # Not in the paper (0 = the paper): weight of the head-facing term, the squared error of the
     # head's horizontal facing direction (the gaze score's d_x, a unit vector). The head's
     # orientation is 12 of ~900 points' offsets of 10 cm, so a position loss leaves it loose: a
-    # VAE trained without it reconstructed the gaze score with correlation 0.59 to the truth
+    # VAE trained without it reconstructed the gaze score with correlation 0.65 to the truth
     # (docs/models.md), and a flow cannot be steered by gaze through latents that lose it.
     head_weight: float = 0.0
     # Not in the paper (0 = the paper): Gaussian noise added to the decoder's latent input in

@@ -17,6 +17,7 @@ import torch
 
 from sarah_data import icosahedron
 from sarah_data.constants import FPS, JOINT, JOINT_PARENTS, SAMPLES_PER_FRAME
+from sarah_data.gaze import FACING_AXIS
 from sarah_data.skeleton import HEAD, MotionLayout
 
 from ..config import StreamConfig, check_gaze
@@ -194,7 +195,7 @@ def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
     paths = [write_motion(out / "motion.npz", result, inputs, config, positions, rotations,
                           gaze, settings)]
     head = JOINT[HEAD]
-    facing = rotations[:, head, :, 2][:, [0, 2]]
+    facing = rotations[:, head, :, FACING_AXIS][:, [0, 2]]
     target = "none" if config.gaze is None else f"{config.gaze:g}"
     paths.append(plot_topview(out / "topview.png", positions[:, head][:, [0, 2]], facing,
                               inputs.user_head, FPS,

@@ -16,6 +16,7 @@ from torch import Tensor, nn
 
 from sarah_data import icosahedron
 from sarah_data.constants import FPS
+from sarah_data.gaze import FACING_AXIS
 from sarah_data.skeleton import FEET, HEAD, ICOSAHEDRON_POINTS, MotionLayout
 
 from ..nn.flow import FlowModel
@@ -97,7 +98,7 @@ class PlantedFeet(nn.Module):
 class HeadFacing(nn.Module):
     """Squared error of the head's horizontal facing direction, a unit vector.
 
-    Facing is the head rotation's z axis (``gaze.head_points``: what the gaze score reads),
+    Facing is the head rotation's ``gaze.FACING_AXIS`` column (what the gaze score reads),
     taken linearly from the head icosahedron's vertices (``icosahedron.axis``) and divided by
     the true icosahedron's radius, so the truth's is a unit vector; only x and z count, as in the
     gaze score. Inputs: motion in metres, icosahedra first."""
@@ -111,7 +112,7 @@ class HeadFacing(nn.Module):
 
     def facing(self, motion: Tensor) -> Tensor:
         points = motion[..., self.channels].unflatten(-1, (ICOSAHEDRON_POINTS, 3))
-        return icosahedron.axis(points, 2)  # (B, T, 3): radius * the facing axis
+        return icosahedron.axis(points, FACING_AXIS)  # (B, T, 3): radius * the facing axis
 
     def forward(self, decoded: Tensor, true: Tensor) -> Tensor:
         gt = self.facing(true)
