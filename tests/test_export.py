@@ -230,7 +230,8 @@ def test_arguments_are_checked_before_any_work(generated, tmp_path, capsys):
 
 
 def test_model_file_generates_what_the_checkpoint_does(tmp_path, monkeypatch):
-    """model.safetensors alone in a run folder: the same motion as flow.pt, and no unpickling."""
+    """model.safetensors alone in a run folder: the same motion as flow.pt, and no unpickling;
+    the same checkpoint written twice gives the same bytes."""
     import pickle
 
     from sarah_cli.generate import main as generate
@@ -241,6 +242,8 @@ def test_model_file_generates_what_the_checkpoint_does(tmp_path, monkeypatch):
     shared = tmp_path / "shared"
     shared.mkdir()
     write_model_file(run / "flow.pt", shared / MODEL_FILE)
+    write_model_file(run / "flow.pt", tmp_path / "again.safetensors")
+    assert (tmp_path / "again.safetensors").read_bytes() == (shared / MODEL_FILE).read_bytes()
     raw = tmp_path / "raw"
     raw.mkdir()
     write_wav(raw / "agent.wav", 1.0, 48_000, 220.0)
