@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 
 def non_negative_int(text: str) -> int:
@@ -32,3 +33,24 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
                 or action.default is argparse.SUPPRESS:
             return text
         return super()._get_help_string(action)
+
+
+def pretrained_model(name: str) -> Path:
+    """A shipped model's checked file (``sarah_models.pretrained``), by name."""
+    from sarah_models.pretrained import model_path
+
+    try:
+        return model_path(name)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def add_model_arguments(parser: argparse.ArgumentParser, required: bool, run_help: str) -> None:
+    """``--run`` (a run folder or a model file) or ``--pretrained NAME``; both land in ``run``."""
+    from sarah_models.pretrained import MODELS
+
+    group = parser.add_mutually_exclusive_group(required=required)
+    group.add_argument("--run", type=Path, default=None, help=run_help)
+    group.add_argument("--pretrained", dest="run", type=pretrained_model, metavar="NAME",
+                       help="a model shipped with the package instead of --run: "
+                            + "; ".join(f"{m.name}: {m.about}" for m in MODELS.values()))

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import HelpFormatter
+from sarah_cli.arguments import HelpFormatter, add_model_arguments
 
 EXIT_ERROR = 2
 
@@ -44,8 +44,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Evaluate GT, the Random and NN baselines and a trained run on a split's "
                     "non-overlapping T-frame windows (paper sec. 4 and A.2). Writes "
                     "table1.md/.json, table2.md/.json, windows.json and plots/*.png to --out.")
-    parser.add_argument("--run", type=Path, default=None,
-                        help="training run folder with flow.pt (needed for the 'model' method)")
+    add_model_arguments(parser, required=False,
+                        run_help="training run folder with flow.pt, or a model file (needed for "
+                                 "the 'model' method)")
     parser.add_argument("--shards", type=Path, required=True, help="shards folder (sarah-prep)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--split", default=d.split, help="split evaluated")

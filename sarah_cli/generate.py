@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import HelpFormatter, non_negative_int, positive_int
+from sarah_cli.arguments import HelpFormatter, add_model_arguments, non_negative_int, positive_int
 from sarah_models.accel import MODE_HELP, MODES
 
 EXIT_ERROR = 2
@@ -67,7 +67,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "Inputs: a shard window (--shards --sequence --agent) or raw files "
                     "(--user-trajectory --agent-audio --user-audio). Writes motion.npz, "
                     "topview.png and skeleton.gif to --out.")
-    parser.add_argument("--run", required=True, type=Path, help="training run folder (runs/NAME)")
+    add_model_arguments(parser, required=True,
+                        run_help="training run folder (runs/NAME) or a model.safetensors file")
     parser.add_argument("--checkpoint", type=Path, default=None,
                         help="checkpoint or model file (default: RUN/flow.pt, else RUN/model.safetensors)")
     parser.add_argument("--out", required=True, type=Path, help="output folder")

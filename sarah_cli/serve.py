@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from sarah_models.accel import MODE_HELP, MODES
-from sarah_cli.arguments import HelpFormatter, positive_int
+from sarah_cli.arguments import HelpFormatter, add_model_arguments, positive_int
 
 EXIT_ERROR = 2
 
@@ -25,7 +25,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "(protocol: docs/protocol.md); http://HOST:PORT/ is a browser page that "
                     "drives it. With --client URL, stream --user-trajectory, --agent-audio and "
                     "--user-audio through a running server and write motion.npz to --out.")
-    parser.add_argument("--run", type=Path, help="training run folder (flow.pt or model.safetensors)")
+    add_model_arguments(parser, required=False,
+                        run_help="training run folder (flow.pt or model.safetensors), or a model "
+                                 "file")
     parser.add_argument("--checkpoint", type=Path, default=None,
                         help="checkpoint or model file (default: RUN/flow.pt, else RUN/model.safetensors)")
     parser.add_argument("--host", default=s.host, help="address to bind; anything but loopback "
@@ -99,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     from sarah_models.serving.server import LiveServer, ServeConfig, is_loopback, load_server_models
 
     if args.run is None:
-        parser.error("--run is required to serve (or --client URL to stream files)")
+        parser.error("--run or --pretrained is required to serve (or --client URL to stream files)")
     if not is_loopback(args.host) and not args.public:
         parser.error(f"--host {args.host} is not a loopback address; add --public to serve other machines")
     for flag, value, low in (("--port", args.port, 0), ("--max-sessions", args.max_sessions, 1),

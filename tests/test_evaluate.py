@@ -214,7 +214,7 @@ def _error(capsys, argv) -> str:
 def test_one_line_errors(tiny, tmp_path, capsys):
     out = tmp_path / "out"
     missing = dict(tiny, run=tmp_path / "nope")
-    assert "run folder does not exist" in _error(capsys, eval_args(missing, out))
+    assert "no such run folder or model file" in _error(capsys, eval_args(missing, out))
     assert "no windows of 16 frames" in _error(capsys, eval_args(tiny, out, "--split", "val"))
     hubert = tmp_path / "hubert"
     write_split_shards(hubert, {"train": 1, "test": 1}, features=("hubert-large",))

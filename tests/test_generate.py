@@ -130,7 +130,7 @@ def _error(capsys, argv) -> str:
 
 def test_one_line_errors(run_dir, raw, tmp_path, capsys):
     out = tmp_path / "out"
-    assert "run folder does not exist" in _error(capsys, raw_args(tmp_path / "nope", raw, out))
+    assert "no such run folder or model file" in _error(capsys, raw_args(tmp_path / "nope", raw, out))
     (tmp_path / "empty").mkdir()
     assert "no such checkpoint" in _error(capsys, raw_args(tmp_path / "empty", raw, out))
     vae_run = save_run(tmp_path / "vae_only", stage="vae")

@@ -207,17 +207,20 @@ def test_loopback_by_default_and_arguments_checked(run_dir, capsys):
         serve_main(["--client", "ws://127.0.0.1:1/"])
     assert "--user-trajectory" in capsys.readouterr().err
     assert serve_main(["--run", str(run_dir / "missing")]) == 2
-    assert "does not exist" in capsys.readouterr().err
+    assert "no such run folder or model file" in capsys.readouterr().err
 
 
-def test_two_server_processes_share_nothing(run_dir, raw, tmp_path):
+@pytest.mark.parametrize("model", ["run", "pretrained"])
+def test_two_server_processes_share_nothing(run_dir, raw, tmp_path, model):
     """Scaling out is N servers behind a WebSocket-aware balancer: two processes here, each
-    serving a client, give the same motion for the same inputs."""
+    serving a client, give the same motion for the same inputs. Also with the shipped model,
+    as `make serve` starts it."""
     procs, urls = [], []
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    choice = ["--run", str(run_dir)] if model == "run" else ["--pretrained", "fixture-tiny"]
     try:
         for _ in range(2):
-            proc = subprocess.Popen([sys.executable, "-m", "sarah_cli.serve", "--run", str(run_dir),
+            proc = subprocess.Popen([sys.executable, "-m", "sarah_cli.serve", *choice,
                                      "--port", "0", "--device", "cpu", "--threads", "1"],
                                     stdout=subprocess.PIPE,
                                     stderr=subprocess.STDOUT, text=True, env=env)

@@ -41,10 +41,16 @@ def load_run(run: str | Path, checkpoint: str | Path | None = None,
              device: str | None = None, need_flow: bool = True) -> tuple[LoadedModels, Path]:
     """The flow-stage models of a run: ``checkpoint`` when given (a training checkpoint or a
     ``.safetensors`` model file), else ``run/flow.pt``, else the shareable ``run/model.safetensors``
-    (which loads without pickle); ``need_flow=False`` also accepts a VAE-stage checkpoint."""
+    (which loads without pickle); ``run`` may itself be such a file (a shared or shipped model,
+    ``sarah_models.pretrained``); ``need_flow=False`` also accepts a VAE-stage checkpoint."""
     run = Path(run)
-    if not run.is_dir():
-        raise GenerateError(f"{run}: run folder does not exist")
+    if run.is_file():
+        if checkpoint is not None:
+            raise GenerateError(f"{run} is a model file; --checkpoint {checkpoint} needs a run "
+                                f"folder")
+        checkpoint = run
+    elif not run.is_dir():
+        raise GenerateError(f"{run}: no such run folder or model file")
     if checkpoint is None:
         path = run / "flow.pt"
         if not path.is_file() and (run / MODEL_FILE).is_file():

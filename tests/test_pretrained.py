@@ -1,0 +1,65 @@
+"""The model shipped with the package: its file is the one recorded, it loads without pickle, and
+it generates motion whose gaze follows the dial on fixtures it never saw (seed 1; it was trained
+on seed 0)."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from sarah_cli.generate import main as generate
+from sarah_models.pretrained import MODELS, model_path, verified
+from sarah_models.training.model_file import load_model_file
+
+NAME = "fixture-tiny"
+
+
+def test_the_shipped_file_is_the_recorded_one_and_loads_without_pickle():
+    path = model_path(NAME)
+    models = load_model_file(path, device="cpu")
+    assert models.stage == "flow" and models.features == "logmel"
+    assert models.config.vae.head_weight > 0  # the gaze-steering recipe, not the paper's loss
+    assert path.stat().st_size < 16 * 2**20  # "a few MB" travels in a wheel
+
+
+def test_a_damaged_copy_or_an_unknown_name_is_one_clear_line(tmp_path, capsys):
+    damaged = tmp_path / "model.safetensors"
+    shutil.copyfile(model_path(NAME), damaged)
+    with damaged.open("r+b") as handle:
+        handle.seek(-1, 2)
+        last = handle.read(1)
+        handle.seek(-1, 2)
+        handle.write(bytes([last[0] ^ 1]))
+    with pytest.raises(ValueError, match="sha256 .* expected .*Git LFS pointer"):
+        verified(damaged, MODELS[NAME])
+    with pytest.raises(SystemExit) as exit_info:
+        generate(["--pretrained", "nope", "--out", str(tmp_path / "out")])
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err
+    assert "no pretrained model 'nope'" in error and NAME in error
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_model_file_as_the_run_takes_no_second_checkpoint(prepared_shards, tmp_path, capsys):
+    code = generate(["--run", str(model_path(NAME)), "--checkpoint", "flow.pt", "--shards",
+                     str(prepared_shards), "--out", str(tmp_path / "out"), "--device", "cpu"])
+    assert code == 2
+    assert "is a model file; --checkpoint flow.pt needs a run folder" in capsys.readouterr().err
+
+
+def test_the_pretrained_model_follows_the_gaze_dial_on_unseen_fixtures(prepared_shards, tmp_path,
+                                                                        capsys):
+    gaze = {}
+    for target in (0.0, 1.0):
+        out = tmp_path / f"g{target:g}"
+        assert generate(["--pretrained", NAME, "--shards", str(prepared_shards), "--split", "test",
+                         "--frames", "160", "--gaze", f"{target:g}", "--seed", "0", "--threads",
+                         "1", "--no-animation", "--device", "cpu", "--out", str(out)]) == 0
+        with np.load(out / "motion.npz", allow_pickle=False) as data:
+            gaze[target] = float(data["gaze_score"].mean())
+            assert np.isfinite(data["joint_positions"]).all()
+    printed = capsys.readouterr().out
+    assert f"checkpoint {model_path(NAME)} " in printed
+    assert gaze[1.0] - gaze[0.0] >= 0.3, gaze
