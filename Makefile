@@ -20,15 +20,19 @@ setup: $(VENV)/.installed
 test: setup
 	$(BIN)/python -m pytest -q
 
+# The demo's own few-minute training run proves that training works; the motion it shows comes
+# from the model shipped with the package (sarah_models/pretrained: ~100 CPU-minutes of the same
+# training, scripts/pretrained_fixture_model.sh), on a window of fixtures it never saw.
 demo: setup
 	$(BIN)/sarah-fixtures $(DEMO)/raw --sessions 5 --seconds 60 --seed 0
 	$(BIN)/sarah-prep $(DEMO)/raw $(DEMO)/shards
 	$(BIN)/sarah-train --stage all --config tiny --shards $(DEMO)/shards --out $(DEMO)/runs/tiny --resume --replace-changed
-	$(BIN)/sarah-generate --run $(DEMO)/runs/tiny --shards $(DEMO)/shards --split test --gaze 0.8 --out $(DEMO)/generated
+	$(BIN)/sarah-generate --run $(DEMO)/runs/tiny --shards $(DEMO)/shards --split test --gaze 0.8 --no-animation --out $(DEMO)/generated-own-run
+	$(BIN)/sarah-generate --pretrained fixture-tiny --shards $(DEMO)/shards --split test --gaze 0.8 --out $(DEMO)/generated
 
-# The live agent on the demo's trained run: prints the page's URL (Ctrl-C stops).
+# The live agent on the shipped model: prints the page's URL (Ctrl-C stops).
 serve: setup
-	$(BIN)/sarah-serve --run $(DEMO)/runs/tiny
+	$(BIN)/sarah-serve --pretrained fixture-tiny
 
 # The demo's outputs only; the virtual environment (several GB) stays: `make distclean` removes it.
 clean:
