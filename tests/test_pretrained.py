@@ -4,7 +4,9 @@ on seed 0)."""
 
 from __future__ import annotations
 
+import re
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -63,3 +65,12 @@ def test_the_pretrained_model_follows_the_gaze_dial_on_unseen_fixtures(prepared_
     printed = capsys.readouterr().out
     assert f"checkpoint {model_path(NAME)} " in printed
     assert gaze[1.0] - gaze[0.0] >= 0.3, gaze
+
+
+def test_the_demo_shows_fixtures_the_shipped_model_never_saw():
+    """Fixture sessions of one seed carry the same motion and voices whatever their count (only
+    the names differ), so the demo's fixtures must come from another seed than the training's."""
+    makefile = (Path(__file__).parents[1] / "Makefile").read_text(encoding="utf-8")
+    seeds = {int(seed) for seed in re.findall(r"sarah-fixtures .*--seed (\d+)", makefile)}
+    assert seeds and MODELS[NAME].fixture_seed not in seeds
+    assert "--pretrained fixture-tiny" in makefile

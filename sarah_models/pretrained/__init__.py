@@ -21,6 +21,7 @@ class Pretrained:
     file: str  # inside this package
     sha256: str
     script: str  # the repository's script that trains it, from nothing
+    fixture_seed: int | None  # the sarah-fixtures seed of its training corpus (None: not fixtures)
     about: str  # one line for --help and the README
 
 
@@ -30,6 +31,7 @@ MODELS = {model.name: model for model in (
         file="fixture-tiny.safetensors",
         sha256="c75c47f00dbda635fc9bdffbc24cafc7feb16a62274692f40b23960da3718738",
         script="scripts/pretrained_fixture_model.sh",
+        fixture_seed=0,
         about="the tiny preset trained on 40 dyad-minutes of fixture dyads (seed 0) for about "
               "100 CPU-minutes; docs/results.md has its figures on fixtures it never saw"),
 )}
