@@ -53,4 +53,4 @@ def add_model_arguments(parser: argparse.ArgumentParser, required: bool, run_hel
     group.add_argument("--run", type=Path, default=None, help=run_help)
     group.add_argument("--pretrained", dest="run", type=pretrained_model, metavar="NAME",
                        help="a model shipped with the package instead of --run: "
-                            + "; ".join(f"{m.name}: {m.about}" for m in MODELS.values()))
+                            + "; ".join(m.describe() for m in MODELS.values()))

@@ -44,9 +44,9 @@ def test_a_damaged_copy_or_an_unknown_name_is_one_clear_line(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
-def test_a_model_file_as_the_run_takes_no_second_checkpoint(prepared_shards, tmp_path, capsys):
+def test_a_model_file_as_the_run_takes_no_second_checkpoint(tmp_path, capsys):
     code = generate(["--run", str(model_path(NAME)), "--checkpoint", "flow.pt", "--shards",
-                     str(prepared_shards), "--out", str(tmp_path / "out"), "--device", "cpu"])
+                     str(tmp_path), "--out", str(tmp_path / "out"), "--device", "cpu"])
     assert code == 2
     assert "is a model file; --checkpoint flow.pt needs a run folder" in capsys.readouterr().err
 

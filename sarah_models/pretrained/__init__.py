@@ -22,7 +22,11 @@ class Pretrained:
     sha256: str
     script: str  # the repository's script that trains it, from nothing
     fixture_seed: int | None  # the sarah-fixtures seed of its training corpus (None: not fixtures)
-    about: str  # one line for --help and the README
+    about: str  # one line for --help
+
+    def describe(self) -> str:
+        seed = "" if self.fixture_seed is None else f" (fixture seed {self.fixture_seed})"
+        return f"{self.name}: {self.about}{seed}"
 
 
 MODELS = {model.name: model for model in (
@@ -32,8 +36,8 @@ MODELS = {model.name: model for model in (
         sha256="c75c47f00dbda635fc9bdffbc24cafc7feb16a62274692f40b23960da3718738",
         script="scripts/pretrained_fixture_model.sh",
         fixture_seed=0,
-        about="the tiny preset trained on 40 dyad-minutes of fixture dyads (seed 0) for about "
-              "100 CPU-minutes; docs/results.md has its figures on fixtures it never saw"),
+        about="the tiny preset trained on 40 dyad-minutes of fixture dyads for about 100 "
+              "CPU-minutes; docs/results.md has its figures on fixtures it never saw"),
 )}
 
 

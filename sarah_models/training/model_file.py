@@ -20,7 +20,7 @@ from pathlib import Path
 
 import torch
 from safetensors import SafetensorError
-from safetensors.torch import load_file, safe_open, save_file
+from safetensors.torch import load_file, safe_open, save
 
 from sarah_data.atomic import atomic_path
 
@@ -47,23 +47,22 @@ def write_model_file(checkpoint: str | Path, out: str | Path) -> Path:
                 "dims": json.dumps(data["dims"], sort_keys=True)}
     out = Path(out)
     with atomic_path(out) as tmp:
-        save_file(tensors, str(tmp), metadata=metadata)
-        _sort_metadata(tmp)
+        tmp.write_bytes(_sorted_metadata(save(tensors, metadata=metadata)))
     return out
 
 
-def _sort_metadata(path: Path) -> None:
-    """Rewrite the header with its metadata keys sorted. safetensors keeps metadata in a Rust
-    HashMap, whose order changes from call to call, so two writes of the same weights differed in
-    their first bytes; sorted, the same checkpoint gives the same file (a digest to compare). The
-    tensors' byte offsets count from the end of the header, so its length may change."""
-    data = path.read_bytes()
+def _sorted_metadata(data: bytes) -> bytes:
+    """The safetensors bytes with the header's metadata keys sorted. safetensors keeps metadata in
+    a Rust HashMap, whose order changes from call to call, so two writes of the same weights
+    differed in their first bytes; sorted, the same checkpoint gives the same file (a digest to
+    compare). The tensors' byte offsets count from the end of the header, so its length may
+    change."""
     length = int.from_bytes(data[:8], "little")
     header = json.loads(data[8:8 + length])
     header["__metadata__"] = dict(sorted(header["__metadata__"].items()))
     text = json.dumps(header, separators=(",", ":"), ensure_ascii=False).encode("utf-8")
     text += b" " * (-len(text) % 8)  # safetensors pads to keep the tensors 8-byte aligned
-    path.write_bytes(len(text).to_bytes(8, "little") + text + data[8 + length:])
+    return len(text).to_bytes(8, "little") + text + data[8 + length:]
 
 
 def load_model_file(path: str | Path, device: str | torch.device | None = None) -> LoadedModels:
