@@ -25,6 +25,20 @@ WRISTS = ("left_wrist", "right_wrist")
 HEAD = "head"
 ROOT = "pelvis"
 
+# The body in parts, for errors reported per part (sarah-eval's reconstruction table): every
+# SMPL-X joint in exactly one group (a test checks), fingers as "hands".
+_FINGERS = ("index", "middle", "pinky", "ring", "thumb")
+JOINT_GROUPS: dict[str, tuple[str, ...]] = {
+    "root": (ROOT,),
+    "spine and head": ("spine1", "spine2", "spine3", "neck", HEAD, "jaw", "left_eye_smplhf",
+                       "right_eye_smplhf"),
+    "legs": ("left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle"),
+    "feet": FEET,
+    "arms": ("left_collar", "right_collar", "left_shoulder", "right_shoulder", "left_elbow",
+             "right_elbow") + WRISTS,
+    "hands": tuple(n for n in JOINT_NAMES if n.rstrip("123").split("_")[-1] in _FINGERS),
+}
+
 
 @dataclass(frozen=True)
 class MotionLayout:

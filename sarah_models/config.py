@@ -77,7 +77,11 @@ class VAEConfig:
     # the decoded feet's horizontal step on the frames where the true foot is planted (by the
     # foot-slide metric's own thresholds), in units of that metric's slide threshold. The
     # standard foot-contact loss of motion generation (e.g. MDM), for a metric the position
-    # MSE cannot see: 1 mm per frame decides whether a planted foot "slides".
+    # MSE cannot see: 1 mm per frame decides whether a planted foot "slides". Measured on the
+    # fixture benchmark it does harm: a foot that never moves meets it best, and every VAE
+    # trained with it (0.01 and 1e-4) parked the foot joints away from the ankles, so the foot
+    # slide it "improved" was that of parked feet (docs/results.md, fifteenth run). Kept to
+    # load and retrain the models made with it; new recipes leave it at 0.
     contact_weight: float = 0.0
     # Not in the paper (0 = the paper): weight of the head-facing term, the squared error of the
     # head's horizontal facing direction (the gaze score's d_x, a unit vector). The head's

@@ -189,6 +189,12 @@ def test_vae_reconstruction_row_is_opt_in_and_needs_only_the_vae(tiny, tmp_path)
     assert list(rows) == ["gt", "model", "vae"] and rows["vae"]["causal"] is True
     assert rows["vae"]["shown"]["fgd/avg"] > 0 and rows["vae"]["fps"] > 0
     assert "VAE (reconstruction)" in (out / "table1.md").read_text()
+    parts = json.loads((out / "reconstruction.json").read_text())["parts"]
+    assert set(parts) == {"root", "spine and head", "legs", "feet", "arms", "hands", "shell"}
+    for part, row in parts.items():
+        assert 0 < row["position_low"] <= row["position"] <= row["position_high"]
+        assert ("orientation" in row) == (part != "shell")
+    assert "| feet |" in (out / "reconstruction.md").read_text()
 
     vae_only = tmp_path / "vae_run"
     vae_only.mkdir()

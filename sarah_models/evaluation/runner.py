@@ -23,7 +23,9 @@ in one go and then dividing the total time taken by 400"; the median ignores war
 (real-time) is FPS >= 30, the motion's frame rate; C (causal) is a property of the method.
 
 Outputs in ``out``: table1.md/.json, table2.md/.json, windows.json (the windows evaluated and
-their S/NS flags), plots/metric_<name>.png (bars across methods) and plots/gaze_control.png.
+their S/NS flags), plots/metric_<name>.png (bars across methods) and plots/gaze_control.png;
+with the "vae" method also reconstruction.md/.json, its error per body part in mm
+(``reconstruction.py``).
 Memory stays at a few clips: clips are produced lazily while the metrics read them.
 """
 
@@ -39,6 +41,7 @@ import numpy as np
 
 from sarah_data.atomic import atomic_write_text
 from sarah_data.constants import FPS
+from sarah_data.skeleton import MotionLayout
 
 from ..config import CFG_SCALE, SOLVER_STEPS, WINDOW, check_gaze
 from .metrics import (
@@ -59,6 +62,7 @@ from .tables import (
     table2_markdown,
     write_json,
 )
+from .reconstruction import ReconstructionErrors
 from .windows import MethodClips, TestWindows, gt_clips, select_windows
 
 METHODS = ("gt", "real", "random", "nn", "model", "vae")
@@ -128,6 +132,7 @@ class Evaluation:
     num_windows: int
     available_windows: int
     num_speaking: int
+    reconstruction: ReconstructionErrors | None = None  # the "vae" row's errors per body part
     paths: list[Path] = field(default_factory=list)
 
 
@@ -342,12 +347,19 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
         table1.append(replace(sweep[config.table1_gaze], key="model",
                               label=f"Model ({config.protocol}, g = "
                                     f"{gaze_label(config.table1_gaze)})"))
+    reconstruction = None
     if vae_models is not None:
+        reconstruction = ReconstructionErrors(MotionLayout.from_width(dataset.motion_dim))
         with torch.inference_mode():
-            table1.append(score("vae", "VAE (reconstruction)", _vae_producer(vae_models), True))
+            table1.append(score("vae", "VAE (reconstruction)",
+                                reconstruction.observe(_vae_producer(vae_models)), True))
+        for group, row in reconstruction.summary().items():
+            echo(f"VAE reconstruction, {group}: position {row['position']:.1f} mm"
+                 + (f", orientation {row['orientation']:.1f} mm" if "orientation" in row else ""))
     table2 = [sweep[g] for g in config.gaze] if models is not None else []
 
-    result = Evaluation(table1, table2, len(windows), len(dataset), int(speaking.sum()))
+    result = Evaluation(table1, table2, len(windows), len(dataset), int(speaking.sum()),
+                        reconstruction)
     result.paths = write_outputs(out, result, config, shards, run, features, windows, speaking)
     return result
 
@@ -410,6 +422,15 @@ def write_outputs(out: Path, ev: Evaluation, config: EvalConfig, shards: Path, r
         persons = windows.dataset.shards.entry(sequence).persons
         listing.append({"sequence": sequence, "agent": persons[agent], "start": start,
                         "speaking": bool(speaking[i])})
+    if ev.reconstruction is not None:
+        caption = (f"VAE reconstruction error per body part ({ev.num_windows} {config.split} "
+                   f"windows of {config.window} frames): position = decoded vs true joint "
+                   f"(icosahedron centroid), orientation = icosahedron vertices about their "
+                   f"centroid; mean over windows (95 % bootstrap interval), in mm.")
+        atomic_write_text(out / "reconstruction.md", ev.reconstruction.markdown(caption))
+        write_json(out / "reconstruction.json", {"caption": caption, **common,
+                                                  "parts": ev.reconstruction.summary()})
+        paths += [out / "reconstruction.md", out / "reconstruction.json"]
     write_json(out / "windows.json", {**common, "windows": listing})
     paths.append(out / "windows.json")
     return paths
