@@ -21,7 +21,7 @@ test: setup
 	$(BIN)/python -m pytest -q
 
 # The demo's own few-minute training run proves that training works; the motion it shows comes
-# from the model shipped with the package (sarah_models/pretrained: ~100 CPU-minutes of the same
+# from the model shipped with the package (sarah_models/pretrained: ~125 CPU-minutes of the same
 # training, scripts/pretrained_fixture_model.sh), on a window of fixtures it never saw: it trained
 # on seed 0, whose sessions come out with the same motion and voices whatever their count.
 demo: setup
