@@ -62,7 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--methods", type=_methods, default=",".join(d.methods),
                         help="comma-separated subset of gt,real,random,nn,model (the paper's "
                              "Table 1 and the real-vs-real floor: other windows' ground truth) and vae (the run's VAE reconstructing the ground truth: the "
-                             "floor under any flow sample; needs only vae.pt)")
+                             "floor under any flow sample; needs only vae.pt; adds "
+                             "reconstruction.md, its error per body part in mm)")
     parser.add_argument("--batch-clips", type=int, default=d.batch_clips,
                         help="clips per batch of the FGD / FGD_acc Avg column")
     parser.add_argument("--library-size", type=int, default=d.library_size,

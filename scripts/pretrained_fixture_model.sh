@@ -5,8 +5,8 @@
 #   scripts/pretrained_fixture_model.sh [WORK_DIR]          (default: pretrained/)
 #
 # These are the exact commands, seeds and settings that made the shipped file, in the order they
-# ran (docs/results.md: the eleventh to the fifteenth run; ~112 min of training on an idle 2-core
-# AMD EPYC). Each stage is skipped once its folder has a
+# ran (docs/results.md: the eleventh to the fifteenth run; ~125 min of training on a 2-core AMD
+# EPYC). Each stage is skipped once its folder has a
 # .done marker, so an interrupted run resumes at the stage it stopped in (that stage starts
 # over). Every training step is seeded (train.seed 0, the default): the same code on the same
 # thread count gives the same weights; the final digest is printed to compare with the shipped

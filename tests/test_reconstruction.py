@@ -7,7 +7,7 @@ import pytest
 from sarah_data import icosahedron
 from sarah_data.constants import JOINT, NUM_JOINTS
 from sarah_data.skeleton import JOINT_GROUPS, MotionLayout
-from sarah_models.evaluation.reconstruction import ReconstructionErrors, part_errors
+from sarah_models.evaluation.reconstruction import ReconstructionErrors, part_errors, summary_markdown
 
 LAYOUT = MotionLayout(shell_points=3)
 
@@ -69,4 +69,4 @@ def test_observe_scores_each_window_once_and_summarises_with_intervals():
         assert summary[part]["position"] == pytest.approx(3.0)  # mean of 1..5 mm
         assert summary[part]["position_low"] < 3.0 < summary[part]["position_high"]
         assert summary[part]["orientation"] == pytest.approx(0.0, abs=1e-9)
-    assert "| feet | 3.0 (" in recon.markdown("caption")
+    assert "| feet | 3.0 (" in summary_markdown(summary, "caption")

@@ -79,14 +79,16 @@ class ReconstructionErrors:
             out[group] = row
         return out
 
-    def markdown(self, caption: str) -> str:
-        def cell(row: dict, kind: str) -> str:
-            if kind not in row:
-                return "-"
-            return f"{row[kind]:.1f} ({row[kind + '_low']:.1f}-{row[kind + '_high']:.1f})"
 
-        lines = [caption, "", "| part | position error, mm | orientation error, mm |",
-                 "|---|---|---|"]
-        lines += [f"| {group} | {cell(row, 'position')} | {cell(row, 'orientation')} |"
-                  for group, row in self.summary().items()]
-        return "\n".join(lines) + "\n"
+
+def summary_markdown(summary: dict[str, dict[str, float]], caption: str) -> str:
+    """A ``ReconstructionErrors.summary()`` as a markdown table under ``caption``."""
+    def cell(row: dict, kind: str) -> str:
+        if kind not in row:
+            return "-"
+        return f"{row[kind]:.1f} ({row[kind + '_low']:.1f}-{row[kind + '_high']:.1f})"
+
+    lines = [caption, "", "| part | position error, mm | orientation error, mm |", "|---|---|---|"]
+    lines += [f"| {group} | {cell(row, 'position')} | {cell(row, 'orientation')} |"
+              for group, row in summary.items()]
+    return "\n".join(lines) + "\n"

@@ -62,7 +62,7 @@ from .tables import (
     table2_markdown,
     write_json,
 )
-from .reconstruction import ReconstructionErrors
+from .reconstruction import ReconstructionErrors, summary_markdown
 from .windows import MethodClips, TestWindows, gt_clips, select_windows
 
 METHODS = ("gt", "real", "random", "nn", "model", "vae")
@@ -132,7 +132,7 @@ class Evaluation:
     num_windows: int
     available_windows: int
     num_speaking: int
-    reconstruction: ReconstructionErrors | None = None  # the "vae" row's errors per body part
+    reconstruction: dict | None = None  # the "vae" row's errors per body part (summary, mm)
     paths: list[Path] = field(default_factory=list)
 
 
@@ -349,11 +349,12 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
                                     f"{gaze_label(config.table1_gaze)})"))
     reconstruction = None
     if vae_models is not None:
-        reconstruction = ReconstructionErrors(MotionLayout.from_width(dataset.motion_dim))
+        errors = ReconstructionErrors(MotionLayout.from_width(dataset.motion_dim))
         with torch.inference_mode():
             table1.append(score("vae", "VAE (reconstruction)",
-                                reconstruction.observe(_vae_producer(vae_models)), True))
-        for group, row in reconstruction.summary().items():
+                                errors.observe(_vae_producer(vae_models)), True))
+        reconstruction = errors.summary()
+        for group, row in reconstruction.items():
             echo(f"VAE reconstruction, {group}: position {row['position']:.1f} mm"
                  + (f", orientation {row['orientation']:.1f} mm" if "orientation" in row else ""))
     table2 = [sweep[g] for g in config.gaze] if models is not None else []
@@ -427,9 +428,9 @@ def write_outputs(out: Path, ev: Evaluation, config: EvalConfig, shards: Path, r
                    f"windows of {config.window} frames): position = decoded vs true joint "
                    f"(icosahedron centroid), orientation = icosahedron vertices about their "
                    f"centroid; mean over windows (95 % bootstrap interval), in mm.")
-        atomic_write_text(out / "reconstruction.md", ev.reconstruction.markdown(caption))
+        atomic_write_text(out / "reconstruction.md", summary_markdown(ev.reconstruction, caption))
         write_json(out / "reconstruction.json", {"caption": caption, **common,
-                                                  "parts": ev.reconstruction.summary()})
+                                                  "parts": ev.reconstruction})
         paths += [out / "reconstruction.md", out / "reconstruction.json"]
     write_json(out / "windows.json", {**common, "windows": listing})
     paths.append(out / "windows.json")
