@@ -100,8 +100,17 @@ class VAEConfig:
     # Standardized, a horizontal millimetre (x/z std ~1 m: the agents walk) costs ~1000x less
     # than a vertical one (y std ~3.5 cm), which leaves horizontal jitter untrained.
     recon_units: str = "standardized"
+    # Not in the paper (0 = the paper): how the generators decode, not how the VAE trains. At the
+    # first frame of every latent block the decoded body is shifted to continue the pelvis's last
+    # velocity, and the shift keeps this fraction of itself per frame after
+    # (``sampling.continuity.RootInertia``): a flow sample's tokens disagree on where the body
+    # is, and without it each block starts with a jump of the whole body.
+    boundary_inertia: float = 0.0
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.boundary_inertia < 1.0:
+            raise ValueError(f"VAEConfig.boundary_inertia must be in [0, 1), got "
+                             f"{self.boundary_inertia}")
         if self.recon_units not in RECON_UNITS:
             raise ValueError(f"VAEConfig.recon_units must be one of {RECON_UNITS}, got "
                              f"{self.recon_units!r}")

@@ -204,14 +204,20 @@ def _model_producer(models, config: EvalConfig, gaze: float | None):
 
 
 def _vae_producer(models):
-    """The run's VAE reconstructing the ground truth (encoder mean, then decoder): the best any
-    flow sample can decode to, which separates the VAE's error from the flow's."""
+    """The run's VAE reconstructing the ground truth (encoder mean, then decoder, decoded the way
+    the generators decode: ``vae.boundary_inertia``): the best any flow sample can decode to,
+    which separates the VAE's error from the flow's."""
+    from ..sampling.continuity import RootInertia
+
     device = next(models.vae.parameters()).device
-    nz = models.normalizer
+    nz, vae = models.normalizer, models.vae
+    layout = MotionLayout.from_width(vae.motion_dim)
 
     def produce(item: dict, index: int) -> np.ndarray:
-        mu, _ = models.vae.encode(nz.normalize("motion", item["motion"].to(device))[None])
-        return nz.denormalize("motion", models.vae.decode(mu)[0]).cpu().numpy()
+        mu, _ = vae.encode(nz.normalize("motion", item["motion"].to(device))[None])
+        motion = nz.denormalize("motion", vae.decode(mu)[0]).double().cpu().numpy()
+        inertia = RootInertia(layout, vae.stride, vae.config.boundary_inertia)
+        return inertia(motion).astype(np.float32)
 
     return produce
 

@@ -153,9 +153,9 @@ def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
                          f"{wanted}; resume with the same config or use another --out")
 
 
-# Fields a fine-tune may change: they shape the loss, not the weights.
+# Fields a fine-tune may change: they shape the loss or the decoding, not the weights.
 LOSS_FIELDS = {"vae": ("beta", "velocity_weight", "contact_weight", "head_weight", "latent_noise",
-                       "recon_units"),
+                       "recon_units", "boundary_inertia"),
                "flow": ("drop_prob", "min_denominator")}
 
 
