@@ -23,12 +23,15 @@ def build_parser() -> argparse.ArgumentParser:
                     "Writes OUT/config.json, OUT/vae.pt, OUT/flow.pt, *_log.jsonl and *_loss.png. "
                     "Under torchrun (WORLD_SIZE > 1) every process trains on its own data slice "
                     "(DDP; nccl on CUDA, gloo on CPU) and rank 0 writes the files.")
-    parser.add_argument("--stage", choices=("vae", "flow", "all"), default="all",
-                        help="what to train; flow needs OUT/vae.pt")
+    parser.add_argument("--stage", choices=("vae", "flow", "all", "model"), default="all",
+                        help="what to train; flow needs OUT/vae.pt; model trains nothing: it "
+                             "writes OUT/model.safetensors from --init-from's weights with the "
+                             "decoding settings given by --set (vae.boundary_inertia)")
     parser.add_argument("--config", choices=PRESETS, default="paper",
                         help="model and training preset: paper sizes, or tiny for CPU runs")
-    parser.add_argument("--shards", type=Path, required=True,
-                        help="shards folder written by sarah-prep (with stats.h5)")
+    parser.add_argument("--shards", type=Path, default=None,
+                        help="shards folder written by sarah-prep (with stats.h5); every stage "
+                             "but model needs it")
     parser.add_argument("--out", type=Path, required=True, help="run folder, e.g. runs/NAME")
     parser.add_argument("--resume", action="store_true",
                         help="continue from OUT/<stage>.pt (exactly: same data order and noise)")
@@ -39,7 +42,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "VAE changed; nothing is deleted (make demo uses it)")
     parser.add_argument("--init-from", type=Path, default=None, metavar="CKPT",
                         help="fine-tune: start each trained stage from the weights of CKPT (a "
-                             "checkpoint, or a run folder with vae.pt / flow.pt) with a fresh "
+                             "checkpoint, a run folder with vae.pt / flow.pt, or a model file such as "
+                             "model.safetensors or a shipped one) with a fresh "
                              "step count, optimizer and LR schedule; loss weights (e.g. --set "
                              "vae.velocity_weight=100) and train.lr_schedule may differ, sizes "
                              "may not")
@@ -78,6 +82,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.replace_changed and not args.resume:
         parser.error("--replace-changed goes with --resume (it decides what a resume keeps)")
+    if args.stage == "model":
+        return write_model(args)
+    if args.shards is None:
+        parser.error(f"--stage {args.stage} needs --shards")
     try:
         config = run_config(args)
     except ValueError as exc:
@@ -122,6 +130,26 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_ERROR
     finally:
         cleanup_distributed()
+    return 0
+
+
+def write_model(args: argparse.Namespace) -> int:
+    """--stage model: a model file from another run's weights, with other decoding settings."""
+    from sarah_models.training.model_file import MODEL_FILE, write_model_file
+
+    if args.init_from is None:
+        print("sarah-train: error: --stage model writes the weights of --init-from (a run folder, "
+              "flow.pt or a model file); give it", file=sys.stderr)
+        return EXIT_ERROR
+    source = Path(args.init_from)
+    if source.is_dir():
+        source = source / "flow.pt" if (source / "flow.pt").is_file() else source / MODEL_FILE
+    try:
+        model = write_model_file(source, Path(args.out) / MODEL_FILE, args.overrides)
+    except (ValueError, FileNotFoundError, OSError) as exc:
+        print(f"sarah-train: error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    print(f"model file (for sarah-generate and sharing; loads without pickle): {model}")
     return 0
 
 

@@ -390,6 +390,35 @@ def test_init_from_fine_tunes_with_a_new_loss_and_schedule(tmp_path):
     assert load_checkpoint(tuned / "vae.pt")["init_from"]["step"] == 4
 
 
+def test_init_from_takes_a_model_file(tmp_path):
+    """A shared model.safetensors (a shipped model too) fine-tunes exactly like the checkpoint it
+    was written from: same weights after the same steps, same data statistics."""
+    from sarah_models.training.model_file import write_model_file
+
+    base = tmp_path / "base"
+    run("vae", base, 2)
+    run("flow", base, 2)
+    shared = write_model_file(base / "flow.pt", tmp_path / "shared.safetensors")
+    config = tiny_config(2, lr_schedule="linear")
+    common = dict(device="cpu", dataset=SyntheticWindows(), stats=STATS, progress=False,
+                  echo=lambda _: None)
+    for source, out in ((base, tmp_path / "from_run"), (shared, tmp_path / "from_file")):
+        for stage in ("vae", "flow"):
+            train(stage, config, None, out, init_from=source, **common)
+    from_file = load_checkpoint(tmp_path / "from_file" / "flow.pt")
+    from_run = load_checkpoint(tmp_path / "from_run" / "flow.pt")
+    assert from_file["init_from"] == {"path": str(shared), "step": 2}
+    for part in ("vae", "flow", "normalizer"):
+        for key, value in from_run[part].items():
+            assert torch.equal(value, from_file[part][key]), (part, key)
+    moved = load_checkpoint(base / "flow.pt")["flow"]["out.proj.weight"]
+    assert not torch.equal(moved, from_file["flow"]["out.proj.weight"])  # it did train
+    other = tmp_path / "other.safetensors"
+    other.write_bytes(len(b'{"__metadata__":{}}').to_bytes(8, "little") + b'{"__metadata__":{}}')
+    with pytest.raises(ValueError, match="not a SARAH model file"):
+        train("vae", config, None, tmp_path / "d", init_from=other, **common)
+
+
 def test_decoder_fine_tune_with_latent_noise_keeps_the_encoder(tmp_path):
     """train.freeze_encoder + vae.latent_noise: only the decoder moves, so the latents a flow
     was trained on stay exactly the same."""
@@ -655,3 +684,30 @@ def test_vae_short_windows_first_then_full_ones_resuming_across_the_switch(tmp_p
     with pytest.raises(ValueError, match="vae_short_window 6 is not a multiple of the VAE stride 4"):
         config = tiny_config(6, vae_short_steps=3, vae_short_window=6)
         train("vae", config, shards, tmp_path / "bad", device="cpu", progress=False, echo=lambda _: None)
+
+
+def test_stage_model_rewrites_decoding_settings_and_nothing_else(tmp_path, capsys):
+    """sarah-train --stage model: the same weights, bit for bit, with another seam inertia; a
+    setting that needs training is refused before anything is written."""
+    from sarah_cli.train import main
+    from sarah_models.pretrained import model_path
+    from sarah_models.training.model_file import read_model_file
+
+    source = model_path("fixture-tiny")
+    out = tmp_path / "run"
+    assert main(["--stage", "model", "--init-from", str(source), "--out", str(out),
+                 "--set", "vae.boundary_inertia=0.5"]) == 0
+    before, after = read_model_file(source), read_model_file(out / "model.safetensors")
+    assert after["config"]["vae"]["boundary_inertia"] == 0.5
+    for part in ("vae", "flow", "normalizer"):
+        assert before[part].keys() == after[part].keys()
+        for key, value in before[part].items():
+            assert torch.equal(value, after[part][key]), (part, key)
+    for section, stored in before["config"].items():  # every other setting as it was
+        for key, value in stored.items():
+            if (section, key) != ("vae", "boundary_inertia"):
+                assert after["config"][section][key] == value, (section, key)
+    assert main(["--stage", "model", "--init-from", str(source), "--out", str(tmp_path / "no"),
+                 "--set", "vae.hidden=64"]) == 2
+    assert "only decoding settings (vae.boundary_inertia)" in capsys.readouterr().err
+    assert not (tmp_path / "no").exists()

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Sequence
 
 import torch
 from safetensors import SafetensorError
@@ -34,16 +35,31 @@ VERSION = "1"
 PARTS = ("vae", "flow", "normalizer")
 
 
-def write_model_file(checkpoint: str | Path, out: str | Path) -> Path:
-    """``out`` (a .safetensors path) from a flow-stage checkpoint, written atomically."""
-    data = load_checkpoint(checkpoint)
+# Config fields that change how a model decodes, not its weights: a model file may be written
+# again with other values, nothing trained (``sarah-train --stage model``).
+DECODING_FIELDS = {"vae": ("boundary_inertia",)}
+
+
+def write_model_file(source: str | Path, out: str | Path, decoding: Sequence[str] = ()) -> Path:
+    """``out`` (a .safetensors path) from a flow-stage checkpoint or another model file, written
+    atomically; ``decoding`` ("vae.boundary_inertia=0.8", ...) sets DECODING_FIELDS."""
+    source = Path(source)
+    data = read_model_file(source) if source.suffix == ".safetensors" else load_checkpoint(source)
     if data["stage"] != "flow":
-        raise ValueError(f"{checkpoint}: a {data['stage']}-stage checkpoint; the model file needs "
+        raise ValueError(f"{source}: a {data['stage']}-stage checkpoint; the model file needs "
                          f"the flow stage")
+    config = data["config"]
+    if decoding:
+        allowed = [f"{section}.{name}" for section, names in DECODING_FIELDS.items() for name in names]
+        for text in decoding:
+            if text.partition("=")[0].strip() not in allowed:
+                raise ValueError(f"--set {text!r}: only decoding settings ({', '.join(allowed)}) "
+                                 f"change without training; train a stage to change the others")
+        config = RunConfig.from_dict(config).with_overrides(decoding).to_dict()
     tensors = {f"{part}.{name}": value.contiguous()
                for part in PARTS for name, value in data[part].items()}
     metadata = {"format": FORMAT, "version": VERSION, "stage": "flow", "step": str(int(data["step"])),
-                "features": str(data["features"]), "config": json.dumps(data["config"], sort_keys=True),
+                "features": str(data["features"]), "config": json.dumps(config, sort_keys=True),
                 "dims": json.dumps(data["dims"], sort_keys=True)}
     out = Path(out)
     with atomic_path(out) as tmp:
@@ -65,10 +81,12 @@ def _sorted_metadata(data: bytes) -> bytes:
     return len(text).to_bytes(8, "little") + text + data[8 + length:]
 
 
-def load_model_file(path: str | Path, device: str | torch.device | None = None) -> LoadedModels:
-    """Rebuild the models of a model file; ValueError naming the file when it is not ours."""
+def read_model_file(path: str | Path) -> dict:
+    """A model file's contents in a training checkpoint's shape (``stage`` "flow", ``step``,
+    ``config``, ``dims``, ``features`` and the ``vae``, ``flow`` and ``normalizer`` state dicts),
+    so ``sarah-train --init-from`` can fine-tune a shared file; ValueError naming the file when it
+    is not ours."""
     path = Path(path)
-    device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such model file")
     try:
@@ -83,17 +101,29 @@ def load_model_file(path: str | Path, device: str | torch.device | None = None) 
     if metadata.get("version") != VERSION:
         raise ValueError(f"{path}: model file version {metadata.get('version')}, expected {VERSION}")
     try:
-        config = RunConfig.from_dict(json.loads(metadata["config"]))
-        dims = json.loads(metadata["dims"])
-        parts = {part: {name[len(part) + 1:]: value for name, value in tensors.items()
-                        if name.startswith(part + ".")} for part in PARTS}
-        vae, flow = build_models(config, dims)
-        vae.load_state_dict(parts["vae"])
-        flow.load_state_dict(parts["flow"])
-        normalizer = Normalizer.from_state_dict(parts["normalizer"])
-    except (KeyError, RuntimeError, json.JSONDecodeError, TypeError) as error:
+        data = {"stage": "flow", "step": int(metadata["step"]), "features": metadata["features"],
+                "config": json.loads(metadata["config"]), "dims": json.loads(metadata["dims"])}
+    except (KeyError, ValueError) as error:
+        raise ValueError(f"{path}: inconsistent model file metadata ({error})") from None
+    for part in PARTS:
+        data[part] = {name[len(part) + 1:]: value for name, value in tensors.items()
+                      if name.startswith(part + ".")}
+    return data
+
+
+def load_model_file(path: str | Path, device: str | torch.device | None = None) -> LoadedModels:
+    """Rebuild the models of a model file; ValueError naming the file when it is not ours."""
+    device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    data = read_model_file(path)
+    try:
+        config = RunConfig.from_dict(data["config"])
+        vae, flow = build_models(config, data["dims"])
+        vae.load_state_dict(data["vae"])
+        flow.load_state_dict(data["flow"])
+        normalizer = Normalizer.from_state_dict(data["normalizer"])
+    except (KeyError, RuntimeError, TypeError, ValueError) as error:
         raise ValueError(f"{path}: inconsistent model file ({error})") from None
     for module in (vae, flow, normalizer):
         module.to(device).eval()
-    return LoadedModels(vae, flow, normalizer, config, dict(dims), metadata["features"],
-                        int(metadata["step"]), "flow")
+    return LoadedModels(vae, flow, normalizer, config, dict(data["dims"]), data["features"],
+                        data["step"], "flow")
