@@ -7,12 +7,11 @@ import time
 import numpy as np
 import torch
 
-from sarah_data.skeleton import MotionLayout
 from sarah_models.config import StreamConfig
 from sarah_models.nn.flow import FlowModel
 from sarah_models.nn.normalizer import Normalizer
 from sarah_models.nn.vae import CausalVAE
-from sarah_models.sampling.continuity import RootInertia
+from sarah_models.sampling.continuity import SeamInertia
 from sarah_models.sampling.guidance import drop_masks, guided
 from sarah_models.sampling.path import velocity_from_x1
 from sarah_models.sampling.solver import imputer, integrate, token_noise
@@ -41,8 +40,7 @@ class NaiveStreamer:
         self._inputs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._latents: list[torch.Tensor] = []  # final latents of every block so far
         self._noise: list[torch.Tensor] = []
-        self._inertia = RootInertia(MotionLayout.from_width(self.vae.motion_dim), self.stride,
-                                    self.vae.config.boundary_inertia)
+        self._inertia = SeamInertia(self.stride, self.vae.config.boundary_inertia)
 
     def _window(self, items: list) -> list:
         keep = self.config.history_tokens

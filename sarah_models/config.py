@@ -101,10 +101,10 @@ class VAEConfig:
     # than a vertical one (y std ~3.5 cm), which leaves horizontal jitter untrained.
     recon_units: str = "standardized"
     # Not in the paper (0 = the paper): how the generators decode, not how the VAE trains. At the
-    # first frame of every latent block the decoded body is shifted to continue the pelvis's last
-    # velocity, and the shift keeps this fraction of itself per frame after
-    # (``sampling.continuity.RootInertia``): a flow sample's tokens disagree on where the body
-    # is, and without it each block starts with a jump of the whole body.
+    # first frame of every latent block each decoded point is offset to continue its last
+    # position and velocity, and the offset decays by this factor per frame, as a critically
+    # damped spring (``sampling.continuity.SeamInertia``): a flow sample's tokens disagree on
+    # where the body is and how it moves, and without it every block starts with a seam.
     boundary_inertia: float = 0.0
 
     def __post_init__(self) -> None:

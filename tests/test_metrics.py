@@ -354,3 +354,26 @@ def test_frame0_offset_and_root_relative_samples():
     moved = np.einsum("tij,nj->tni", rot, points[0]) + root[:, None]
     local = root_relative_points(moved, root, rot)
     np.testing.assert_allclose(local, np.repeat(points.reshape(1, -1), 3, 0), atol=1e-12)
+
+
+def test_seam_share_finds_jumps_between_latent_blocks():
+    from sarah_models.evaluation.metrics.seam_share import seam_share
+
+    frames, s = 80, 4
+    t = np.arange(frames)[:, None]
+    joints = np.zeros((frames, NUM_JOINTS, 3))
+    # Accelerating evenly on every frame: a parabola has the same second difference everywhere,
+    # so the two seam phases of four hold half of it.
+    joints[:, :, 0] = 0.001 * t**2
+    assert seam_share(joints, s) == pytest.approx(2 / s, abs=0.02)  # up to the ends
+    # Walking at constant speed with a jump of the whole body at every block start: all of it.
+    walk = joints.copy()
+    walk[:, :, 0] = 0.02 * t
+    jumpy = walk.copy()
+    jumpy[:, :, 2] += np.repeat(np.random.default_rng(0).normal(0, 0.03, frames // s), s)[:, None]
+    assert seam_share(jumpy, s) == pytest.approx(1.0)
+    assert seam_share(np.zeros_like(walk), s) == 0.5  # standing still: the neutral value
+    # Two frames later the same jumps are mid-block: not seams of these blocks.
+    assert seam_share(jumpy[2:], s) < 0.01
+    with pytest.raises(ValueError, match="at least 2 frames"):
+        seam_share(joints, 1)

@@ -43,7 +43,7 @@ from sarah_data.atomic import atomic_write_text
 from sarah_data.constants import FPS
 from sarah_data.skeleton import MotionLayout
 
-from ..config import CFG_SCALE, SOLVER_STEPS, WINDOW, check_gaze
+from ..config import CFG_SCALE, SOLVER_STEPS, STRIDE, WINDOW, check_gaze
 from .metrics import (
     FrechetRidgeWarning,
     MetricsConfig,
@@ -207,16 +207,15 @@ def _vae_producer(models):
     """The run's VAE reconstructing the ground truth (encoder mean, then decoder, decoded the way
     the generators decode: ``vae.boundary_inertia``): the best any flow sample can decode to,
     which separates the VAE's error from the flow's."""
-    from ..sampling.continuity import RootInertia
+    from ..sampling.continuity import SeamInertia
 
     device = next(models.vae.parameters()).device
     nz, vae = models.normalizer, models.vae
-    layout = MotionLayout.from_width(vae.motion_dim)
 
     def produce(item: dict, index: int) -> np.ndarray:
         mu, _ = vae.encode(nz.normalize("motion", item["motion"].to(device))[None])
         motion = nz.denormalize("motion", vae.decode(mu)[0]).double().cpu().numpy()
-        inertia = RootInertia(layout, vae.stride, vae.config.boundary_inertia)
+        inertia = SeamInertia(vae.stride, vae.config.boundary_inertia)
         return inertia(motion).astype(np.float32)
 
     return produce
@@ -284,8 +283,10 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
          f"{features!r}")
 
     # Windows are in their window frame already: re-normalizing to a decoded frame-0 pelvis
-    # would rotate a whole clip by that frame's yaw error.
-    metrics_config = MetricsConfig(batch_clips=config.batch_clips, normalize_window=False)
+    # would rotate a whole clip by that frame's yaw error. Seams are looked for at the run's
+    # latent blocks.
+    metrics_config = MetricsConfig(batch_clips=config.batch_clips, normalize_window=False,
+                                   block_frames=loaded.vae.stride if loaded else STRIDE)
     train_windows = None
     if "random" in config.methods or "nn" in config.methods:
         library = shards if config.library_shards is None else Path(config.library_shards)

@@ -38,7 +38,7 @@ from ..config import StreamConfig, check_gaze
 from ..nn.flow import FlowModel
 from ..nn.normalizer import Normalizer
 from ..nn.vae import CausalVAE
-from .continuity import RootInertia
+from .continuity import SeamInertia
 from .guidance import combine, drop_masks
 from .path import velocity_from_x1
 from .solver import imputer, integrate, token_noise
@@ -115,12 +115,11 @@ class _Models:
         batch = {k: v.expand(masks.shape[0], -1, -1) for k, v in cond.items()}
         return self.flow.encode_condition(batch, masks, first_token=first_token)
 
-    def inertia(self) -> RootInertia:
-        """A new stream's root continuity filter (the VAE config's ``boundary_inertia``)."""
-        return RootInertia(MotionLayout.from_width(self.vae.motion_dim), self.stride,
-                           self.vae.config.boundary_inertia)
+    def inertia(self) -> SeamInertia:
+        """A new stream's seam filter (the VAE config's ``boundary_inertia``)."""
+        return SeamInertia(self.stride, self.vae.config.boundary_inertia)
 
-    def to_world(self, motion: Tensor, inertia: RootInertia) -> np.ndarray:
+    def to_world(self, motion: Tensor, inertia: SeamInertia) -> np.ndarray:
         """Standardized decoder output, the stream's next T frames (T, Dx) -> world-frame motion
         vector (T, Dx) float32, through the stream's ``inertia``."""
         x = inertia(self.normalizer.denormalize("motion", motion).double().cpu().numpy())

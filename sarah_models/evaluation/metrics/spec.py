@@ -23,6 +23,8 @@ from typing import Any, Callable
 
 from sarah_data.skeleton import FEET, HEAD, ROOT, WRISTS
 
+from ...config import STRIDE
+
 
 FOOT_MAX_HEIGHT = 0.05  # m: "near the ground (<5 cm)" (paper, foot slide)
 FOOT_MIN_SPEED = 0.03  # m/s: "moving horizontally (>3 cm/s)"
@@ -83,6 +85,8 @@ class MetricsConfig:
     wrist_joints: tuple[str, ...] = WRISTS
     head_joint: str = HEAD
     root_joint: str = ROOT
+    # Frames per latent block, where the seam share looks for seams: the VAE's stride.
+    block_frames: int = STRIDE
     # Re-normalize every clip to its window frame (agent's pelvis at frame 0 at the origin facing
     # +z) before FGD, so world-frame clips score like window-frame ones. Idempotent on clips that
     # are already in the window frame.
