@@ -33,7 +33,7 @@ MODELS = {model.name: model for model in (
     Pretrained(
         name="fixture-tiny",
         file="fixture-tiny.safetensors",
-        sha256="1fd75f8de0321898a006f03826007251d3d72374ebeaa28d2366a6731ae25114",
+        sha256="e542deb536ca2c7367cceec246079051e137cbb4ba637417a06e3bc5351d4ebd",
         script="scripts/pretrained_fixture_model.sh",
         fixture_seed=0,
         about="the tiny preset trained on 40 dyad-minutes of fixture dyads for about 125 "
