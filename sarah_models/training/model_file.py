@@ -44,7 +44,7 @@ def write_model_file(source: str | Path, out: str | Path, decoding: Sequence[str
     """``out`` (a .safetensors path) from a flow-stage checkpoint or another model file, written
     atomically; ``decoding`` ("vae.boundary_inertia=0.8", ...) sets DECODING_FIELDS."""
     source = Path(source)
-    data = read_model_file(source) if source.suffix == ".safetensors" else load_checkpoint(source)
+    data = read_weights(source)
     if data["stage"] != "flow":
         raise ValueError(f"{source}: a {data['stage']}-stage checkpoint; the model file needs "
                          f"the flow stage")
@@ -109,6 +109,12 @@ def read_model_file(path: str | Path) -> dict:
         data[part] = {name[len(part) + 1:]: value for name, value in tensors.items()
                       if name.startswith(part + ".")}
     return data
+
+
+def read_weights(path: str | Path) -> dict:
+    """A training checkpoint, or a model file in a checkpoint's shape (by its .safetensors name)."""
+    path = Path(path)
+    return read_model_file(path) if path.suffix == ".safetensors" else load_checkpoint(path)
 
 
 def load_model_file(path: str | Path, device: str | torch.device | None = None) -> LoadedModels:

@@ -44,7 +44,7 @@ from .checkpoint import (
 )
 from .distributed import DistInfo, setup_distributed
 from .loop import RunLog, make_optimizer, step_generator, train_loop
-from .model_file import read_model_file
+from .model_file import read_weights
 from .objectives import FlowObjective, VAEObjective
 
 STAGES = ("vae", "flow")
@@ -165,7 +165,7 @@ def load_init_source(path: str | Path, stage: str) -> dict[str, Any]:
     a model file (``model.safetensors``, a shipped model included: both stages' weights)."""
     path = Path(path)
     file = path / f"{stage}.pt" if path.is_dir() else path
-    data = read_model_file(file) if file.suffix == ".safetensors" else load_checkpoint(file)
+    data = read_weights(file)
     if stage not in data:
         raise ValueError(f"{file}: a {data['stage']} checkpoint holds no {stage} weights to "
                          f"initialise the {stage} stage from")
