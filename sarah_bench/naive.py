@@ -11,7 +11,7 @@ from sarah_models.config import StreamConfig
 from sarah_models.nn.flow import FlowModel
 from sarah_models.nn.normalizer import Normalizer
 from sarah_models.nn.vae import CausalVAE
-from sarah_models.sampling.continuity import SeamInertia
+from sarah_models.sampling.continuity import decoder_inertia
 from sarah_models.sampling.guidance import drop_masks, guided
 from sarah_models.sampling.path import velocity_from_x1
 from sarah_models.sampling.solver import imputer, integrate, token_noise
@@ -40,7 +40,7 @@ class NaiveStreamer:
         self._inputs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._latents: list[torch.Tensor] = []  # final latents of every block so far
         self._noise: list[torch.Tensor] = []
-        self._inertia = SeamInertia(self.stride, self.vae.config.boundary_inertia)
+        self._inertia = decoder_inertia(self.vae)
 
     def _window(self, items: list) -> list:
         keep = self.config.history_tokens

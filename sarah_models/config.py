@@ -106,11 +106,16 @@ class VAEConfig:
     # damped spring (``sampling.continuity.SeamInertia``): a flow sample's tokens disagree on
     # where the body is and how it moves, and without it every block starts with a seam.
     boundary_inertia: float = 0.0
+    # The same for the root's translation, which every point shares (None: boundary_inertia).
+    # Not in the paper: the root's seams are jumps of the whole body, and a slower spring there
+    # leaves the pose's own motion alone (docs/results.md, sixteenth run).
+    root_inertia: float | None = None
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.boundary_inertia < 1.0:
-            raise ValueError(f"VAEConfig.boundary_inertia must be in [0, 1), got "
-                             f"{self.boundary_inertia}")
+        for name in ("boundary_inertia", "root_inertia"):
+            value = getattr(self, name)
+            if value is not None and not 0.0 <= value < 1.0:
+                raise ValueError(f"VAEConfig.{name} must be in [0, 1), got {value}")
         if self.recon_units not in RECON_UNITS:
             raise ValueError(f"VAEConfig.recon_units must be one of {RECON_UNITS}, got "
                              f"{self.recon_units!r}")

@@ -68,6 +68,25 @@ def test_it_removes_the_seams_and_stays_near_the_decoder():
     np.testing.assert_array_equal(out[:S], (motion + seams)[:S])  # the first block has no seam
 
 
+def test_the_root_has_its_own_spring():
+    """vae.root_inertia acts on what the whole body shares (the root's translation) and
+    vae.boundary_inertia on the rest: seams that only move the whole body follow the root's
+    spring, seams that leave the root in place follow the pose's."""
+    frames, root = 80, LAYOUT.joint_slice("pelvis")
+    points = slice(root.start // 3, root.stop // 3)
+    motion = walking_body(frames)
+    rigid = np.tile(block_seams(frames, 0.03)[:, :3], LAYOUT.width // 3)  # one offset for all
+    split = SeamInertia(S, 0.6, 0.9, points)
+    np.testing.assert_allclose(split(motion + rigid), SeamInertia(S, 0.9)(motion + rigid), atol=1e-12)
+    pose = block_seams(frames, 0.03, seed=2)
+    pose[:, root] = 0.0
+    pose.reshape(frames, -1, 3)[:] -= pose.reshape(frames, -1, 3)[:, points].mean(axis=1, keepdims=True)
+    split = SeamInertia(S, 0.6, 0.9, points)
+    np.testing.assert_allclose(split(motion + pose), SeamInertia(S, 0.6)(motion + pose), atol=1e-12)
+    with pytest.raises(ValueError, match="root's points"):
+        SeamInertia(S, 0.6, 0.9)
+
+
 @settings(max_examples=25, deadline=None)
 @given(chunks=st.lists(st.integers(1, 4), min_size=1, max_size=10), seed=st.integers(0, 100))
 def test_any_chunking_in_blocks_gives_the_frames_of_one_call(chunks, seed):
@@ -85,6 +104,8 @@ def test_any_chunking_in_blocks_gives_the_frames_of_one_call(chunks, seed):
 def test_invalid_settings_are_refused():
     with pytest.raises(ValueError, match="boundary_inertia"):
         VAEConfig(boundary_inertia=1.0)
+    with pytest.raises(ValueError, match="root_inertia"):
+        VAEConfig(root_inertia=-0.5)
     with pytest.raises(ValueError, match="decay"):
         SeamInertia(S, -0.1)
     with pytest.raises(ValueError, match="stride"):

@@ -25,22 +25,42 @@ from __future__ import annotations
 
 import numpy as np
 
+from sarah_data.skeleton import MotionLayout
+
+ROOT_JOINT = "pelvis"
+
 
 class SeamInertia:
-    """Causal filter of one stream's decoded motion; call it on whole blocks, in order."""
+    """Causal filter of one stream's decoded motion; call it on whole blocks, in order.
 
-    def __init__(self, stride: int, decay: float) -> None:
-        if not 0.0 <= decay < 1.0:
-            raise ValueError(f"seam inertia (decay per frame) must be in [0, 1), got {decay}")
-        if decay > 0 and stride < 2:
+    ``decay`` acts on the pose (each point relative to the root); ``root_decay`` on the root's
+    translation, which every point shares (None: ``decay`` too). ``root_points`` are the
+    points whose mean is the root (the pelvis icosahedron)."""
+
+    def __init__(self, stride: int, decay: float, root_decay: float | None = None,
+                 root_points: slice | None = None) -> None:
+        root_decay = decay if root_decay is None else root_decay
+        for name, value in (("decay", decay), ("root decay", root_decay)):
+            if not 0.0 <= value < 1.0:
+                raise ValueError(f"seam inertia ({name} per frame) must be in [0, 1), got {value}")
+        if max(decay, root_decay) > 0 and stride < 2:
             raise ValueError(f"seam inertia needs blocks of at least 2 frames, got stride {stride}")
-        self.stride, self.decay = stride, decay
-        k = np.arange(stride, dtype=np.float64)
-        rate = -np.log(decay) if decay > 0 else 0.0
-        # The spring's offset on the block's frames k: x0 * (1 + rate k) e^(-rate k) + v0 * k e^(-rate k).
-        self._from_position = ((1.0 + rate * k) * np.exp(-rate * k))[:, None, None]
-        self._from_velocity = (k * np.exp(-rate * k))[:, None, None]
+        if root_decay != decay and root_points is None:
+            raise ValueError("seam inertia with its own root decay needs the root's points")
+        self.stride, self.decay, self.root_decay = stride, decay, root_decay
+        self._root = root_points if root_decay != decay else None
+        self._pose_spring = self._spring(decay)
+        self._root_spring = self._spring(root_decay)
         self.reset()
+
+    def _spring(self, decay: float) -> tuple[np.ndarray, np.ndarray]:
+        """The spring's offset on a block's frames k, per unit of the seam's position and
+        velocity offsets: x0 (1 + rate k) e^(-rate k) + v0 k e^(-rate k); none at decay 0."""
+        k = np.arange(self.stride, dtype=np.float64)[:, None, None]
+        if decay == 0:
+            return np.zeros_like(k), np.zeros_like(k)
+        rate = -np.log(decay)
+        return (1.0 + rate * k) * np.exp(-rate * k), k * np.exp(-rate * k)
 
     def reset(self) -> None:
         self._last: np.ndarray | None = None  # the last two output frames, (2, P, 3)
@@ -48,7 +68,7 @@ class SeamInertia:
     def __call__(self, motion: np.ndarray) -> np.ndarray:
         """(n, Dx) motion vectors in metres, the stream's next n frames (whole blocks) -> the
         same frames, continued across each seam."""
-        if self.decay == 0:
+        if self.decay == 0 and self.root_decay == 0:
             return motion
         if len(motion) % self.stride:
             raise ValueError(f"seam inertia takes whole blocks of {self.stride} frames, got "
@@ -63,7 +83,25 @@ class SeamInertia:
                 before, last = self._last
                 x0 = last + (last - before) - block[0]
                 v0 = (last - before) - (block[1] - block[0])
-                out[start:start + self.stride] = (block + x0 * self._from_position
-                                                  + v0 * self._from_velocity)
+                out[start:start + self.stride] = block + self._offsets(x0, v0)
             self._last = out[start + self.stride - 2:start + self.stride].copy()
         return out.reshape(motion.shape).astype(motion.dtype)
+
+    def _offsets(self, x0: np.ndarray, v0: np.ndarray) -> np.ndarray:
+        """(s, P, 3): the block's offsets from the seam's position and velocity offsets (P, 3)."""
+        position, velocity = self._pose_spring
+        if self._root is None:
+            return x0 * position + v0 * velocity
+        x_root = x0[self._root].mean(axis=0)
+        v_root = v0[self._root].mean(axis=0)
+        root_position, root_velocity = self._root_spring
+        return ((x0 - x_root) * position + (v0 - v_root) * velocity
+                + x_root * root_position + v_root * root_velocity)
+
+
+def decoder_inertia(vae) -> SeamInertia:
+    """A new stream's seam filter for this VAE's output, as its config asks
+    (``vae.boundary_inertia``, ``vae.root_inertia``)."""
+    channels = MotionLayout.from_width(vae.motion_dim).joint_slice(ROOT_JOINT)
+    return SeamInertia(vae.stride, vae.config.boundary_inertia, vae.config.root_inertia,
+                       slice(channels.start // 3, channels.stop // 3))

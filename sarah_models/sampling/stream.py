@@ -38,7 +38,7 @@ from ..config import StreamConfig, check_gaze
 from ..nn.flow import FlowModel
 from ..nn.normalizer import Normalizer
 from ..nn.vae import CausalVAE
-from .continuity import SeamInertia
+from .continuity import SeamInertia, decoder_inertia
 from .guidance import combine, drop_masks
 from .path import velocity_from_x1
 from .solver import imputer, integrate, token_noise
@@ -116,8 +116,8 @@ class _Models:
         return self.flow.encode_condition(batch, masks, first_token=first_token)
 
     def inertia(self) -> SeamInertia:
-        """A new stream's seam filter (the VAE config's ``boundary_inertia``)."""
-        return SeamInertia(self.stride, self.vae.config.boundary_inertia)
+        """A new stream's seam filter (the VAE config's ``boundary_inertia``, ``root_inertia``)."""
+        return decoder_inertia(self.vae)
 
     def to_world(self, motion: Tensor, inertia: SeamInertia) -> np.ndarray:
         """Standardized decoder output, the stream's next T frames (T, Dx) -> world-frame motion

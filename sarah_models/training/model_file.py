@@ -37,7 +37,7 @@ PARTS = ("vae", "flow", "normalizer")
 
 # Config fields that change how a model decodes, not its weights: a model file may be written
 # again with other values, nothing trained (``sarah-train --stage model``).
-DECODING_FIELDS = {"vae": ("boundary_inertia",)}
+DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia")}
 
 
 def write_model_file(source: str | Path, out: str | Path, decoding: Sequence[str] = ()) -> Path:
