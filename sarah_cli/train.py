@@ -26,7 +26,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--stage", choices=("vae", "flow", "all", "model"), default="all",
                         help="what to train; flow needs OUT/vae.pt; model trains nothing: it "
                              "writes OUT/model.safetensors from --init-from's weights with the "
-                             "decoding settings given by --set (vae.boundary_inertia)")
+                             "decoding settings given by --set (vae.boundary_inertia, "
+                             "vae.root_inertia)")
     parser.add_argument("--config", choices=PRESETS, default="paper",
                         help="model and training preset: paper sizes, or tiny for CPU runs")
     parser.add_argument("--shards", type=Path, default=None,

@@ -709,5 +709,5 @@ def test_stage_model_rewrites_decoding_settings_and_nothing_else(tmp_path, capsy
                 assert after["config"][section][key] == value, (section, key)
     assert main(["--stage", "model", "--init-from", str(source), "--out", str(tmp_path / "no"),
                  "--set", "vae.hidden=64"]) == 2
-    assert "only decoding settings (vae.boundary_inertia)" in capsys.readouterr().err
+    assert "only decoding settings (vae.boundary_inertia, vae.root_inertia)" in capsys.readouterr().err
     assert not (tmp_path / "no").exists()
