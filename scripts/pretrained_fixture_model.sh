@@ -89,11 +89,11 @@ OMP_NUM_THREADS=1 train run15b vae "${W400[@]}" "${HEAD[@]}" "${NO_CONTACT[@]}" 
 train run15b flow "${W400[@]}" "${HEAD[@]}" "${NO_CONTACT[@]}" --init-from "$WORK/run14/flow.pt" \
   --set flow.attention_window=3 --set train.flow_steps=400 --set train.checkpoint_every=200
 # The shipped model (sixteenth run): the fifteenth run's weights, bit for bit, written again
-# to decode with seam inertia (vae.boundary_inertia 0.7: every decoded point continues across
-# the seam between latent blocks, docs/models.md); nothing is trained.
+# to decode with seam inertia (every decoded point continues across the seam between latent
+# blocks: the pose's spring at 0.7, the root's at 0.9, docs/models.md); nothing is trained.
 if [ ! -f "$WORK/fixture-tiny/model.done" ]; then
   $PYTHON -m sarah_cli.train --stage model --init-from "$WORK/run15b" --out "$WORK/fixture-tiny" \
-    --set vae.boundary_inertia=0.7
+    --set vae.boundary_inertia=0.7 --set vae.root_inertia=0.9
   touch "$WORK/fixture-tiny/model.done"
 fi
 

@@ -33,7 +33,7 @@ MODELS = {model.name: model for model in (
     Pretrained(
         name="fixture-tiny",
         file="fixture-tiny.safetensors",
-        sha256="e542deb536ca2c7367cceec246079051e137cbb4ba637417a06e3bc5351d4ebd",
+        sha256="036e7c4478536312ab260086ee3656eac531851536345cf081fd206cb0e77e84",
         script="scripts/pretrained_fixture_model.sh",
         fixture_seed=0,
         about="the tiny preset trained on 40 dyad-minutes of fixture dyads for about 125 "
