@@ -91,7 +91,7 @@ def models_stride() -> int:
 def _assert_no_seams(joints: np.ndarray, stride: int) -> None:
     """The pelvis accelerates no more at the seams between latent blocks than elsewhere (0.5 of
     its energy on the two seam phases of four, with a margin). The model shipped before the
-    sixteenth run (docs/results.md) decoded without seam inertia and put 0.8-0.9 there: its
+    sixteenth run (docs/results.md) decoded without seam inertia and put 0.95 there: its
     whole body jumped from block to block."""
     share = seam_share(joints, stride)
     assert share < 0.65, f"{share:.2f} of the pelvis's acceleration at block seams"
