@@ -205,7 +205,7 @@ def _model_producer(models, config: EvalConfig, gaze: float | None):
 
 def _vae_producer(models):
     """The run's VAE reconstructing the ground truth (encoder mean, then decoder, decoded the way
-    the generators decode: ``vae.boundary_inertia``): the best any flow sample can decode to,
+    the generators decode: ``vae.boundary_inertia``, ``vae.root_inertia``): the best any flow sample can decode to,
     which separates the VAE's error from the flow's."""
     from ..sampling.continuity import decoder_inertia
 

@@ -25,9 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sarah_data.skeleton import MotionLayout
-
-ROOT_JOINT = "pelvis"
+from sarah_data.skeleton import ROOT, MotionLayout
 
 
 class SeamInertia:
@@ -102,6 +100,6 @@ class SeamInertia:
 def decoder_inertia(vae) -> SeamInertia:
     """A new stream's seam filter for this VAE's output, as its config asks
     (``vae.boundary_inertia``, ``vae.root_inertia``)."""
-    channels = MotionLayout.from_width(vae.motion_dim).joint_slice(ROOT_JOINT)
+    channels = MotionLayout.from_width(vae.motion_dim).joint_slice(ROOT)
     return SeamInertia(vae.stride, vae.config.boundary_inertia, vae.config.root_inertia,
                        slice(channels.start // 3, channels.stop // 3))

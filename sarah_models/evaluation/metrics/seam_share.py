@@ -5,7 +5,7 @@ where the body is, the whole body jumps between the last frame of one block and 
 next, and a jump of the root between frames t-1 and t puts its acceleration on the second
 differences centred on t-1 and t. Motion without seams spreads its acceleration evenly over the
 s phases of a block, so those two phases hold 2 / s of it (0.5 at the paper's s = 4); the
-fixture benchmark's shipped model put 0.8-0.9 there before its decoder continued the root across
+fixture benchmark's shipped model put 0.95 there before its decoder continued the motion across
 seams (docs/results.md, sixteenth run). FGD_acc counts the same jumps among everything else; this
 column says whether they are seams.
 """
@@ -15,11 +15,12 @@ from __future__ import annotations
 import numpy as np
 
 from sarah_data.constants import JOINT
+from sarah_data.skeleton import ROOT
 
 from .spec import Metric
 
 
-def seam_share(joint_positions, block_frames: int, root_joint: str = "pelvis") -> float:
+def seam_share(joint_positions, block_frames: int, root_joint: str = ROOT) -> float:
     """Share of the root's squared acceleration on the second differences centred on the last
     and the first frame of a block (frame 0 starts a block); 2 / block_frames without seams."""
     p = np.asarray(joint_positions, dtype=np.float64)[:, JOINT[root_joint]]
