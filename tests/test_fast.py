@@ -26,7 +26,8 @@ import sarah_models.accel.cpu as cpu_module
 import sarah_models.accel.optimize as optimize_module
 from sarah_bench.naive import NaiveStreamer
 from sarah_models.accel import optimize_for_inference, resolve_decoder
-from sarah_models.accel.linears import BF16Linear, Int8Linear, decoder_linears
+from sarah_models.accel.linears import (BF16Linear, Int8Linear, PackedLinear, decoder_linears,
+                                        flow_outer_linears, packed_linears_available)
 from sarah_models.accel.memo import InputMemo
 from sarah_models.config import RunConfig, StreamConfig
 from sarah_models.nn.layers import KVCache, RopeAngles
@@ -89,7 +90,7 @@ def test_loaded_models_in_loaded_models_out(tiny):
                           {"motion": vae.motion_dim, "audio": AUDIO_DIM}, "logmel", 0, "flow")
     fast = optimize_for_inference(loaded, "bf16")
     assert isinstance(fast, LoadedModels) and fast.features == "logmel"
-    assert any(isinstance(m, BF16Linear) for m in fast.flow.modules())
+    assert any(computes_in_bf16(m) for m in fast.flow.modules())
     assert fast.vae is not vae
 
 
@@ -123,11 +124,16 @@ def test_compiled_blocks_within_tolerance(tiny):
     assert deviation.head_angle_delta <= METRIC_TOLERANCE
 
 
+def computes_in_bf16(module: torch.nn.Module) -> bool:
+    return isinstance(module, BF16Linear) or (isinstance(module, PackedLinear)
+                                              and module.dtype == torch.bfloat16)
+
+
 @pytest.mark.parametrize("decoder", ["fp32", "bf16"])
 def test_int8_within_tolerance_at_paper_size(decoder):
     paper = random_models("paper", audio_dim=AUDIO_DIM, shell_points=SHELL, seed=1)
     fast = optimize_for_inference(paper, "int8", decoder=decoder)
-    assert any(isinstance(m, BF16Linear) for m in fast[0].modules()) == (decoder == "bf16")
+    assert any(computes_in_bf16(m) for m in fast[0].modules()) == (decoder == "bf16")
     deviation = stream_deviation(paper, fast, frames=12)
     assert 0.0 < deviation.max_joint_mm <= TOLERANCE_MM, deviation
     assert deviation.head_angle_delta <= METRIC_TOLERANCE
@@ -138,10 +144,46 @@ def test_bf16_decoder_converts_the_decode_path_only(tiny):
     vae, names = fast[0], decoder_linears(tiny[0])
     assert "frame_out" in names and "decoder.0.attn.qkv" in names
     for name in names:
-        assert isinstance(vae.get_submodule(name), BF16Linear), name
+        assert computes_in_bf16(vae.get_submodule(name)), name
     assert all(type(m) is torch.nn.Linear for m in vae.encoder.modules()
-               if isinstance(m, (torch.nn.Linear, BF16Linear)))
+               if isinstance(m, (torch.nn.Linear, BF16Linear, PackedLinear)))
     deviation = stream_deviation(tiny, fast, frames=32)
+    assert 0.0 < deviation.max_joint_mm <= TOLERANCE_MM, deviation
+
+
+@pytest.mark.skipif(not packed_linears_available(), reason="this torch has no oneDNN linear")
+@pytest.mark.parametrize("bias", [True, False])
+def test_packed_linear_computes_the_linear(bias):
+    """fp32: F.linear up to summation order; bf16: BF16Linear bit for bit; any leading dims,
+    zero rows, and inside a module call too."""
+    torch.manual_seed(0)
+    linear = torch.nn.Linear(48, 40, bias=bias)
+    packed, packed_bf16 = PackedLinear(linear), PackedLinear(linear, torch.bfloat16)
+    with torch.inference_mode():
+        for x in (torch.randn(2, 3, 48) * 3, torch.randn(5, 48), torch.randn(0, 48)):
+            reference = linear(x)
+            assert packed(x).shape == reference.shape and packed(x).dtype == torch.float32
+            torch.testing.assert_close(packed(x), reference, rtol=1e-5, atol=1e-5)
+            assert torch.equal(packed_bf16(x), BF16Linear(linear)(x))
+            assert torch.equal(packed.function()(x), packed(x))
+    with pytest.raises(ValueError, match="float32 or bfloat16"):
+        PackedLinear(linear, torch.float16)
+
+
+@pytest.mark.skipif(not packed_linears_available(), reason="this torch has no oneDNN linear")
+def test_fused_modes_pack_the_linears_the_exact_mode_does_not(tiny, monkeypatch):
+    vae, flow = optimize_for_inference(tiny, "int8", decoder="fp32")[:2]
+    outer = flow_outer_linears(tiny[1])
+    assert {"latent_in", "out.proj", "cond_in", "encoders.gaze.0"} <= set(outer)
+    assert all(isinstance(flow.get_submodule(name), PackedLinear) for name in outer)
+    assert all(isinstance(vae.get_submodule(name), PackedLinear) for name in decoder_linears(vae))
+    assert not any(isinstance(m, PackedLinear) for m in optimize_for_inference(tiny, "fp32")[1].modules())
+    # without oneDNN: the plain Linears and BF16Linear, as before
+    monkeypatch.setattr(optimize_module, "packed_linears_available", lambda: False)
+    vae, flow = optimize_for_inference(tiny, "int8", decoder="bf16")[:2]
+    assert not any(isinstance(m, PackedLinear) for m in [*vae.modules(), *flow.modules()])
+    assert all(isinstance(vae.get_submodule(name), BF16Linear) for name in decoder_linears(vae))
+    deviation = stream_deviation(tiny, (vae, flow, tiny[2]), frames=16)
     assert 0.0 < deviation.max_joint_mm <= TOLERANCE_MM, deviation
 
 

@@ -24,11 +24,30 @@ def cpu_vendor() -> str:
 def has_cpu_feature(name: str) -> bool:
     """torch's own detection of an instruction set ("amx_tile", "avx512_bf16", ...).
 
-    The only place that reads private torch helpers (``torch.cpu._is_<name>_supported``,
-    checked against torch 2.14.1); a torch without one answers False."""
+    This and ``onednn_linear_ops`` are the only places that read private torch helpers
+    (``torch.cpu._is_<name>_supported``, checked against torch 2.14.1); a torch without one
+    answers False."""
     import torch.cpu
 
     return bool(getattr(torch.cpu, f"_is_{name}_supported", lambda: False)())
+
+
+def onednn_linear_ops():
+    """torch's oneDNN linear over weights reordered once into the GEMM's blocked layout -- the
+    kernels inductor's freezing pass puts in compiled CPU graphs -- as ``(reorder, linear)``:
+    ``reorder(weight)`` packs a (out, in) fp32 or bf16 weight, ``linear(x, packed, bias, "none",
+    [], "")`` computes ``F.linear``. None where this torch has no oneDNN or lacks the ops.
+
+    Private ops (``torch.ops.mkldnn._reorder_linear_weight``, ``_linear_pointwise``; checked
+    against torch 2.14.1), read here only."""
+    import torch
+
+    if not torch.backends.mkldnn.is_available():
+        return None
+    try:
+        return torch.ops.mkldnn._reorder_linear_weight, torch.ops.mkldnn._linear_pointwise
+    except (AttributeError, RuntimeError):
+        return None
 
 
 def prefer_bf16_decoder() -> bool:
