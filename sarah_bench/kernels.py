@@ -6,6 +6,11 @@ every Linear of the 4 transformer blocks (qkv 1024->3072, out 1024->1024, MLP 10
 next to the time to merely read the same number of int8 bytes, so a reader can see how far the
 kernel in use (`accel.linears.Int8Linear`, fbgemm's dynamic int8) is from the memory floor.
 
+A second table does the same for the 36 Linears of one streamed VAE decoder step (5 rows: the
+latent token and the block's 4 frames) with the precisions the decoder may run in: fp32 and
+bf16 through ``F.linear``, and the same over oneDNN-packed weights (``accel.linears.PackedLinear``,
+in use where torch has oneDNN).
+
     python -m sarah_bench.kernels [--threads 1 2]
 """
 
@@ -19,13 +24,15 @@ import torch
 from torch import Tensor, nn
 
 from sarah_cli.arguments import HelpFormatter, positive_int
-from sarah_models.accel.linears import Int8Linear
+from sarah_models.accel.linears import BF16Linear, Int8Linear, PackedLinear, packed_linears_available
 from sarah_models.config import HISTORY_TOKENS, STRIDE, FlowConfig, VAEConfig
 from sarah_models.nn.flow import FlowModel
+from sarah_models.nn.vae import CausalVAE
 
 from .timing import percentiles, torch_threads
 
 ROWS = 2 * (HISTORY_TOKENS + 1)  # guidance branches x tokens a streamed evaluation sees
+DECODER_ROWS = STRIDE + 1  # a streamed decoder step: the latent token and the block's frames
 
 
 def block_shapes(config: FlowConfig) -> list[tuple[int, int]]:
@@ -35,6 +42,38 @@ def block_shapes(config: FlowConfig) -> list[tuple[int, int]]:
     model = FlowModel(config, VAEConfig.paper().latent_dim, STRIDE, audio_dim=1)
     return [(m.in_features, m.out_features) for name, m in model.blocks.named_modules()
             if isinstance(m, nn.Linear) and "modulation" not in name]
+
+
+def decoder_shapes(config: VAEConfig) -> list[tuple[int, int]]:
+    """(in, out) of the Linears inside the decoder's transformer layers (one streamed step runs
+    each once)."""
+    model = CausalVAE(config, motion_dim=3)
+    return [(m.in_features, m.out_features) for m in model.decoder.modules()
+            if isinstance(m, nn.Linear)]
+
+
+def decoder_kernels(shapes: list[tuple[int, int]], rows: int = DECODER_ROWS, seed: int = 0
+                    ) -> dict[str, Callable[[], list[Tensor]]]:
+    """name -> one decoder step's Linears computed each way, over the same weights and rows."""
+    generator = torch.Generator().manual_seed(seed)
+    linears = []
+    for i, o in shapes:
+        linear = nn.Linear(i, o)
+        linear.weight.data = torch.randn(o, i, generator=generator) / i ** 0.5
+        linear.bias.data = torch.randn(o, generator=generator) * 0.1
+        linears.append(linear)
+    x = {i: torch.randn(rows, i, generator=generator) for i in {i for i, _ in shapes}}
+
+    def run(layers: list[nn.Module]) -> Callable[[], list[Tensor]]:
+        calls = [(layer.in_features, layer.function() if hasattr(layer, "function") else layer)
+                 for layer in layers]
+        return lambda: [call(x[i]) for i, call in calls]
+
+    table = {"fp32, F.linear (MKL)": run(linears), "bf16, F.linear": run([BF16Linear(m) for m in linears])}
+    if packed_linears_available():
+        table["fp32, oneDNN-packed"] = run([PackedLinear(m) for m in linears])
+        table["bf16, oneDNN-packed"] = run([PackedLinear(m, torch.bfloat16) for m in linears])
+    return table
 
 
 def median_ms(step, repeats: int = 40, seconds: float = 3.0) -> float:
@@ -99,6 +138,14 @@ def main() -> None:
         for name, ms in timed.items():
             print(f"threads {threads}  {name:34s} {ms:8.2f} ms / evaluation "
                   f"({megabytes / 1024 / (ms / 1e3):5.1f} GB/s counted in int8 bytes)")
+    shapes = decoder_shapes(VAEConfig.paper())
+    print(f"one paper-size VAE decoder step: {DECODER_ROWS} rows x {len(shapes)} Linears "
+          f"({sum(i * o for i, o in shapes) / 1e6:.1f} M weights)")
+    for threads in args.threads:
+        with torch_threads(threads):
+            timed = {name: median_ms(step) for name, step in decoder_kernels(shapes).items()}
+        for name, ms in timed.items():
+            print(f"threads {threads}  {name:34s} {ms:8.2f} ms / step")
 
 
 if __name__ == "__main__":

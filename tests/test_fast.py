@@ -365,3 +365,17 @@ def test_every_kernel_of_the_kernel_bench_computes_the_same_product():
         for out, ref in zip(table[name](), reference, strict=True):
             assert out.shape == ref.shape, name
             assert ((out - ref).abs().max() / ref.abs().max()).item() < 0.05, name
+
+
+def test_every_decoder_kernel_of_the_kernel_bench_computes_the_same_product():
+    from sarah_bench.kernels import decoder_kernels, decoder_shapes
+    from sarah_models.config import VAEConfig
+
+    table = decoder_kernels(decoder_shapes(VAEConfig.tiny()))
+    assert len(table) == (4 if packed_linears_available() else 2)
+    reference = table["fp32, F.linear (MKL)"]()
+    for name, step in table.items():
+        for out, ref in zip(step(), reference, strict=True):
+            assert out.shape == ref.shape and out.dtype == torch.float32, name
+            tolerance = 1e-5 if name.startswith("fp32") else 0.02
+            assert ((out - ref).abs().max() / ref.abs().max()).item() < tolerance, name

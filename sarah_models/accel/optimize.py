@@ -21,6 +21,11 @@ Once those are int8, the many small operations around them are the other half of
 * bf16: the same Linears become ``BF16Linear`` (2x fewer).
 * decoder (int8 and bf16 modes): the VAE decoder's Linears in bfloat16 where that measured
   faster than fp32 (``cpu.prefer_bf16_decoder``), fp32 elsewhere (``decoder="auto"``).
+* packed (int8 and bf16 modes, CPU with oneDNN): every Linear that stays fp32 or bf16 and runs
+  per evaluation or step -- the flow's latent input, output projection and condition encoders,
+  the VAE decoder's -- becomes ``PackedLinear`` (weights reordered once; ``F.linear`` repacks
+  them at every call, which for a few rows is most of the call). fp32 ones change only the
+  summation order.
 * fused (int8 and bf16 modes): the flow's blocks and output layer become
   ``FusedAdaLNZeroBlock`` / ``FusedAdaLNZeroOutput`` and the decoder's attention
   ``FusedAttention`` (fewer operations; rounding differs at the 1e-6 level, so the exact "fp32"
