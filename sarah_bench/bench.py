@@ -325,6 +325,29 @@ def bench_loaded_size(bench: SizeBench, log: Callable[[str], None]) -> dict[str,
     return out
 
 
+def bench_rounds(bench: SizeBench, processes: int, rounds: int,
+                 log: Callable[[str], None]) -> dict[str, Any]:
+    """The optimized stream ``rounds`` more times, idle and then beside ``processes`` busy
+    processes in each round: per side, every round's fps and p50/p99 chunk latency and their
+    median, min and max. One run's figures move with what else the host runs; the median of
+    several pairs, taken minutes apart, is the figure to hold a goal to."""
+    sides: dict[str, dict[str, list[float]]] = {
+        side: {"fps": [], "p50_ms": [], "p99_ms": []} for side in ("idle", "loaded")}
+    for i in range(rounds):
+        for side in ("idle", "loaded"):
+            log(f"[{bench.size}] round {i + 1} of {rounds}, {side}")
+            with BackgroundLoad(processes if side == "loaded" else 0):
+                bench.policy.measure(0.3)  # the load just changed: decide from it
+                row = bench.stream()
+            for key, value in (("fps", row["fps"]), ("p50_ms", row["latency_ms"]["p50"]),
+                               ("p99_ms", row["latency_ms"]["p99"])):
+                sides[side][key].append(value)
+    return {side: {key: {"rounds": values, "median": float(np.median(values)),
+                         "min": min(values), "max": max(values)}
+                   for key, values in figures.items()}
+            for side, figures in sides.items()}
+
+
 # --------------------------------------------------------------------------- the whole run
 
 
@@ -398,6 +421,11 @@ def run_bench(cfg: BenchConfig = BenchConfig(), workdir: Path | None = None,
                     for section, values in bench_loaded_size(bench, log).items():
                         loaded.setdefault(section, {})[bench.size] = values
             results["loaded"] = loaded
+        if cfg.rounds:
+            results["rounds"] = {"processes": cfg.background_load, "count": cfg.rounds}
+            for bench in benches:
+                results["rounds"][bench.size] = bench_rounds(bench, cfg.background_load,
+                                                             cfg.rounds, log)
         if cfg.hubert:
             weights = work / "hubert_large_random.pt"
             log("HuBERT-Large: random weights")

@@ -28,6 +28,14 @@ GOALS = (  # (key, description, target, "min" = at least / "max" = below)
     ("loaded.offline.paper.fps", "offline fps, paper size, under background load", 600.0, "min"),
     ("loaded.concurrent.tiny.fit", "real-time tiny streams in one process, under load", 4.0,
      "min"),
+    # The same four streaming goals on the medians of --rounds (present only with it): one
+    # run's figures moved by 20-45 % between runs minutes apart (docs/performance.md).
+    ("rounds.paper.idle.fps.median@120", "median of rounds: stream fps, paper, idle", 120.0, "min"),
+    ("rounds.paper.idle.p99_ms.median", "median of rounds: chunk p99, paper, idle (ms)", 33.0,
+     "max"),
+    ("rounds.paper.loaded.fps.median", "median of rounds: stream fps, paper, loaded", 60.0, "min"),
+    ("rounds.paper.loaded.p99_ms.median", "median of rounds: chunk p99, paper, loaded (ms)", 50.0,
+     "max"),
     ("prep.logmel.rtf", "prep real-time factor, logmel, -j 2", 100.0, "min"),
     ("loader.workers_2.windows_per_s", "loader windows/s, 2 workers", 1000.0, "min"),
 )
@@ -65,6 +73,9 @@ class BenchConfig:
     # Busy processes of the bench's own beside a second pass of the timed figures (0: none).
     background_load: int = 0
     loaded_fixed_seconds: float = 20.0  # the every-core stream under load (it crawls) stops here
+    # Streams again this many times, idle then beside the background load, one pair per round,
+    # and reports each figure's median and range (0: none; needs background_load).
+    rounds: int = 0
     # Tiny streams served round robin in one process (the server's figure), tried in order.
     concurrent_streams: tuple[int, ...] = (1, 2, 4, 6, 8, 12)
     concurrent_seconds: float = 8.0
@@ -75,6 +86,9 @@ class BenchConfig:
             raise ValueError(f"threads must be >= 1 (or None: automatic), got {self.threads}")
         if self.background_load < 0:
             raise ValueError(f"background_load must be >= 0, got {self.background_load}")
+        if self.rounds < 0 or (self.rounds and not self.background_load):
+            raise ValueError(f"rounds must be >= 0 and needs background_load >= 1, got rounds "
+                             f"{self.rounds}, background_load {self.background_load}")
         if any(n < 1 for n in self.concurrent_streams) or self.concurrent_seconds <= 0:
             raise ValueError("concurrent_streams must be counts >= 1 and concurrent_seconds > 0")
         if self.mode not in MODES:

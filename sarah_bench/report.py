@@ -152,6 +152,19 @@ def format_report(results: dict[str, Any]) -> str:
                 lines.append(f"  {size} loaded with a fixed {fixed['threads']} threads: "
                              f"{_f(fixed['fps'])} fps, p50 {_f(fixed['latency_ms']['p50'])} ms, "
                              f"p99 {_f(fixed['latency_ms']['p99'])} ms ({fixed['frames']} frames)")
+    rounds = results.get("rounds")
+    if rounds:
+        lines += ["", f"{rounds['count']} more rounds, each idle then beside {rounds['processes']} "
+                      "busy processes: median (min-max)",
+                  f"  {'figure':<26}{'idle':>24}  {'loaded':>24}"]
+        for size in results["config"]["sizes"]:
+            if size not in rounds:
+                continue
+            for key, label in (("fps", "stream fps"), ("p50_ms", "chunk p50 ms"),
+                               ("p99_ms", "chunk p99 ms")):
+                cells = [f"{_f(r['median'])} ({_f(r['min'])}-{_f(r['max'])})"
+                         for r in (rounds[size]["idle"][key], rounds[size]["loaded"][key])]
+                lines.append(f"  {size + ' ' + label:<26}{cells[0]:>24}  {cells[1]:>24}")
     kernel = results.get("kernel", {}).get("paper")
     if kernel:
         loaded_kernel = loaded.get("kernel", {}).get("paper", {})

@@ -28,6 +28,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="also measure every timed generation figure with N busy processes "
                              "of the bench's own beside it (ended by the bench), side by side "
                              "with the idle figures")
+    parser.add_argument("--rounds", type=non_negative_int, default=defaults.rounds, metavar="N",
+                        help="with --background-load: stream N more times, idle then loaded in "
+                             "each round, and report every streaming figure's median and range "
+                             "(one run's figures move with the host's other tenants)")
     parser.add_argument("--mode", choices=MODES, default=defaults.mode,
                         help="optimization of the fast path: "
                              + "; ".join(f"{m}: {h}" for m, h in MODE_HELP.items()))
@@ -87,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     from sarah_bench.report import append_history, format_report, history_row, write_json
 
     overrides = {"threads": args.threads, "mode": args.mode, "decoder": args.decoder,
-                 "background_load": args.background_load}
+                 "background_load": args.background_load, "rounds": args.rounds}
     if args.sizes != ",".join(BenchConfig().sizes) or not args.quick:
         overrides["sizes"] = tuple(s.strip() for s in args.sizes.split(",") if s.strip())
     if args.no_prep:

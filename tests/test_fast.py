@@ -313,7 +313,7 @@ def test_bench_background_load_reports_both_sides(tmp_path, capsys):
     from sarah_cli.bench import main
 
     out = tmp_path / "bench.json"
-    assert main(["--quick", "--no-prep", "--no-loader", "--background-load", "1",
+    assert main(["--quick", "--no-prep", "--no-loader", "--background-load", "1", "--rounds", "2",
                  "--json", str(out)]) == 0
     results = json.loads(out.read_text())
     assert results["environment"]["threads"] == "auto"
@@ -325,8 +325,16 @@ def test_bench_background_load_reports_both_sides(tmp_path, capsys):
     assert results["loaded"]["offline"]["tiny"]["fps"] > 0
     for side in (results["concurrent"]["tiny"], results["loaded"]["concurrent"]["tiny"]):
         assert side["rows"][0]["streams"] == 1 and side["fit"] in (0, 1, 2)
+    for side in ("idle", "loaded"):  # --rounds: each figure per round, and its median and range
+        for figure in results["rounds"]["tiny"][side].values():
+            assert len(figure["rounds"]) == 2 and all(v > 0 for v in figure["rounds"])
+            assert figure["min"] <= figure["median"] <= figure["max"]
+    goals = {g["goal"]: g for g in results["goals"]}
+    assert goals["rounds.paper.loaded.fps.median"]["met"] is None  # no paper size in --quick
     report = capsys.readouterr().out
     assert "under background load (1 busy processes" in report and "loaded / idle" in report
+    assert "2 more rounds, each idle then beside 1 busy processes" in report
+    assert "tiny stream fps" in report.split("2 more rounds")[1]
     spinning = []
     for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
         try:
@@ -346,6 +354,8 @@ def test_bench_config_rejects_bad_values():
         BenchConfig(sizes=("huge",))
     with pytest.raises(ValueError, match="background_load"):
         BenchConfig(background_load=-1)
+    with pytest.raises(ValueError, match="rounds"):
+        BenchConfig(rounds=2)  # rounds compare idle with loaded: they need a background load
     with pytest.raises(ValueError, match="threads"):
         BenchConfig(threads=0)
     assert dataclasses.replace(BenchConfig.quick(), threads=1).sizes == ("tiny",)
