@@ -98,16 +98,17 @@ class PackedLinear(nn.Module):
         # plain attributes, not buffers: an opaque oneDNN tensor has no storage to copy or save
         self.packed = reorder(weight)
         self.packed_bias = None if linear.bias is None else linear.bias.detach().cpu().to(dtype)
+        op, packed, bias = self._op, self.packed, self.packed_bias
+        if dtype == torch.float32:
+            self._compute = lambda x: op(x, packed, bias, "none", [], "")
+        else:
+            self._compute = lambda x: op(x.to(dtype), packed, bias, "none", [], "").to(x.dtype)
 
     def forward(self, x: Tensor) -> Tensor:
-        return self.function()(x)
+        return self._compute(x)
 
     def function(self) -> Callable[[Tensor], Tensor]:
-        op, packed, bias = self._op, self.packed, self.packed_bias
-        if self.dtype == torch.float32:
-            return lambda x: op(x, packed, bias, "none", [], "")
-        dtype = self.dtype
-        return lambda x: op(x.to(dtype), packed, bias, "none", [], "").to(x.dtype)
+        return self._compute
 
     def extra_repr(self) -> str:
         return (f"in_features={self.in_features}, out_features={self.out_features}, "

@@ -18,7 +18,8 @@ Once those are int8, the many small operations around them are the other half of
 * rope cache (every mode but "none", exact): the flow's rotary angles are memoized; the VAE
   decoder's come from a growing table (``RopeTable``, bit-identical).
 * int8: the Linears of the flow's blocks become ``Int8Linear`` (4x fewer weight bytes).
-* bf16: the same Linears become ``BF16Linear`` (2x fewer).
+* bf16: the same Linears become ``BF16Linear`` (2x fewer; ``PackedLinear`` in bf16 where
+  oneDNN is there).
 * decoder (int8 and bf16 modes): the VAE decoder's Linears in bfloat16 where that measured
   faster than fp32 (``cpu.prefer_bf16_decoder``), fp32 elsewhere (``decoder="auto"``).
 * packed (int8 and bf16 modes, CPU with oneDNN): every Linear that stays fp32 or bf16 and runs
@@ -74,11 +75,12 @@ DECODER_PRECISIONS = ("auto", "fp32", "bf16")
 MODE_HELP = {
     "none": "the plain models (only the thread count is set)",
     "fp32": "fp32 with the flow-time path memoized for the solver grid (exact)",
-    "bf16": "fp32 time cache + bfloat16 Linear layers + fused blocks (+ a bf16 VAE decoder "
-            "where it is faster: AMX, or AVX512-BF16 on non-Intel CPUs)",
+    "bf16": "fp32 time cache + bfloat16 Linear layers + fused blocks + the other Linears "
+            "oneDNN-packed (+ a bf16 VAE decoder where it is faster: AMX, or AVX512-BF16 on "
+            "non-Intel CPUs)",
     "int8": "fp32 time cache + dynamic int8 Linear layers (per-channel weight scales) + fused "
-            "blocks (+ a bf16 VAE decoder where it is faster: AMX, or AVX512-BF16 on non-Intel "
-            "CPUs)",
+            "blocks + the other Linears oneDNN-packed (+ a bf16 VAE decoder where it is faster: "
+            "AMX, or AVX512-BF16 on non-Intel CPUs)",
 }
 
 
