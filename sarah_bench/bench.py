@@ -369,8 +369,7 @@ def run_bench(cfg: BenchConfig = BenchConfig(), workdir: Path | None = None,
     policy = ThreadPolicy(cfg.threads)
     fixed_threads = policy.apply()  # prep and the loader run with this count throughout
     results: dict[str, Any] = {"environment": environment(cfg.threads or "auto"), "config": asdict(cfg)}
-    results["config"]["decoder_precision"] = resolve_decoder(cfg.decoder, cfg.mode,
-                                                             torch.device("cpu"))
+    results["config"]["decoder_precision"] = resolve_decoder(cfg.decoder, cfg.mode)
     started = time.perf_counter()
     own_dir = workdir is None
     work = Path(tempfile.mkdtemp(prefix="sarah-bench-")) if own_dir else Path(workdir)

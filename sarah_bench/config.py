@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Any
 
-import torch
 
 from sarah_models.accel import MODES, resolve_decoder
 from sarah_models.config import STRIDE, WINDOW
@@ -96,7 +95,7 @@ class BenchConfig:
             raise ValueError("concurrent_streams must be counts >= 1 and concurrent_seconds > 0")
         if self.mode not in MODES:
             raise ValueError(f"unknown mode {self.mode!r}; choose from {MODES}")
-        resolve_decoder(self.decoder, self.mode, torch.device("cpu"))  # raises on a bad pair
+        resolve_decoder(self.decoder, self.mode)  # raises on a bad pair
         unknown = [s for s in self.sizes if s not in ("paper", "tiny")]
         if unknown:
             raise ValueError(f"unknown model sizes {unknown}; choose from paper, tiny")

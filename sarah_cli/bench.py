@@ -36,9 +36,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="optimization of the fast path: "
                              + "; ".join(f"{m}: {h}" for m, h in MODE_HELP.items()))
     parser.add_argument("--decoder", choices=DECODER_PRECISIONS, default=defaults.decoder,
-                        help="the VAE decoder's Linears in the int8 and bf16 modes: auto = bf16 "
-                             "where it measured faster (AMX, or AVX512-BF16 on a non-Intel CPU), "
-                             "fp32 otherwise")
+                        help="the VAE decoder's Linears in the int8 and bf16 modes: auto = fp32; "
+                             "bf16 is a little faster but moved a trained model's joints by "
+                             "centimetres (docs/performance.md)")
     parser.add_argument("--sizes", default=",".join(defaults.sizes),
                         help="model sizes to benchmark (paper, tiny)")
     parser.add_argument("--quick", action="store_true",

@@ -187,30 +187,43 @@ def test_fused_modes_pack_the_linears_the_exact_mode_does_not(tiny, monkeypatch)
     assert 0.0 < deviation.max_joint_mm <= TOLERANCE_MM, deviation
 
 
-def test_decoder_precision_rules(monkeypatch):
-    cpu = torch.device("cpu")
-    for native, expected in ((True, "bf16"), (False, "fp32")):
-        monkeypatch.setattr(optimize_module, "prefer_bf16_decoder", lambda native=native: native)
-        assert resolve_decoder("auto", "int8", cpu) == expected
-        assert resolve_decoder("auto", "bf16", cpu) == expected
-        assert resolve_decoder("auto", "fp32", cpu) == "fp32"  # the exact mode stays exact
-    assert resolve_decoder("bf16", "int8", cpu) == "bf16"
-    assert resolve_decoder("fp32", "int8", cpu) == "fp32"
-    assert resolve_decoder("auto", "int8", torch.device("meta")) == "fp32"
+def test_decoder_precision_rules():
+    assert resolve_decoder("auto", "int8") == "fp32"  # bf16 only when asked for: see below
+    assert resolve_decoder("auto", "bf16") == "fp32"
+    assert resolve_decoder("auto", "fp32") == "fp32"  # the exact mode stays exact
+    assert resolve_decoder("bf16", "int8") == "bf16"
+    assert resolve_decoder("fp32", "int8") == "fp32"
     with pytest.raises(ValueError, match="exact|fp32"):
-        resolve_decoder("bf16", "fp32", cpu)
+        resolve_decoder("bf16", "fp32")
     with pytest.raises(ValueError, match="decoder precision"):
-        resolve_decoder("fp16", "int8", cpu)
+        resolve_decoder("fp16", "int8")
 
 
-@pytest.mark.parametrize("amx, bf16, vendor, expected", [
-    (True, False, "GenuineIntel", True), (False, True, "AuthenticAMD", True),
-    (False, True, "GenuineIntel", False), (False, True, "", False), (False, False, "AuthenticAMD", False)])
-def test_bf16_decoder_is_preferred_where_it_measured_faster(monkeypatch, amx, bf16, vendor, expected):
-    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: amx, raising=False)
-    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: bf16, raising=False)
-    monkeypatch.setattr(cpu_module, "cpu_vendor", lambda: vendor)
-    assert cpu_module.prefer_bf16_decoder() is expected
+@pytest.fixture(scope="module")
+def shipped():
+    from sarah_models.pretrained import model_path
+    from sarah_models.training.model_file import load_model_file
+
+    return load_model_file(model_path("fixture-tiny"))
+
+
+@pytest.mark.skipif(not packed_linears_available(), reason="this torch has no oneDNN linear")
+def test_trained_model_decodes_the_same_through_the_default_fast_decoder(shipped):
+    """Random weights hid it: on the shipped trained model a bf16 decoder moved joints by up to
+    45 mm over 64 streamed frames. The default fast path's decoder (packed fp32) decodes what
+    the plain one does (same flow, so the same latents), to summation order."""
+    fast_vae = optimize_for_inference(shipped, "int8").vae
+    deviation = stream_deviation(shipped, (fast_vae, shipped.flow, shipped.normalizer), frames=32)
+    assert deviation.max_joint_mm < 0.01, deviation
+
+
+def test_trained_model_int8_stays_within_millimetres(shipped):
+    """The default int8 path on the shipped model over 64 streamed frames: measured 2.8 mm with
+    8-bit rows (VNNI) and 6.5 mm with 7-bit rows; #20's 1 mm holds on random weights only
+    (docs/performance.md). A bound that catches a kernel or precision regression."""
+    deviation = stream_deviation(shipped, optimize_for_inference(shipped, "int8"), frames=64)
+    assert deviation.max_joint_mm <= (4.0 if cpu_module.int8_full_range() else 8.0), deviation
+    assert deviation.head_angle_delta <= METRIC_TOLERANCE
 
 
 def test_time_grid_is_the_midpoint_grid():
@@ -230,7 +243,25 @@ def test_int8_linear_is_the_dynamic_quantized_linear_bit_for_bit():
         reference = quantize_dynamic(torch.nn.Sequential(linear), {"0": per_channel_dynamic_qconfig},
                                      dtype=torch.qint8)
     x = torch.randn(2, 3, 48)
-    assert torch.equal(Int8Linear(linear)(x), reference(x))
+    assert torch.equal(Int8Linear(linear, reduce_range=True)(x), reference(x))
+    assert Int8Linear(linear).reduce_range is not cpu_module.int8_full_range()
+
+
+@pytest.mark.skipif(not cpu_module.int8_full_range(), reason="no VNNI: 8-bit rows could overflow")
+def test_int8_full_range_rows_halve_the_error():
+    """8-bit activations: about half the error of 7-bit ones, and no int16 overflow (VNNI sums
+    in int32) even where every product is at its largest."""
+    torch.manual_seed(0)
+    linear = torch.nn.Linear(1024, 256)
+    x = torch.randn(64, 1024)
+    errors = {rr: (Int8Linear(linear, reduce_range=rr)(x) - linear(x)).abs().mean().item()
+              for rr in (True, False)}
+    assert errors[False] < 0.7 * errors[True], errors
+    worst = torch.nn.Linear(1024, 16, bias=False)
+    worst.weight.data = torch.full((16, 1024), 0.01)
+    x = torch.ones(6, 1024)
+    x[:, ::7] = -1.0  # activations at both ends of their range, every weight at its largest
+    torch.testing.assert_close(Int8Linear(worst, reduce_range=False)(x), worst(x), rtol=0.02, atol=0.0)
 
 
 def test_time_memo_computes_afresh_with_autograd():

@@ -1,7 +1,7 @@
 """Inference speed-ups by module replacement (see ``optimize.py``): the reference model in
 ``sarah_models.nn`` never imports this package."""
 
-from .cpu import cpu_info, prefer_bf16_decoder
+from .cpu import cpu_info
 from .optimize import (
                        DECODER_PRECISIONS,
                        MODE_HELP,
@@ -13,4 +13,4 @@ from .optimize import (
 from .threads import ThreadPolicy
 
 __all__ = ["DECODER_PRECISIONS", "MODES", "MODE_HELP", "cpu_info", "optimize_for_inference",
-           "prefer_bf16_decoder", "resolve_decoder", "warm_up", "ThreadPolicy"]
+           "resolve_decoder", "warm_up", "ThreadPolicy"]

@@ -4,11 +4,12 @@ At inference on a CPU the flow's Linears are bound by reading their weights (a c
 evaluations over 3 tokens x 2 guidance branches), so weight bytes are the first cost to cut.
 
 * ``Int8Linear``: dynamic int8 quantization -- int8 weights with one symmetric scale per output
-  channel, activations quantized per call -- computed by torch's ``quantized::linear_dynamic``
-  kernel (fbgemm; VNNI int8 arithmetic). Bit-identical to
-  ``torch.ao.quantization.quantize_dynamic`` with ``per_channel_dynamic_qconfig``, built from
-  public calls only (observer, ``quantize_per_channel``, ``linear_prepack``) and called as one
-  kernel (the eager quantized module adds ~10 us of Python to a ~15 us call).
+  channel, activations quantized per call (to the full 8 bits where the CPU has VNNI, else 7)
+  -- computed by torch's ``quantized::linear_dynamic`` kernel (fbgemm). With 7-bit rows
+  bit-identical to ``torch.ao.quantization.quantize_dynamic`` with
+  ``per_channel_dynamic_qconfig``, built from public calls only (observer,
+  ``quantize_per_channel``, ``linear_prepack``) and called as one kernel (the eager quantized
+  module adds ~10 us of Python to a ~15 us call).
 * ``BF16Linear``: bfloat16 weights and activations, output in the input dtype.
 * ``PackedLinear``: fp32 or bfloat16 weights reordered once into oneDNN's blocked GEMM layout
   (``cpu.onednn_linear_ops``). ``F.linear`` repacks its weight at every call: for the few rows
@@ -27,12 +28,16 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .cpu import onednn_linear_ops
+from .cpu import int8_full_range, onednn_linear_ops
 
 
 class Int8Linear(nn.Module):
-    def __init__(self, linear: nn.Linear) -> None:
+    """``reduce_range``: activations quantized to 7 bits (torch's default, and bit-identical to
+    ``quantize_dynamic``) or 8; None: 8 where the CPU has VNNI (``cpu.int8_full_range``)."""
+
+    def __init__(self, linear: nn.Linear, reduce_range: bool | None = None) -> None:
         super().__init__()
+        self.reduce_range = not int8_full_range() if reduce_range is None else reduce_range
         from torch.ao.quantization.observer import PerChannelMinMaxObserver
 
         self.in_features, self.out_features = linear.in_features, linear.out_features
@@ -49,16 +54,16 @@ class Int8Linear(nn.Module):
         self.packed = torch.ops.quantized.linear_prepack(qweight, bias)
 
     def forward(self, x: Tensor) -> Tensor:
-        return torch.ops.quantized.linear_dynamic.default(x, self.packed, True)
+        return torch.ops.quantized.linear_dynamic.default(x, self.packed, self.reduce_range)
 
     def function(self) -> Callable[[Tensor], Tensor]:
         """This layer's computation as a plain callable (see ``linear_function``)."""
-        op, packed = torch.ops.quantized.linear_dynamic.default, self.packed
-        # reduce_range=True: what the eager module passes (its version >= 4)
-        return lambda x: op(x, packed, True)
+        op, packed, reduce_range = torch.ops.quantized.linear_dynamic.default, self.packed, self.reduce_range
+        return lambda x: op(x, packed, reduce_range)
 
     def extra_repr(self) -> str:
-        return f"in_features={self.in_features}, out_features={self.out_features}, int8"
+        bits = 7 if self.reduce_range else 8
+        return f"in_features={self.in_features}, out_features={self.out_features}, int8 ({bits}-bit rows)"
 
 
 class BF16Linear(nn.Module):

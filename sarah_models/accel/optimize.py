@@ -20,8 +20,10 @@ Once those are int8, the many small operations around them are the other half of
 * int8: the Linears of the flow's blocks become ``Int8Linear`` (4x fewer weight bytes).
 * bf16: the same Linears become ``BF16Linear`` (2x fewer; ``PackedLinear`` in bf16 where
   oneDNN is there).
-* decoder (int8 and bf16 modes): the VAE decoder's Linears in bfloat16 where that measured
-  faster than fp32 (``cpu.prefer_bf16_decoder``), fp32 elsewhere (``decoder="auto"``).
+* decoder (int8 and bf16 modes): the VAE decoder's Linears in fp32 (``decoder="auto"``, or
+  "fp32") or, asked for, bfloat16 ("bf16"). Not bf16 by default: on the shipped fixture model a
+  bf16 decoder moved joints by up to 45 mm over 64 streamed frames (the fp32 one by 0.00 mm),
+  and once packed it saves only 0.1-0.7 ms per step (docs/performance.md).
 * packed (int8 and bf16 modes, CPU with oneDNN): every Linear that stays fp32 or bf16 and runs
   per evaluation or step -- the flow's latent input, output projection and condition encoders,
   the VAE decoder's -- becomes ``PackedLinear`` (weights reordered once; ``F.linear`` repacks
@@ -56,7 +58,6 @@ from ..nn.layers import AdaLNZeroBlock, TransformerBlock
 from ..nn.vae import CausalVAE
 from ..sampling.solver import time_grid
 from ..training.checkpoint import unpack_models
-from .cpu import prefer_bf16_decoder
 from .fused import FusedAdaLNZeroBlock, FusedAdaLNZeroOutput, FusedTransformerBlock
 from .linears import (
     BF16Linear,
@@ -76,11 +77,9 @@ MODE_HELP = {
     "none": "the plain models (only the thread count is set)",
     "fp32": "fp32 with the flow-time path memoized for the solver grid (exact)",
     "bf16": "fp32 time cache + bfloat16 Linear layers + fused blocks + the other Linears "
-            "oneDNN-packed (+ a bf16 VAE decoder where it is faster: AMX, or AVX512-BF16 on "
-            "non-Intel CPUs)",
-    "int8": "fp32 time cache + dynamic int8 Linear layers (per-channel weight scales) + fused "
-            "blocks + the other Linears oneDNN-packed (+ a bf16 VAE decoder where it is faster: "
-            "AMX, or AVX512-BF16 on non-Intel CPUs)",
+            "oneDNN-packed",
+    "int8": "fp32 time cache + dynamic int8 Linear layers (per-channel weight scales, 8-bit "
+            "rows with VNNI) + fused blocks + the other Linears oneDNN-packed",
 }
 
 
@@ -117,7 +116,7 @@ def table_decoder_rope(vae: CausalVAE, fused: bool) -> None:
         vae.decoder = nn.ModuleList(FusedTransformerBlock(block, tables) for block in vae.decoder)
 
 
-def resolve_decoder(decoder: str, mode: str, device: torch.device) -> str:
+def resolve_decoder(decoder: str, mode: str) -> str:
     """The decoder precision ``optimize_for_inference`` uses: "fp32" or "bf16"."""
     if decoder not in DECODER_PRECISIONS:
         raise ValueError(f"unknown decoder precision {decoder!r}; choose from {DECODER_PRECISIONS}")
@@ -126,9 +125,7 @@ def resolve_decoder(decoder: str, mode: str, device: torch.device) -> str:
             raise ValueError(f"mode {mode!r} keeps the models in fp32: a bf16 decoder needs mode "
                              "int8 or bf16")
         return "fp32"
-    if decoder == "auto":
-        return "bf16" if device.type == "cpu" and prefer_bf16_decoder() else "fp32"
-    return decoder
+    return "fp32" if decoder == "auto" else decoder
 
 
 def swap_decoder_linears(vae: CausalVAE, precision: str, packed: bool) -> None:
@@ -187,7 +184,7 @@ def optimize_for_inference(models, mode: str = "int8", *, stream_config: StreamC
     if flow is None:
         raise ValueError("optimize_for_inference needs a flow model (a flow-stage checkpoint)")
     device = next(vae.parameters()).device
-    precision = resolve_decoder(decoder, mode, device)
+    precision = resolve_decoder(decoder, mode)
     if mode == "int8" and next(flow.parameters()).device.type != "cpu":
         raise ValueError(f"int8 dynamic quantization runs on the CPU only, models are on "
                          f"{next(flow.parameters()).device}")
