@@ -266,6 +266,18 @@ class SizeBench:
         return out
 
 
+def shipped_deviation(cfg: BenchConfig) -> dict[str, Any]:
+    """The optimized mode against fp32 on the shipped trained model (``--pretrained
+    fixture-tiny``): random weights give small, smooth activations and once hid a decoder
+    precision that moved a trained model's joints by centimetres (docs/performance.md)."""
+    from sarah_models.pretrained import model_path
+    from sarah_models.training.model_file import load_model_file
+
+    shipped = load_model_file(model_path("fixture-tiny"))
+    fast = optimize_for_inference(shipped, cfg.mode, decoder=cfg.decoder)
+    return stream_deviation(shipped, fast, frames=cfg.deviation_frames, seed=cfg.seed).as_dict()
+
+
 def bench_model_size(bench: SizeBench, log: Callable[[str], None]) -> dict[str, Any]:
     """Offline and streaming, optimized vs naive, and the optimized mode's deviation."""
     cfg, size, policy = bench.cfg, bench.size, bench.policy
@@ -295,6 +307,9 @@ def bench_model_size(bench: SizeBench, log: Callable[[str], None]) -> dict[str, 
     log(f"[{size}] tolerance: {cfg.mode} vs plain fp32 over {cfg.deviation_frames} frames")
     streaming["deviation"] = stream_deviation(bench.plain, bench.fast, frames=cfg.deviation_frames,
                                               seed=cfg.seed).as_dict()
+    if size == "tiny":
+        log(f"[{size}] tolerance on trained weights: {cfg.mode} vs fp32, the shipped fixture-tiny")
+        streaming["deviation_shipped"] = shipped_deviation(cfg)
     out["streaming"] = streaming
     out.update(bench.thread_figures(size, log))
     return out

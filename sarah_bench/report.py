@@ -98,6 +98,9 @@ def format_report(results: dict[str, Any]) -> str:
                              f"{_f(r['latency_ms']['p99']):>8}   {stage_text}")
             lines.append(f"  {size} ratio fast/naive {_f(row['ratio'], 2)}; "
                          f"{_deviation_text(results['config']['mode'], row['deviation'])}")
+            if "deviation_shipped" in row:
+                lines.append(f"  {size} on trained weights (the shipped fixture-tiny): " + _deviation_text(
+                    results['config']['mode'], row['deviation_shipped']))
             if row.get("calibration_ms"):
                 lines.append(f"  {size} thread calibration, chunk p50 ms by threads: " + ", ".join(
                     f"{k}: {_f(v)}" for k, v in row["calibration_ms"].items())

@@ -329,9 +329,12 @@ def test_bench_quick_runs_end_to_end(tmp_path):
     fewer = tiny_stream["fewer_steps"]
     assert fewer["steps"] == 1 and fewer["fps"] > 0
     assert fewer["deviation"]["max_joint_mm"] > 0  # fewer steps are not exact: measured, not hidden
+    shipped = tiny_stream["deviation_shipped"]  # trained weights, measured in every run
+    assert shipped["frames"] == 16 and 0.0 < shipped["max_joint_mm"] < 10.0
     assert results["prep"]["logmel"]["rtf"] > 0 and results["loader"]["workers_2"]["windows"] > 0
     goals = {g["goal"]: g for g in results["goals"]}
     assert goals["prep.logmel.rtf"]["met"] is not None
+    assert goals["streaming.tiny.deviation_shipped.max_joint_mm"]["value"] == shipped["max_joint_mm"]
     assert goals["offline.paper.fps"]["met"] is None  # the quick run has no paper-size model
     lines = history.read_text().splitlines()
     assert lines[3].startswith("| ") and "int8" in lines[3] and lines[-1] == "after the table"
