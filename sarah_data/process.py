@@ -210,4 +210,5 @@ def write_work_file(path: Path, seq: ProcessedSequence, attrs: ShardAttrs) -> No
             persons = [{**arrays, "audio": {k[len("audio/"):]: v for k, v in arrays.items()
                                             if k.startswith("audio/")}} for _, arrays in stored]
             write_moments(create_group(handle, MOMENTS_GROUP),
-                          sequence_moments(persons, sorted(attrs.extractors)))
+                          sequence_moments(persons, sorted(attrs.extractors),
+                                           joint_names=attrs.joint_names))

@@ -14,7 +14,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from sarah_data.constants import DEFAULT_SHELL_POINTS, JOINT_NAMES
+from sarah_data.constants import DEFAULT_SHELL_POINTS, JOINT_NAMES, JOINT_PARENTS
 
 ICOSAHEDRON_POINTS = 12
 POINT_WIDTH = ICOSAHEDRON_POINTS * 3  # channels per joint
@@ -79,6 +79,16 @@ class MotionLayout:
         except ValueError:
             raise KeyError(f"no joint {name!r} in this layout") from None
 
+    @property
+    def bones(self) -> tuple[tuple[int, int], ...]:
+        """(child, parent) joint indices of every joint whose SMPL-X parent is in the layout,
+        parents before children (the order forward kinematics walks)."""
+        parent_name = {name: JOINT_NAMES[p] if p >= 0 else None
+                       for name, p in zip(JOINT_NAMES, JOINT_PARENTS)}
+        pairs = [(i, self.joint_names.index(parent_name[n])) for i, n in enumerate(self.joint_names)
+                 if parent_name.get(n) in self.joint_names]
+        return tuple(sorted(pairs, key=lambda pair: _depth(self.joint_names[pair[0]], parent_name)))
+
     def joint_slice(self, name: str) -> slice:
         """The channels of ``name``'s icosahedron in a motion vector."""
         start = self.joint(name) * POINT_WIDTH
@@ -103,3 +113,17 @@ class MotionLayout:
         import torch
 
         return torch.stack(points, dim=-2)
+
+
+def _depth(name: str, parent_name: dict) -> int:
+    depth = 0
+    while parent_name.get(name) is not None:
+        name, depth = parent_name[name], depth + 1
+    return depth
+
+
+def bone_lengths(joint_positions, bones: Sequence[tuple[int, int]]) -> np.ndarray:
+    """(..., J, 3) joint positions -> (..., len(bones)) lengths of the (child, parent) bones."""
+    p = np.asarray(joint_positions, dtype=np.float64)
+    child, parent = (np.array(side, dtype=np.int64) for side in zip(*bones))
+    return np.linalg.norm(p[..., child, :] - p[..., parent, :], axis=-1)

@@ -2,7 +2,9 @@
 
 Per channel mean and standard deviation of what models see: the flattened window-normalized
 agent motion (the Dataset's `motion`), the window-normalized user head trajectory, and each audio
-extractor's features. Computed from the train split only, over every frame where both persons are
+extractor's features; and of every bone's length (`bone_length`, metres, in
+`MotionLayout.bones` order), the skeleton a rigid decoding holds generated bones to
+(`sarah_models.sampling.rigid_skeleton`). Computed from the train split only, over every frame where both persons are
 tracked (the frames training windows are drawn from):
 
 - sequences in name order, each person as agent in turn (the partner as user);
@@ -23,15 +25,16 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import h5py
 import numpy as np
 
-from sarah_data.constants import READABLE_SCHEMA_VERSIONS, SHARD_SCHEMA_VERSION
+from sarah_data.constants import JOINT_NAMES, READABLE_SCHEMA_VERSIONS, SHARD_SCHEMA_VERSION
 from sarah_data.moments import Moments
 from sarah_data.dataset import DEFAULT_WINDOW, normalize_window, tracked_runs
+from sarah_data.skeleton import MotionLayout, bone_lengths
 from sarah_data.shards import (MANIFEST_NAME, STATS_NAME, ShardError, ShardSet, atomic_h5, create_dataset,
                                create_group, read_manifest)
 
@@ -41,13 +44,15 @@ STD_EPSILON = 1e-4  # metres for motion and head; feature units for audio
 STATS_SPLIT = "train"
 
 
-def sequence_moments(persons: list[Mapping], extractors: list[str], window: int = DEFAULT_WINDOW
-                     ) -> dict[str, Moments]:
+def sequence_moments(persons: list[Mapping], extractors: list[str], window: int = DEFAULT_WINDOW,
+                     joint_names: Sequence[str] = JOINT_NAMES) -> dict[str, Moments]:
     """One sequence's contribution to the statistics: `persons` are its two persons' arrays
     (`icosahedra`, `shell`, `head`, `valid`, `root_position`, `root_rotation`, and `audio`, a
-    mapping extractor -> (T, D)), as numpy arrays or h5py datasets."""
-    moments = {"motion": Moments(), "user_head": Moments()}
+    mapping extractor -> (T, D)), as numpy arrays or h5py datasets; `joint_names` those of the
+    icosahedra (the shards' attribute)."""
+    moments = {"motion": Moments(), "user_head": Moments(), "bone_length": Moments()}
     moments.update({f"audio/{name}": Moments() for name in extractors})
+    bones = MotionLayout(tuple(joint_names)).bones
     runs = tracked_runs(np.logical_and(*(np.asarray(p["valid"][()], bool) for p in persons)))
     for agent, user in ((persons[0], persons[1]), (persons[1], persons[0])):
         for run_start, run_stop in runs:
@@ -58,6 +63,9 @@ def sequence_moments(persons: list[Mapping], extractors: list[str], window: int 
                     agent["root_position"][start], agent["root_rotation"][start])
                 moments["motion"].add(motion)
                 moments["user_head"].add(head)
+            if bones:
+                joints = np.asarray(agent["icosahedra"][run_start:run_stop], np.float64).mean(axis=-2)
+                moments["bone_length"].add(bone_lengths(joints, bones))
             audio = agent.get("audio", {})
             for extractor in extractors:
                 if extractor in audio:
@@ -67,7 +75,7 @@ def sequence_moments(persons: list[Mapping], extractors: list[str], window: int 
 
 def merge_moments(parts: list[dict[str, Moments]], extractors: list[str]) -> dict[str, Moments]:
     """The sequences' moments combined in the order given (prep and compute_stats: name order)."""
-    total = {"motion": Moments(), "user_head": Moments()}
+    total = {"motion": Moments(), "user_head": Moments(), "bone_length": Moments()}
     total.update({f"audio/{name}": Moments() for name in extractors})
     for part in parts:
         for key, value in part.items():
@@ -101,7 +109,8 @@ def compute_stats(shards_dir: Path | str, window: int = DEFAULT_WINDOW,
     try:
         extractors = sorted(shards.attrs.extractors) if shards.manifest.shards else []
         names = shards.sequences(STATS_SPLIT)
-        parts = [sequence_moments(_persons(shards.group(name)), extractors, window) for name in names]
+        parts = [sequence_moments(_persons(shards.group(name)), extractors, window,
+                                  shards.attrs.joint_names) for name in names]
     finally:
         shards.close()
     return write_stats(shards_dir, merge_moments(parts, extractors), len(names), window, epsilon)
@@ -147,7 +156,8 @@ def write_stats(shards_dir: Path | str, moments: dict[str, Moments], sequences: 
 
 def load_stats(shards_dir: Path | str) -> dict[str, np.ndarray]:
     """`{"motion/mean", "motion/std", "user_head/mean", "user_head/std",
-    "audio/<extractor>/mean", "audio/<extractor>/std"}` -> float32 (D,) arrays."""
+    "audio/<extractor>/mean", "audio/<extractor>/std", "bone_length/mean", "bone_length/std"}`
+    -> float32 (D,) arrays (no bone lengths in files written before they were added)."""
     path = Path(shards_dir) / STATS_NAME
     if not path.is_file():
         raise ShardError(path, "no normalization statistics (run sarah-prep, which writes them)")

@@ -398,7 +398,7 @@ def test_dataloader_workers_return_the_same_items(folder):
 
 
 def brute_force_stats(sequences, window):
-    motions, heads, audio = [], [], []
+    motions, heads, audio, bones = [], [], [], []
     for seq in sorted((s for s in sequences if s.split == "train"), key=lambda s: s.name):
         both = both_valid(seq)
         runs, start = [], None
@@ -418,8 +418,11 @@ def brute_force_stats(sequences, window):
                     heads.append(tf.apply_floor(user.head[s:e]))
             if agent.audio:
                 audio.append(agent.audio["logmel"][both])
+            joints = agent.icosahedra[both].mean(axis=-2)  # pelvis, left hip, right hip
+            bones.append(np.linalg.norm(joints[:, 1:] - joints[:, :1], axis=-1))
     out = {}
-    for key, parts in (("motion", motions), ("user_head", heads), ("audio/logmel", audio)):
+    for key, parts in (("motion", motions), ("user_head", heads), ("audio/logmel", audio),
+                       ("bone_length", bones)):
         x = np.concatenate(parts).astype(np.float64)
         out[f"{key}/mean"], out[f"{key}/std"] = x.mean(0), x.std(0)
     return out
@@ -432,7 +435,8 @@ def test_stats_match_the_documented_procedure(tmp_path):
     write_folder(tmp_path, sequences)
     stats = compute_stats(tmp_path, window=W, epsilon=1e-4)
     assert stats.keys() == {"motion/mean", "motion/std", "user_head/mean", "user_head/std",
-                            "audio/logmel/mean", "audio/logmel/std"}
+                            "audio/logmel/mean", "audio/logmel/std", "bone_length/mean",
+                            "bone_length/std"}
     assert stats["motion/mean"].shape == (J * 36 + V * 3,) and stats["user_head/std"].shape == (2,)
     expected = brute_force_stats(sequences, W)
     for key, value in expected.items():

@@ -3,7 +3,10 @@
 Keys used by the models: ``motion`` (Dx), ``user_head`` (2), ``audio`` (Da, shared by agent and
 user audio unless ``agent_audio``/``user_audio`` have their own) and, after the VAE stage,
 ``latent`` (Dz: the frozen encoder's latents, standardized so the flow starts from N(0, I)).
-The gaze score is in [-1, 1] already and is not standardized.
+The gaze score is in [-1, 1] already and is not standardized. ``bone_length`` (the training
+split's mean length of every bone, ``MotionLayout.bones`` order) standardizes nothing: it travels
+here, with the other statistics of the training data, for the rigid decoding
+(``sampling.rigid_skeleton``).
 """
 
 from __future__ import annotations

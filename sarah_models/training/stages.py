@@ -81,7 +81,8 @@ def load_data(shards_dir: str | Path, config: TrainConfig,
 def model_stats(raw: Mapping[str, Any], features: str,
                 source: str | Path = "stats.h5") -> dict[str, tuple]:
     """stats.h5's ``motion/mean``, ``user_head/std``, ``audio/<features>/mean`` ... as the
-    Normalizer's {"motion", "user_head", "audio"} -> (mean, std)."""
+    Normalizer's {"motion", "user_head", "audio"} -> (mean, std), and "bone_length" where the
+    shards' statistics have it."""
     out = {}
     for key, prefix in (("motion", "motion"), ("user_head", "user_head"),
                         ("audio", f"audio/{features}")):
@@ -90,6 +91,8 @@ def model_stats(raw: Mapping[str, Any], features: str,
             raise ValueError(f"{source}: no statistics {prefix}/mean and /std (has {have}); "
                              f"were the shards prepared with the {features!r} extractor?")
         out[key] = (raw[f"{prefix}/mean"], raw[f"{prefix}/std"])
+    if "bone_length/mean" in raw:  # the skeleton a rigid decoding holds bones to
+        out["bone_length"] = (raw["bone_length/mean"], raw["bone_length/std"])
     return out
 
 
@@ -156,7 +159,8 @@ def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
 
 # Fields a fine-tune may change: they shape the loss or the decoding, not the weights.
 LOSS_FIELDS = {"vae": ("beta", "velocity_weight", "contact_weight", "head_weight", "latent_noise",
-                       "recon_units", "boundary_inertia", "root_inertia"),
+                       "recon_units", "boundary_inertia", "root_inertia", "rigid_bones",
+                       "foot_lock"),
                "flow": ("drop_prob", "min_denominator")}
 
 
@@ -247,6 +251,8 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
         elif source is not None:
             _check_compatible(source, "vae", config, dims, tcfg.audio_features)
             normalizer = Normalizer.from_state_dict(source["normalizer"])
+            if "bone_length" in stats and "bone_length" not in normalizer.keys:
+                normalizer.set("bone_length", *stats["bone_length"])  # the shards' skeleton
         else:
             normalizer = Normalizer(stats)
         vae, _ = build_models(config, dims)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from sarah_data.constants import JOINT_PARENTS
+from sarah_data.skeleton import bone_lengths
 
 from .spec import Metric
 
@@ -19,9 +20,8 @@ BODY_JOINTS = 22  # pelvis .. right wrist: the SMPL-X body; fingers and eyes are
 
 def bone_length_error(joint_positions, percentile: float = 95.0) -> float:
     """The ``percentile`` of |length / median length - 1| over frames and body bones, in %."""
-    p = np.asarray(joint_positions, dtype=np.float64)
-    children = [j for j in range(1, BODY_JOINTS) if JOINT_PARENTS[j] >= 0]
-    lengths = np.linalg.norm(p[:, children] - p[:, [JOINT_PARENTS[j] for j in children]], axis=-1)
+    lengths = bone_lengths(joint_positions, [(j, JOINT_PARENTS[j]) for j in range(1, BODY_JOINTS)
+                                             if JOINT_PARENTS[j] >= 0])
     median = np.median(lengths, axis=0)
     keep = median > 1e-6
     relative = np.abs(lengths[:, keep] / median[keep] - 1.0)
