@@ -11,7 +11,7 @@ from sarah_models.config import StreamConfig
 from sarah_models.nn.flow import FlowModel
 from sarah_models.nn.normalizer import Normalizer
 from sarah_models.nn.vae import CausalVAE
-from sarah_models.sampling.continuity import decoder_inertia
+from sarah_models.sampling.decoding import stream_decoding
 from sarah_models.sampling.guidance import drop_masks, guided
 from sarah_models.sampling.path import velocity_from_x1
 from sarah_models.sampling.solver import imputer, integrate, token_noise
@@ -40,7 +40,7 @@ class NaiveStreamer:
         self._inputs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._latents: list[torch.Tensor] = []  # final latents of every block so far
         self._noise: list[torch.Tensor] = []
-        self._inertia = decoder_inertia(self.vae)
+        self._decoding = stream_decoding(self.vae, self.normalizer)
 
     def _window(self, items: list) -> list:
         keep = self.config.history_tokens
@@ -77,7 +77,7 @@ class NaiveStreamer:
         context = self._latents if cfg.decoder_blocks is None else self._latents[-cfg.decoder_blocks:]
         latents = nz.denormalize("latent", torch.stack(context))[None]
         motion = self.vae.decode(latents)[0, -self.stride:]
-        out = self._inertia(nz.denormalize("motion", motion).double().numpy()).astype(np.float32)
+        out = self._decoding(nz.denormalize("motion", motion).double().numpy()).astype(np.float32)
         if timings is not None:
             timings["flow"] = timings.get("flow", 0.0) + solved - tick
             timings["decode"] = timings.get("decode", 0.0) + time.perf_counter() - solved

@@ -27,7 +27,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="what to train; flow needs OUT/vae.pt; model trains nothing: it "
                              "writes OUT/model.safetensors from --init-from's weights with the "
                              "decoding settings given by --set (vae.boundary_inertia, "
-                             "vae.root_inertia)")
+                             "vae.root_inertia, vae.rigid_bones, vae.foot_lock; with --shards, "
+                             "the skeleton of their training split when the model has none)")
     parser.add_argument("--config", choices=PRESETS, default="paper",
                         help="model and training preset: paper sizes, or tiny for CPU runs")
     parser.add_argument("--shards", type=Path, default=None,
@@ -136,6 +137,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def write_model(args: argparse.Namespace) -> int:
     """--stage model: a model file from another run's weights, with other decoding settings."""
+    from sarah_data.loading import DataProblem
     from sarah_models.training.model_file import MODEL_FILE, write_model_file
 
     if args.init_from is None:
@@ -146,8 +148,8 @@ def write_model(args: argparse.Namespace) -> int:
     if source.is_dir():
         source = source / "flow.pt" if (source / "flow.pt").is_file() else source / MODEL_FILE
     try:
-        model = write_model_file(source, Path(args.out) / MODEL_FILE, args.overrides)
-    except (ValueError, FileNotFoundError, OSError) as exc:
+        model = write_model_file(source, Path(args.out) / MODEL_FILE, args.overrides, args.shards)
+    except (DataProblem, ValueError, FileNotFoundError, OSError) as exc:
         print(f"sarah-train: error: {exc}", file=sys.stderr)
         return EXIT_ERROR
     print(f"model file (for sarah-generate and sharing; loads without pickle): {model}")

@@ -110,12 +110,21 @@ class VAEConfig:
     # Not in the paper: the root's seams are jumps of the whole body, and a slower spring there
     # leaves the pose's own motion alone (docs/results.md, sixteenth run).
     root_inertia: float | None = None
+    # Not in the paper (False = the paper): decode onto a rigid skeleton, every bone at the
+    # training data's length along its decoded direction (``sampling.rigid_skeleton``); the
+    # decoder alone stretches bones by ~30 % (docs/results.md, seventeenth run).
+    rigid_bones: bool = False
+    # Not in the paper (0 = off): lock planted feet, stepping when the decoded foot has moved
+    # this many metres away (``sampling.foot_lock``); decoded feet glide and jitter.
+    foot_lock: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("boundary_inertia", "root_inertia"):
             value = getattr(self, name)
             if value is not None and not 0.0 <= value < 1.0:
                 raise ValueError(f"VAEConfig.{name} must be in [0, 1), got {value}")
+        if self.foot_lock < 0:
+            raise ValueError(f"VAEConfig.foot_lock (metres) must be >= 0, got {self.foot_lock}")
         if self.recon_units not in RECON_UNITS:
             raise ValueError(f"VAEConfig.recon_units must be one of {RECON_UNITS}, got "
                              f"{self.recon_units!r}")

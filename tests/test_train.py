@@ -709,5 +709,36 @@ def test_stage_model_rewrites_decoding_settings_and_nothing_else(tmp_path, capsy
                 assert after["config"][section][key] == value, (section, key)
     assert main(["--stage", "model", "--init-from", str(source), "--out", str(tmp_path / "no"),
                  "--set", "vae.hidden=64"]) == 2
-    assert "only decoding settings (vae.boundary_inertia, vae.root_inertia)" in capsys.readouterr().err
+    assert ("only decoding settings (vae.boundary_inertia, vae.root_inertia, vae.rigid_bones, "
+            "vae.foot_lock)") in capsys.readouterr().err
     assert not (tmp_path / "no").exists()
+
+
+def test_stage_model_takes_the_skeleton_of_shards_for_a_rigid_decoding(prepared_shards, tmp_path,
+                                                                       capsys):
+    """A model trained before stats.h5 had bone lengths: asked to decode onto a rigid skeleton
+    it says where to get one, and --shards gives it that of their training split."""
+    from safetensors.torch import load_file, save_file
+    from safetensors import safe_open
+
+    from sarah_cli.train import main
+    from sarah_data.stats import load_stats
+    from sarah_models.pretrained import model_path
+    from sarah_models.training.model_file import read_model_file
+
+    old = tmp_path / "old.safetensors"  # the shipped model without its skeleton
+    with safe_open(str(model_path("fixture-tiny")), framework="pt") as handle:
+        metadata = handle.metadata()
+    tensors = {k: v for k, v in load_file(str(model_path("fixture-tiny"))).items()
+               if not k.startswith("normalizer.bone_length")}
+    save_file(tensors, str(old), metadata=metadata)
+    assert main(["--stage", "model", "--init-from", str(old), "--out", str(tmp_path / "no"),
+                 "--set", "vae.rigid_bones=true"]) == 2
+    assert "--stage model --init-from MODEL --shards SHARDS" in capsys.readouterr().err
+    assert not (tmp_path / "no").exists()
+    assert main(["--stage", "model", "--init-from", str(old), "--out", str(tmp_path / "yes"),
+                 "--shards", str(prepared_shards), "--set", "vae.rigid_bones=true"]) == 0
+    written = read_model_file(tmp_path / "yes" / "model.safetensors")
+    assert written["config"]["vae"]["rigid_bones"] is True
+    np.testing.assert_array_equal(written["normalizer"]["bone_length_mean"].numpy(),
+                                  load_stats(prepared_shards)["bone_length/mean"])

@@ -205,9 +205,9 @@ def _model_producer(models, config: EvalConfig, gaze: float | None):
 
 def _vae_producer(models):
     """The run's VAE reconstructing the ground truth (encoder mean, then decoder, decoded the way
-    the generators decode: ``vae.boundary_inertia``, ``vae.root_inertia``): the best any flow sample can decode to,
+    the generators decode: ``sampling.decoding``): the best any flow sample can decode to,
     which separates the VAE's error from the flow's."""
-    from ..sampling.continuity import decoder_inertia
+    from ..sampling.decoding import stream_decoding
 
     device = next(models.vae.parameters()).device
     nz, vae = models.normalizer, models.vae
@@ -215,8 +215,7 @@ def _vae_producer(models):
     def produce(item: dict, index: int) -> np.ndarray:
         mu, _ = vae.encode(nz.normalize("motion", item["motion"].to(device))[None])
         motion = nz.denormalize("motion", vae.decode(mu)[0]).double().cpu().numpy()
-        inertia = decoder_inertia(vae)
-        return inertia(motion).astype(np.float32)
+        return stream_decoding(vae, nz)(motion).astype(np.float32)
 
     return produce
 

@@ -25,9 +25,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from sarah_data.skeleton import ROOT, MotionLayout
-
-
 class SeamInertia:
     """Causal filter of one stream's decoded motion; call it on whole blocks, in order.
 
@@ -96,10 +93,3 @@ class SeamInertia:
         return ((x0 - x_root) * position + (v0 - v_root) * velocity
                 + x_root * root_position + v_root * root_velocity)
 
-
-def decoder_inertia(vae) -> SeamInertia:
-    """A new stream's seam filter for this VAE's output, as its config asks
-    (``vae.boundary_inertia``, ``vae.root_inertia``)."""
-    channels = MotionLayout.from_width(vae.motion_dim).joint_slice(ROOT)
-    return SeamInertia(vae.stride, vae.config.boundary_inertia, vae.config.root_inertia,
-                       slice(channels.start // 3, channels.stop // 3))

@@ -38,7 +38,7 @@ from ..config import StreamConfig, check_gaze
 from ..nn.flow import FlowModel
 from ..nn.normalizer import Normalizer
 from ..nn.vae import CausalVAE
-from .continuity import SeamInertia, decoder_inertia
+from .decoding import StreamDecoding, stream_decoding
 from .guidance import combine, drop_masks
 from .path import velocity_from_x1
 from .solver import imputer, integrate, token_noise
@@ -115,14 +115,14 @@ class _Models:
         batch = {k: v.expand(masks.shape[0], -1, -1) for k, v in cond.items()}
         return self.flow.encode_condition(batch, masks, first_token=first_token)
 
-    def inertia(self) -> SeamInertia:
-        """A new stream's seam filter (the VAE config's ``boundary_inertia``, ``root_inertia``)."""
-        return decoder_inertia(self.vae)
+    def decoding(self) -> StreamDecoding:
+        """A new stream's decoding (seams, skeleton, feet: as the VAE config asks)."""
+        return stream_decoding(self.vae, self.normalizer)
 
-    def to_world(self, motion: Tensor, inertia: SeamInertia) -> np.ndarray:
+    def to_world(self, motion: Tensor, decoding: StreamDecoding) -> np.ndarray:
         """Standardized decoder output, the stream's next T frames (T, Dx) -> world-frame motion
-        vector (T, Dx) float32, through the stream's ``inertia``."""
-        x = inertia(self.normalizer.denormalize("motion", motion).double().cpu().numpy())
+        vector (T, Dx) float32, through the stream's ``decoding``."""
+        x = decoding(self.normalizer.denormalize("motion", motion).double().cpu().numpy())
         points = self.anchor.invert_points(x.reshape(x.shape[0], -1, 3))
         return points.reshape(x.shape).astype(np.float32)
 
@@ -171,7 +171,7 @@ class StreamingGenerator:
         window = None if keep is None else keep + 1
         self._cond: deque[Tensor] = deque(maxlen=window)  # per block (2, 1, hidden), padded
         self._decoder = self._m.vae.new_decoder_cache(cfg.decoder_blocks)
-        self._inertia = self._m.inertia()
+        self._decoding = self._m.decoding()
         self.frames_generated = 0
 
     def set_gaze(self, gaze: float | None) -> None:
@@ -200,7 +200,7 @@ class StreamingGenerator:
         self._noise.append(eps)
         frames = m.vae.decoder_step(m.latent_for_decoder(z)[None], self._decoder)[0]
         self.frames_generated += m.stride
-        return m.to_world(frames, self._inertia)
+        return m.to_world(frames, self._decoding)
 
 
 @torch.inference_mode()
@@ -219,7 +219,7 @@ def generate_offline(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer,
     noise = torch.stack([token_noise(generator, flow.latent_dim)
                          for _ in range(t // m.stride)]).to(m.device)
     z = solve(flow, m.cond_tokens(cond, config.gaze), noise, None, config)
-    return m.to_world(vae.decode(m.latent_for_decoder(z)[None])[0], m.inertia())
+    return m.to_world(vae.decode(m.latent_for_decoder(z)[None])[0], m.decoding())
 
 
 class StreamingSession:

@@ -37,12 +37,14 @@ PARTS = ("vae", "flow", "normalizer")
 
 # Config fields that change how a model decodes, not its weights: a model file may be written
 # again with other values, nothing trained (``sarah-train --stage model``).
-DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia")}
+DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "rigid_bones", "foot_lock")}
 
 
-def write_model_file(source: str | Path, out: str | Path, decoding: Sequence[str] = ()) -> Path:
+def write_model_file(source: str | Path, out: str | Path, decoding: Sequence[str] = (),
+                     shards: str | Path | None = None) -> Path:
     """``out`` (a .safetensors path) from a flow-stage checkpoint or another model file, written
-    atomically; ``decoding`` ("vae.boundary_inertia=0.8", ...) sets DECODING_FIELDS."""
+    atomically; ``decoding`` ("vae.boundary_inertia=0.8", ...) sets DECODING_FIELDS; ``shards``
+    gives a model without the training data's bone lengths those of its training split."""
     source = Path(source)
     data = read_weights(source)
     if data["stage"] != "flow":
@@ -56,6 +58,12 @@ def write_model_file(source: str | Path, out: str | Path, decoding: Sequence[str
                 raise ValueError(f"--set {text!r}: only decoding settings ({', '.join(allowed)}) "
                                  f"change without training; train a stage to change the others")
         config = RunConfig.from_dict(config).with_overrides(decoding).to_dict()
+    if shards is not None and "bone_length_mean" not in data["normalizer"]:
+        data["normalizer"] = {**data["normalizer"], **skeleton_statistics(shards)}
+    if config["vae"].get("rigid_bones") or config["vae"].get("foot_lock"):
+        from ..sampling.decoding import skeleton_lengths
+
+        skeleton_lengths(Normalizer.from_state_dict(data["normalizer"]))  # ValueError if none
     tensors = {f"{part}.{name}": value.contiguous()
                for part in PARTS for name, value in data[part].items()}
     metadata = {"format": FORMAT, "version": VERSION, "stage": "flow", "step": str(int(data["step"])),
@@ -65,6 +73,18 @@ def write_model_file(source: str | Path, out: str | Path, decoding: Sequence[str
     with atomic_path(out) as tmp:
         tmp.write_bytes(_sorted_metadata(save(tensors, metadata=metadata)))
     return out
+
+
+def skeleton_statistics(shards: str | Path) -> dict[str, torch.Tensor]:
+    """The normalizer's ``bone_length`` buffers from a shards folder's statistics; stats.h5
+    written before they were added is computed again from the shards (same numbers otherwise)."""
+    from sarah_data.stats import compute_stats, load_stats
+
+    stats = load_stats(shards)
+    if "bone_length/mean" not in stats:
+        stats = compute_stats(shards)
+    norm = Normalizer({"bone_length": (stats["bone_length/mean"], stats["bone_length/std"])})
+    return {name: value.clone() for name, value in norm.state_dict().items()}
 
 
 def _sorted_metadata(data: bytes) -> bytes:

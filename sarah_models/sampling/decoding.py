@@ -1,0 +1,61 @@
+"""What a stream's decoded motion goes through before anyone sees it, as its VAE config asks.
+
+In order: ``SeamInertia`` (``vae.boundary_inertia``, ``vae.root_inertia``: the seams between
+latent blocks), ``RigidSkeleton`` (``vae.rigid_bones``: bones at the training data's lengths)
+and ``FootLock`` (``vae.foot_lock``: planted feet, and steps). All three are causal and off in
+the paper's config; one ``StreamDecoding`` per stream, fed its frames in order, whole blocks at a
+time; streaming, the offline protocol and sarah-eval's VAE row all decode through it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sarah_data.skeleton import ROOT, MotionLayout
+
+from .continuity import SeamInertia
+from .foot_lock import FootLock
+from .rigid_skeleton import RigidSkeleton
+
+
+class StreamDecoding:
+    """The chain of one stream's filters; ``(n, Dx)`` metres in, the same frames out."""
+
+    def __init__(self, filters: list) -> None:
+        self.filters = filters
+
+    def reset(self) -> None:
+        for f in self.filters:
+            f.reset()
+
+    def __call__(self, motion: np.ndarray) -> np.ndarray:
+        for f in self.filters:
+            motion = f(motion)
+        return motion
+
+
+def skeleton_lengths(normalizer) -> np.ndarray:
+    """The training data's bone lengths the model carries (metres, ``MotionLayout.bones``
+    order); ValueError when it carries none."""
+    if normalizer is None or "bone_length" not in normalizer.keys:
+        raise ValueError("vae.rigid_bones and vae.foot_lock need the training data's bone "
+                         "lengths, and this model carries none (trained on shards prepared "
+                         "before stats.h5 had them): write it again with `sarah-train --stage "
+                         "model --init-from MODEL --shards SHARDS`")
+    return normalizer.bone_length_mean.detach().double().cpu().numpy()
+
+
+def stream_decoding(vae, normalizer) -> StreamDecoding:
+    """A new stream's decoding for this VAE's output (its normalizer carries the skeleton)."""
+    cfg = vae.config
+    layout = MotionLayout.from_width(vae.motion_dim)
+    channels = layout.joint_slice(ROOT)
+    filters: list = [SeamInertia(vae.stride, cfg.boundary_inertia, cfg.root_inertia,
+                                 slice(channels.start // 3, channels.stop // 3))]
+    if cfg.rigid_bones or cfg.foot_lock:
+        lengths = skeleton_lengths(normalizer)
+        if cfg.rigid_bones:
+            filters.append(RigidSkeleton(layout, lengths))
+        if cfg.foot_lock:
+            filters.append(FootLock(layout, lengths, cfg.foot_lock))
+    return StreamDecoding(filters)

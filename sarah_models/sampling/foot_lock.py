@@ -1,0 +1,147 @@
+"""Foot lock: feet that stay where they were put, and step when the body has moved on.
+
+Decoded feet do not stand still. On the fixture benchmark the shipped model's feet moved more than
+3 cm/s while on the floor in 97 % of frame steps (the ground truth: none), and so did its VAE's
+reconstruction of the ground truth: the decoded feet jitter by millimetres per frame, glide with
+the body, and never lift off the floor (docs/results.md, seventeenth run). Game engines fix the
+same artefact of blended animation by locking planted feet with inverse kinematics; this module
+does that, causally, per foot:
+
+- **planted**: the foot keeps its horizontal position from the frame it was planted; its height
+  is the decoder's;
+- **step**: when the decoded foot has moved ``radius`` away from where the foot is planted, the
+  foot swings over ``SWING_FRAMES`` frames along an arc ``LIFT`` high (lifted in the first
+  frame, set down in the last two) to where the decoded foot will be when it lands (at the
+  velocity it had when the step began), plus as far again in that direction, at most half of
+  ``radius`` (the body walks into the step instead of dragging the foot behind), and is planted
+  there;
+- **free**: a decoded foot higher than ``FREE_HEIGHT`` above the floor (a raised leg) follows the
+  decoder.
+
+The leg follows the foot: the ankle moves with it and the knee is placed by two-bone inverse
+kinematics on the hip (thigh and shin at the skeleton's lengths, bending the way the decoded
+knee bends); shell points follow the joints near them (``rigid_skeleton.ShellFollow``). Run after
+``RigidSkeleton``, whose lengths it shares.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sarah_data.skeleton import MotionLayout
+
+from .rigid_skeleton import ShellFollow, finish
+
+SWING_FRAMES = 12  # a step's swing, 0.4 s at 30 fps, as people walk
+LIFT = 0.10  # m: the swing arc's height above the decoded foot
+FREE_HEIGHT = 0.12  # m: a foot higher than this is raised, not standing
+LEGS = (("left_hip", "left_knee", "left_ankle", "left_foot"),
+        ("right_hip", "right_knee", "right_ankle", "right_foot"))
+
+
+class FootLock:
+    """Causal filter of one stream's motion, in metres with y up and the floor at y = 0; call it on
+    the stream's frames in order. ``lengths`` are the skeleton's (one per ``layout.bones``)."""
+
+    def __init__(self, layout: MotionLayout, lengths, radius: float,
+                 swing_frames: int = SWING_FRAMES, lift: float = LIFT) -> None:
+        if not radius > 0:
+            raise ValueError(f"foot lock radius must be positive, got {radius}")
+        if swing_frames < 4:
+            raise ValueError(f"a step needs at least 4 swing frames, got {swing_frames}")
+        length_of = dict(zip(layout.bones, np.asarray(lengths, dtype=np.float64)))
+        self.layout, self.radius, self.swing_frames, self.lift = layout, radius, swing_frames, lift
+        self.legs = []
+        for names in LEGS:
+            hip, knee, ankle, foot = (layout.joint(n) for n in names)
+            self.legs.append((hip, knee, ankle, foot, length_of[(knee, hip)],
+                              length_of[(ankle, knee)]))
+        self.reset()
+
+    def reset(self) -> None:
+        self.shell = ShellFollow()
+        self._planted: list[np.ndarray | None] = [None] * len(self.legs)
+        # (start, frame, (velocity, beyond), placed): where the swing left, its frame, the
+        # decoded foot's velocity then, how far beyond it lands and where it is
+        self._swing: list[tuple | None] = [None] * len(self.legs)
+        self._previous: list[np.ndarray | None] = [None] * len(self.legs)  # decoded foot
+
+    def __call__(self, motion: np.ndarray) -> np.ndarray:
+        x = np.asarray(motion, dtype=np.float64)
+        icosahedra, shell = self.layout.split(x)
+        joints = icosahedra.mean(axis=-2)
+        correction = np.zeros_like(joints)
+        for t in range(len(x)):
+            for side, leg in enumerate(self.legs):
+                target = self._target(side, joints[t, leg[3]])
+                if target is not None:
+                    correction[t] += self._reach(joints[t], leg, target)
+        return finish(motion, icosahedra, shell, correction, self.shell(shell, joints, correction))
+
+    def _target(self, side: int, foot: np.ndarray) -> np.ndarray | None:
+        """Where this frame puts the foot (None: where the decoder put it); advances the state."""
+        previous, self._previous[side] = self._previous[side], foot.copy()
+        if foot[1] > FREE_HEIGHT:
+            self._planted[side] = self._swing[side] = None
+            return None
+        swing = self._swing[side]
+        if swing is not None:
+            start, frame, lead, placed = swing
+            frame += 1
+            n = self.swing_frames
+            # The foot lifts off in the first frame and is set down in the last two, vertically;
+            # in between it travels to the decoded foot plus the lead, starting and landing at
+            # rest (a smoothstep).
+            if frame < n - 1:
+                velocity, beyond = lead
+                landing = foot + velocity * (n - frame) + beyond
+                travel = min(max((frame - 1) / (n - 3), 0.0), 1.0)
+                placed = start + (landing - start) * (travel * travel * (3.0 - 2.0 * travel))
+            target = placed.copy()
+            target[1] = foot[1] + self.lift * np.sin(np.pi * frame / n)
+            if frame >= n:
+                self._swing[side], self._planted[side] = None, target.copy()
+            else:
+                self._swing[side] = (start, frame, lead, placed)
+            return target
+        planted = self._planted[side]
+        if planted is None:
+            self._planted[side] = foot.copy()
+            return None
+        target = np.array([planted[0], foot[1], planted[2]])
+        if np.hypot(*(foot - planted)[[0, 2]]) > self.radius:
+            # Step to where the decoded foot will be when the step lands, and further on in its
+            # direction (as far again, at most ``radius``), so that the body walks into the step
+            # instead of dragging the foot behind; further, the foot would be released at once.
+            velocity = (foot - (foot if previous is None else previous)) * np.array([1.0, 0.0, 1.0])
+            beyond = self.swing_frames * velocity
+            beyond *= min(1.0, 0.5 * self.radius / max(np.linalg.norm(beyond), 1e-9))
+            lead = (velocity, beyond)
+            self._planted[side], self._swing[side] = None, (target, 0, lead, target)
+        return target
+
+    def _reach(self, joints: np.ndarray, leg: tuple, foot_target: np.ndarray) -> np.ndarray:
+        """The corrections (J, 3) that put the leg's foot at ``foot_target``: ankle moved with
+        the foot, knee by two-bone IK on the hip; a target out of reach is reached for."""
+        hip, knee, ankle, foot, thigh, shin = leg
+        correction = np.zeros_like(joints)
+        ankle_target = joints[ankle] + foot_target - joints[foot]
+        reach = ankle_target - joints[hip]
+        distance = np.linalg.norm(reach)
+        longest = (thigh + shin) * (1.0 - 1e-6)
+        if distance > longest:
+            ankle_target, distance = joints[hip] + reach * (longest / distance), longest
+        if distance < 1e-9 or distance < abs(thigh - shin):
+            return correction  # a degenerate leg: leave it as decoded
+        axis = reach / np.linalg.norm(reach)
+        bend = joints[knee] - joints[hip]
+        bend -= axis * (bend @ axis)
+        if np.linalg.norm(bend) < 1e-9:  # a straight decoded leg: bend forward
+            bend = np.array([0.0, 0.0, 1.0]) - axis * axis[2]
+        bend /= np.linalg.norm(bend)
+        along = (thigh ** 2 - shin ** 2 + distance ** 2) / (2.0 * distance)
+        knee_at = joints[hip] + axis * along + bend * np.sqrt(max(thigh ** 2 - along ** 2, 0.0))
+        correction[knee] = knee_at - joints[knee]
+        correction[ankle] = ankle_target - joints[ankle]
+        correction[foot] = ankle_target - joints[ankle]
+        return correction

@@ -1,0 +1,164 @@
+"""The rigid skeleton and the foot lock (sampling.rigid_skeleton, sampling.foot_lock), the
+skeleton they read (stats.h5's bone_length) and the decoding chain that runs them."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from sarah_data.constants import JOINT
+from sarah_data.dataset import WindowDataset
+from sarah_data.skeleton import MotionLayout, bone_lengths
+from sarah_data.stats import load_stats
+from sarah_models.evaluation.metrics import foot_slide
+from sarah_models.sampling.foot_lock import FREE_HEIGHT, LIFT, SWING_FRAMES, FootLock
+from sarah_models.sampling.rigid_skeleton import RigidSkeleton
+
+FEET = [JOINT["left_foot"], JOINT["right_foot"]]
+
+
+@pytest.fixture(scope="module")
+def windows(prepared_shards):
+    return WindowDataset(prepared_shards, "train", extractor="logmel", window=60, seed=0, length=8)
+
+
+@pytest.fixture(scope="module")
+def skeleton(prepared_shards):
+    return load_stats(prepared_shards)["bone_length/mean"].astype(np.float64)
+
+
+def joints_of(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
+    return layout.split(np.asarray(motion, np.float64))[0].mean(axis=-2)
+
+
+def standing(window: dict, layout: MotionLayout) -> np.ndarray:
+    """(T, Dx): the window's first frame held still (a body standing on the floor)."""
+    motion = window["motion"].numpy().astype(np.float64)
+    return np.repeat(motion[:1], len(motion), axis=0)
+
+
+def shift_joints(motion: np.ndarray, layout: MotionLayout, shifts: np.ndarray) -> np.ndarray:
+    """Every joint's icosahedron moved by its own (T, J, 3) shift; shell points as they were."""
+    icosahedra, shell = layout.split(motion.copy())
+    icosahedra += shifts[:, :, None]
+    return np.concatenate([icosahedra.reshape(len(motion), -1), shell.reshape(len(motion), -1)], 1)
+
+
+def test_stats_carry_every_bones_training_length(prepared_shards, windows, skeleton):
+    layout = MotionLayout.from_width(windows.motion_dim)
+    assert skeleton.shape == (len(layout.bones),) == (54,)
+    truth = bone_lengths(joints_of(windows[0]["motion"].numpy(), layout), layout.bones)
+    # Fixture persons differ in height and girth by a few percent; their bones do not stretch.
+    np.testing.assert_allclose(truth.std(axis=0), 0.0, atol=1e-4)
+    assert np.all(np.abs(truth[0] / skeleton - 1.0) < 0.1)
+
+
+def test_rigid_skeleton_keeps_directions_and_puts_every_bone_at_its_length(windows, skeleton):
+    layout = MotionLayout.from_width(windows.motion_dim)
+    motion = windows[1]["motion"].numpy().astype(np.float64)
+    rng = np.random.default_rng(0)
+    noisy = shift_joints(motion, layout, rng.normal(scale=0.02, size=(len(motion), 55, 3)))
+    out = RigidSkeleton(layout, skeleton)(noisy)
+    before, after = joints_of(noisy, layout), joints_of(out, layout)
+    np.testing.assert_allclose(bone_lengths(after, layout.bones),
+                               np.broadcast_to(skeleton, (len(out), 54)), rtol=1e-9)
+    for child, parent in layout.bones:
+        a, b = before[:, child] - before[:, parent], after[:, child] - after[:, parent]
+        cosine = np.sum(a * b, -1) / np.linalg.norm(a, axis=-1) / np.linalg.norm(b, axis=-1)
+        np.testing.assert_allclose(cosine, 1.0, atol=1e-9)
+    np.testing.assert_allclose(after[:, 0], before[:, 0], atol=1e-12)  # the root stays
+    shapes = [layout.split(m)[0] - joints_of(m, layout)[:, :, None] for m in (noisy, out)]
+    np.testing.assert_allclose(shapes[0], shapes[1], atol=1e-9)  # rotations are the decoder's
+    # A body already at those lengths is left as it is, shell points included.
+    rigid = RigidSkeleton(layout, bone_lengths(joints_of(motion, layout), layout.bones)[0])
+    np.testing.assert_allclose(rigid(motion), motion, atol=1e-6)
+
+
+def test_shell_points_follow_the_joints_near_them(windows, skeleton):
+    layout = MotionLayout.from_width(windows.motion_dim)
+    motion = windows[2]["motion"].numpy().astype(np.float64)[:4]
+    lengths = bone_lengths(joints_of(motion, layout), layout.bones)[0]
+    forearm = layout.bones.index((JOINT["left_wrist"], JOINT["left_elbow"]))
+    lengths[forearm] *= 1.2  # the left hand moves out along the forearm
+    out = RigidSkeleton(layout, lengths)(motion)
+    moved = np.linalg.norm(layout.split(out)[1] - layout.split(motion)[1], axis=-1)[0]
+    shell = layout.split(motion)[1][0]
+    joints = joints_of(motion, layout)[0]
+    near_hand = np.linalg.norm(shell - joints[JOINT["left_wrist"]], axis=-1) < 0.05
+    far = np.linalg.norm(shell - joints[JOINT["left_wrist"]], axis=-1) > 0.5
+    assert near_hand.any() and far.any()
+    assert moved[near_hand].min() > 0.5 * 0.2 * lengths[forearm] / 1.2
+    assert moved[far].max() < 1e-6
+
+
+def test_a_planted_foot_stays_put_while_the_decoder_jitters_and_the_leg_keeps_its_bones(windows, skeleton):
+    layout = MotionLayout.from_width(windows.motion_dim)
+    body = standing(windows[3], layout)
+    lengths = bone_lengths(joints_of(body, layout), layout.bones)[0]
+    rng = np.random.default_rng(1)
+    shifts = np.zeros((len(body), 55, 3))
+    for foot in FEET:  # foot and ankle jitter by millimetres, horizontally
+        jitter = rng.normal(scale=0.004, size=(len(body), 3)) * [1, 0, 1]
+        shifts[:, foot] = shifts[:, foot - 3] = jitter
+    decoded = shift_joints(body, layout, shifts)
+    assert foot_slide(joints_of(decoded, layout)) > 0.5
+    rigid = RigidSkeleton(layout, lengths)(decoded)  # as the decoding chains them
+    out = FootLock(layout, lengths, radius=0.05)(rigid)
+    after = joints_of(out, layout)
+    assert foot_slide(after) == 0.0
+    legs = [layout.bones.index((JOINT[child], JOINT[parent])) for parent, child in
+            (("left_hip", "left_knee"), ("left_knee", "left_ankle"),
+             ("right_hip", "right_knee"), ("right_knee", "right_ankle"))]
+    np.testing.assert_allclose(bone_lengths(after, layout.bones)[:, legs],
+                               np.broadcast_to(lengths[legs], (len(out), 4)), rtol=1e-9)
+
+
+def test_a_gliding_body_steps_and_a_stream_gets_the_frames_at_once_gets(windows, skeleton):
+    layout = MotionLayout.from_width(windows.motion_dim)
+    body = standing(windows[4], layout)
+    frames = len(body)
+    glide = np.zeros((frames, layout.width // 3, 3))
+    glide[:, :, 0] = 0.5 / 30 * np.arange(frames)[:, None]  # 0.5 m/s along x, feet dragged along
+    decoded = body + glide.reshape(frames, -1)
+    lengths = bone_lengths(joints_of(body, layout), layout.bones)[0]
+    lock = FootLock(layout, lengths, radius=0.1)
+    out = lock(decoded)
+    feet, dragged = joints_of(out, layout)[:, FEET], joints_of(decoded, layout)[:, FEET]
+    assert foot_slide(joints_of(decoded, layout)) == 1.0
+    assert foot_slide(joints_of(out, layout)) < 0.15
+    speed = np.linalg.norm(np.diff(feet[..., [0, 2]], axis=0), axis=-1) * 30
+    assert np.mean(speed < 1e-6) > 0.4  # planted (or lifted and set down) half of the time...
+    moving = speed > 1e-6
+    assert np.all(np.sum(moving[1:] & ~moving[:-1], axis=0) >= 2)  # ...and walking: steps
+    assert np.all((feet[..., 1] - dragged[..., 1]).max(axis=0) > 0.9 * LIFT)  # lifted to step
+    assert np.all(np.abs(feet[..., 0] - dragged[..., 0]) < 0.1 + 0.5 / 30 * 3 * SWING_FRAMES)
+    lock.reset()
+    blocks = np.concatenate([lock(decoded[i:i + 4]) for i in range(0, frames, 4)])
+    np.testing.assert_array_equal(blocks, out)
+
+
+def test_a_raised_foot_is_left_to_the_decoder(windows, skeleton):
+    layout = MotionLayout.from_width(windows.motion_dim)
+    body = standing(windows[5], layout)
+    shifts = np.zeros((len(body), 55, 3))
+    shifts[:, FEET[0], 1] = shifts[:, FEET[0] - 3, 1] = FREE_HEIGHT + 0.1
+    shifts[:, FEET[0], 0] = np.linspace(0, 0.3, len(body))  # swinging a raised leg
+    raised = shift_joints(body, layout, shifts)
+    out = FootLock(layout, bone_lengths(joints_of(body, layout), layout.bones)[0], 0.05)(raised)
+    np.testing.assert_allclose(joints_of(out, layout)[:, FEET[0]],
+                               joints_of(raised, layout)[:, FEET[0]], atol=1e-12)
+
+
+def test_the_decoding_needs_a_skeleton_and_says_where_to_get_one():
+    from sarah_models.sampling.decoding import stream_decoding
+    from sarah_models.testing import random_models
+
+    vae, _, normalizer = random_models("tiny")
+    vae.config = dataclasses.replace(vae.config, rigid_bones=True)
+    with pytest.raises(ValueError, match="--stage model --init-from MODEL --shards SHARDS"):
+        stream_decoding(vae, normalizer)
+    normalizer.set("bone_length", np.full(54, 0.1), np.zeros(54))
+    decoding = stream_decoding(vae, normalizer)
+    assert [type(f).__name__ for f in decoding.filters] == ["SeamInertia", "RigidSkeleton"]
