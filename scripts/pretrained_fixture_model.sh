@@ -5,7 +5,7 @@
 #   scripts/pretrained_fixture_model.sh [WORK_DIR]          (default: pretrained/)
 #
 # These are the exact commands, seeds and settings that made the shipped file, in the order they
-# ran (docs/results.md: the eleventh to the sixteenth run; ~125 min of training on a 2-core AMD
+# ran (docs/results.md: the eleventh to the seventeenth run; ~125 min of training on a 2-core AMD
 # EPYC). Each stage is skipped once its folder has a
 # .done marker, so an interrupted run resumes at the stage it stopped in (that stage starts
 # over). Every training step is seeded (train.seed 0, the default): the same code on the same
@@ -88,12 +88,15 @@ OMP_NUM_THREADS=1 train run15b vae "${W400[@]}" "${HEAD[@]}" "${NO_CONTACT[@]}" 
   --set train.checkpoint_every=100
 train run15b flow "${W400[@]}" "${HEAD[@]}" "${NO_CONTACT[@]}" --init-from "$WORK/run14/flow.pt" \
   --set flow.attention_window=3 --set train.flow_steps=400 --set train.checkpoint_every=200
-# The shipped model (sixteenth run): the fifteenth run's weights, bit for bit, written again
-# to decode with seam inertia (every decoded point continues across the seam between latent
-# blocks: the pose's spring at 0.7, the root's at 0.9, docs/models.md); nothing is trained.
+# The shipped model (sixteenth and seventeenth runs): the fifteenth run's weights, bit for bit,
+# written again to decode with seam inertia (every decoded point continues across the seam
+# between latent blocks: the pose's spring at 0.7, the root's at 0.9) and onto a rigid skeleton
+# (every bone at the training split's length: stats.h5's bone_length, which --shards adds to a
+# model trained before prep wrote it), docs/models.md; nothing is trained.
 if [ ! -f "$WORK/fixture-tiny/model.done" ]; then
   $PYTHON -m sarah_cli.train --stage model --init-from "$WORK/run15b" --out "$WORK/fixture-tiny" \
-    --set vae.boundary_inertia=0.7 --set vae.root_inertia=0.9
+    --shards "$WORK/shards" --set vae.boundary_inertia=0.7 --set vae.root_inertia=0.9 \
+    --set vae.rigid_bones=true
   touch "$WORK/fixture-tiny/model.done"
 fi
 

@@ -33,7 +33,7 @@ MODELS = {model.name: model for model in (
     Pretrained(
         name="fixture-tiny",
         file="fixture-tiny.safetensors",
-        sha256="036e7c4478536312ab260086ee3656eac531851536345cf081fd206cb0e77e84",
+        sha256="b2a29e617496e8329bccc48135cd12e4f7cbd3e20234e1596f84813654d2bad5",
         script="scripts/pretrained_fixture_model.sh",
         fixture_seed=0,
         about="the tiny preset trained on 40 dyad-minutes of fixture dyads for about 125 "

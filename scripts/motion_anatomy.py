@@ -1,0 +1,164 @@
+"""Where a model's motion differs from the ground truth's: root against pose, which joints carry
+the acceleration, how far the body travels, whether the feet step (docs/results.md, seventeenth
+run). Streams the model (as sarah-eval's model row, g = none) on every 400-frame window of a
+split and prints four tables:
+
+    python scripts/motion_anatomy.py --pretrained fixture-tiny --shards test_shards --split train
+
+1. FGD (pooled), FGD_acc and foot slide of hybrids: the ground truth's pose on the model's root
+   trajectory, and the model's pose on the ground truth's root; what each part costs;
+2. the shell's acceleration energy per frame and its share by nearest body joint;
+3. the root's path per window and its speed;
+4. the feet: height percentiles, steps per window and foot, frames per step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from sarah_data.constants import FPS, JOINT_NAMES
+from sarah_data.skeleton import FEET, ROOT, MotionLayout
+from sarah_models.evaluation.metrics import evaluate, foot_slide
+from sarah_models.evaluation.metrics.spec import FOOT_MAX_HEIGHT, FOOT_MIN_SPEED, MetricsConfig
+from sarah_models.evaluation.tables import MethodResult
+from sarah_models.evaluation.windows import motion_clip
+
+BODY = 22  # SMPL-X body joints: shell points are put on the nearest of these
+
+
+def streamed_windows(model: str, shards: Path, split: str, threads: int):
+    """(ground truth, model motion, user head) of every window, streamed as sarah-eval does."""
+    import torch
+
+    from sarah_data.dataset import WindowDataset
+    from sarah_models.evaluation.runner import EvalConfig, _model_producer
+    from sarah_models.generation.run import load_run
+
+    torch.set_num_threads(threads)
+    models, _ = load_run(model, None, device="cpu", need_flow=True)
+    windows = WindowDataset.sliding(shards, split, extractor=models.features, window=400)
+    produce = _model_producer(models, EvalConfig(), None)
+    out = []
+    with torch.inference_mode():
+        for i in range(len(windows)):
+            item = windows[i]
+            out.append((item["motion"].numpy().astype(np.float64),
+                        produce(item, i).astype(np.float64), item["user_head"].numpy()))
+    return out
+
+
+def with_root(pose_of: np.ndarray, root_of: np.ndarray, layout: MotionLayout) -> np.ndarray:
+    """Every point of ``pose_of`` moved so that its root follows ``root_of``'s."""
+    root = lambda m: layout.joint_positions(m, [ROOT])[:, 0]  # noqa: E731
+    points = pose_of.reshape(len(pose_of), -1, 3) - root(pose_of)[:, None] + root(root_of)[:, None]
+    return points.reshape(pose_of.shape)
+
+
+def hybrids(clips, layout: MotionLayout) -> None:
+    print("| clips | pooled FGD (÷10) | FGD_acc (÷1e5) | foot slide |\n|---|---|---|---|")
+    gt = [motion_clip(g, u) for g, _, u in clips]
+    for label, make in (("model", lambda g, m: m),
+                        ("ground truth's pose on the model's root", lambda g, m: with_root(g, m, layout)),
+                        ("model's pose on the ground truth's root", lambda g, m: with_root(m, g, layout))):
+        table = evaluate([motion_clip(make(g, m), u) for g, m, u in clips], gt,
+                         np.zeros(len(clips), bool), config=MetricsConfig(normalize_window=False))
+        shown = MethodResult(label, label, True, None, table, None, False).shown()
+
+        def cell(name: str, decimals: int) -> str:
+            return (f"{shown[name + '/avg']:,.{decimals}f} ({shown[name + '/low']:,.{decimals}f}-"
+                    f"{shown[name + '/high']:,.{decimals}f})")
+
+        print(f"| {label} | {shown['fgd/pooled']:,.0f} | {cell('fgd_acc', 0)} | "
+              f"{cell('foot_slide', 2)} |")
+
+def energy(clips, layout: MotionLayout) -> None:
+    print("\n| motion | shell acceleration energy per frame, (m/s²)² | largest shares by nearest joint |"
+          "\n|---|---|---|")
+    for label, index in (("ground truth", 0), ("model", 1)):
+        total, by_joint = [], np.zeros(BODY)
+        for clip in clips:
+            motion = clip[index]
+            icosahedra, shell = layout.split(motion)
+            a = (shell[2:] - 2 * shell[1:-1] + shell[:-2]) * FPS ** 2
+            e = np.sum(a ** 2, axis=-1)  # (T-2, P)
+            total.append(e.sum(axis=1).mean())
+            joints = icosahedra[0].mean(axis=-2)[:BODY]
+            nearest = np.argmin(np.sum((shell[0][:, None] - joints[None]) ** 2, -1), axis=1)
+            by_joint += np.bincount(nearest, weights=e.mean(axis=0), minlength=BODY)
+        top = np.argsort(by_joint)[::-1][:4]
+        shares = ", ".join(f"{JOINT_NAMES[j]} {by_joint[j] / by_joint.sum():.2f}" for j in top)
+        print(f"| {label} | {np.mean(total):,.0f} | {shares} |")
+
+
+def travel(clips, layout: MotionLayout) -> None:
+    print("\n| motion | root path per window, m | root speed p10 / p50 / p90, m/s |\n|---|---|---|")
+    for label, index in (("ground truth", 0), ("model", 1)):
+        paths, speeds = [], []
+        for clip in clips:
+            root = layout.joint_positions(clip[index], [ROOT])[:, 0, [0, 2]]
+            speed = np.linalg.norm(np.diff(root, axis=0), axis=-1) * FPS
+            paths.append(speed.sum() / FPS)
+            speeds.append(speed)
+        p = np.percentile(np.concatenate(speeds), [10, 50, 90])
+        print(f"| {label} | {np.mean(paths):.2f} | {p[0]:.3f} / {p[1]:.3f} / {p[2]:.3f} |")
+
+
+def feet(clips, layout: MotionLayout) -> None:
+    print("\n| motion | foot height p5 / p50 / p95, cm | steps per window and foot | frames per step "
+          "(median) | foot slide |\n|---|---|---|---|---|")
+    for label, index in (("ground truth", 0), ("model", 1)):
+        heights, steps, lengths, slides = [], [], [], []
+        for clip in clips:
+            p = layout.joint_positions(clip[index], list(FEET))
+            heights.append(p[..., 1].ravel())
+            moving = np.linalg.norm(np.diff(p[..., [0, 2]], axis=0), axis=-1) * FPS > FOOT_MIN_SPEED
+            for side in range(p.shape[1]):
+                edges = np.flatnonzero(np.diff(np.concatenate([[0], moving[:, side], [0]])))
+                steps.append(len(edges) // 2)
+                lengths += list(edges[1::2] - edges[0::2])
+            slides.append(foot_slide(layout.joint_positions(clip[index])))
+        h = np.percentile(np.concatenate(heights), [5, 50, 95]) * 100
+        print(f"| {label} | {h[0]:.1f} / {h[1]:.1f} / {h[2]:.1f} | {np.mean(steps):.1f} | "
+              f"{np.median(lengths) if lengths else 0:.0f} | {np.mean(slides):.2f} |")
+    print(f"\n(a foot steps while it moves faster than {FOOT_MIN_SPEED * 100:g} cm/s; it slides "
+          f"when it does so below {FOOT_MAX_HEIGHT * 100:g} cm)")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--run", help="a run folder or model file")
+    source.add_argument("--pretrained", help="a shipped model, e.g. fixture-tiny")
+    parser.add_argument("--shards", type=Path, required=True, help="shards folder (sarah-prep)")
+    parser.add_argument("--split", default="test", help="split whose 400-frame windows are streamed")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    args = parser.parse_args(argv)
+    if args.pretrained:
+        from sarah_models.pretrained import model_path
+
+        try:
+            model = str(model_path(args.pretrained))
+        except ValueError as exc:
+            parser.error(str(exc))
+    else:
+        model = args.run
+    clips = streamed_windows(model, args.shards, args.split, args.threads)
+    if not clips:
+        print(f"{args.shards}: split {args.split!r} has no 400-frame windows", file=sys.stderr)
+        return 2
+    layout = MotionLayout.from_width(clips[0][0].shape[1])
+    print(f"{len(clips)} windows of split {args.split!r} in {args.shards}, streamed, g = none\n")
+    hybrids(clips, layout)
+    energy(clips, layout)
+    travel(clips, layout)
+    feet(clips, layout)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
