@@ -64,11 +64,21 @@ def test_rigid_skeleton_keeps_directions_and_puts_every_bone_at_its_length(windo
     before, after = joints_of(noisy, layout), joints_of(out, layout)
     np.testing.assert_allclose(bone_lengths(after, layout.bones),
                                np.broadcast_to(skeleton, (len(out), 54)), rtol=1e-9)
-    for child, parent in layout.bones:
+    legs = {(JOINT[child], JOINT[parent]) for side in ("left", "right")
+            for parent, child in ((f"{side}_hip", f"{side}_knee"), (f"{side}_knee", f"{side}_ankle"))}
+    for child, parent in set(layout.bones) - legs:
         a, b = before[:, child] - before[:, parent], after[:, child] - after[:, parent]
         cosine = np.sum(a * b, -1) / np.linalg.norm(a, axis=-1) / np.linalg.norm(b, axis=-1)
         np.testing.assert_allclose(cosine, 1.0, atol=1e-9)
     np.testing.assert_allclose(after[:, 0], before[:, 0], atol=1e-12)  # the root stays
+    # The ankles stay where the decoder put them (the feet on the floor), the knees bending.
+    for ankle, knee, hip in ((7, 4, 1), (8, 5, 2)):
+        reach = np.linalg.norm(before[:, ankle] - after[:, hip], axis=-1)
+        longest = (skeleton[layout.bones.index((knee, hip))]
+                   + skeleton[layout.bones.index((ankle, knee))])
+        within = reach < 0.999 * longest
+        assert within.mean() > 0.3  # a standing leg is nearly straight
+        np.testing.assert_allclose(after[within, ankle], before[within, ankle], atol=1e-9)
     shapes = [layout.split(m)[0] - joints_of(m, layout)[:, :, None] for m in (noisy, out)]
     np.testing.assert_allclose(shapes[0], shapes[1], atol=1e-9)  # rotations are the decoder's
     # A body already at those lengths is left as it is, shell points included.

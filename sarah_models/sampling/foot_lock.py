@@ -30,13 +30,11 @@ import numpy as np
 
 from sarah_data.skeleton import MotionLayout
 
-from .rigid_skeleton import ShellFollow, finish
+from .rigid_skeleton import LEGS, ShellFollow, finish, two_bone_ik
 
 SWING_FRAMES = 12  # a step's swing, 0.4 s at 30 fps, as people walk
 LIFT = 0.10  # m: the swing arc's height above the decoded foot
 FREE_HEIGHT = 0.12  # m: a foot higher than this is raised, not standing
-LEGS = (("left_hip", "left_knee", "left_ankle", "left_foot"),
-        ("right_hip", "right_knee", "right_ankle", "right_foot"))
 
 
 class FootLock:
@@ -125,23 +123,8 @@ class FootLock:
         the foot, knee by two-bone IK on the hip; a target out of reach is reached for."""
         hip, knee, ankle, foot, thigh, shin = leg
         correction = np.zeros_like(joints)
-        ankle_target = joints[ankle] + foot_target - joints[foot]
-        reach = ankle_target - joints[hip]
-        distance = np.linalg.norm(reach)
-        longest = (thigh + shin) * (1.0 - 1e-6)
-        if distance > longest:
-            ankle_target, distance = joints[hip] + reach * (longest / distance), longest
-        if distance < 1e-9 or distance < abs(thigh - shin):
-            return correction  # a degenerate leg: leave it as decoded
-        axis = reach / np.linalg.norm(reach)
-        bend = joints[knee] - joints[hip]
-        bend -= axis * (bend @ axis)
-        if np.linalg.norm(bend) < 1e-9:  # a straight decoded leg: bend forward
-            bend = np.array([0.0, 0.0, 1.0]) - axis * axis[2]
-        bend /= np.linalg.norm(bend)
-        along = (thigh ** 2 - shin ** 2 + distance ** 2) / (2.0 * distance)
-        knee_at = joints[hip] + axis * along + bend * np.sqrt(max(thigh ** 2 - along ** 2, 0.0))
+        knee_at, ankle_at = two_bone_ik(joints[hip], joints[knee],
+                                        joints[ankle] + foot_target - joints[foot], thigh, shin)
         correction[knee] = knee_at - joints[knee]
-        correction[ankle] = ankle_target - joints[ankle]
-        correction[foot] = ankle_target - joints[ankle]
+        correction[ankle] = correction[foot] = ankle_at - joints[ankle]
         return correction

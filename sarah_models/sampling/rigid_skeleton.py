@@ -8,7 +8,9 @@ sees (docs/results.md, seventeenth run). ``RigidSkeleton`` keeps what the decode
 the pose, each bone's direction, and takes each bone's length from the training data's skeleton
 (``stats.h5``'s ``bone_length``): walking the skeleton from the root, every joint is placed at
 its parent's corrected position plus the bone's length along its decoded direction, and its
-icosahedron moves with it (its rotation is the decoder's). Shell points follow the joints near
+icosahedron moves with it (its rotation is the decoder's). The legs are the exception: their
+ankles stay where the decoder put them, as far as the legs reach (two-bone inverse kinematics
+on the hips, bending the way the decoded knees bend), so that feet stay on the floor. Shell points follow the joints near
 them (``ShellFollow``): each moves by a blend of the joints' corrections, weighted by a Gaussian
 of its distance to each (``shell_radius``) in the stream's first frame, the way skinning weights
 fall off.
@@ -23,6 +25,30 @@ import numpy as np
 from sarah_data.skeleton import MotionLayout
 
 SHELL_RADIUS = 0.05  # m: a shell point follows the joints within a few centimetres of it
+LEGS = (("left_hip", "left_knee", "left_ankle", "left_foot"),
+        ("right_hip", "right_knee", "right_ankle", "right_foot"))
+
+
+def two_bone_ik(root: np.ndarray, middle: np.ndarray, target: np.ndarray, upper: float,
+                lower: float) -> tuple[np.ndarray, np.ndarray]:
+    """(..., 3) root (a hip), the decoded middle joint (a knee: which way the limb bends) and the
+    end's target (an ankle) -> (middle, end) with the limb's bones at ``upper`` and ``lower``
+    metres; a target out of reach is reached for along the root-target line."""
+    reach = target - root
+    distance = np.linalg.norm(reach, axis=-1, keepdims=True)
+    clamped = np.clip(distance, abs(upper - lower) + 1e-6, (upper + lower) * (1.0 - 1e-6))
+    axis = np.divide(reach, distance, out=np.zeros_like(reach), where=distance > 1e-9)
+    axis[distance[..., 0] <= 1e-9] = (0.0, -1.0, 0.0)  # the target on the root: straight down
+    end = root + axis * clamped
+    bend = middle - root
+    bend -= axis * np.sum(bend * axis, axis=-1, keepdims=True)
+    norm = np.linalg.norm(bend, axis=-1, keepdims=True)
+    forward = np.array([0.0, 0.0, 1.0]) - axis * axis[..., 2:3]  # a straight limb bends forward
+    bend = np.where(norm > 1e-9, bend / np.maximum(norm, 1e-12),
+                    forward / np.maximum(np.linalg.norm(forward, axis=-1, keepdims=True), 1e-12))
+    along = (upper ** 2 - lower ** 2 + clamped ** 2) / (2.0 * clamped)
+    middle_at = root + axis * along + bend * np.sqrt(np.maximum(upper ** 2 - along ** 2, 0.0))
+    return middle_at, end
 
 
 class RigidSkeleton:
@@ -47,6 +73,13 @@ class RigidSkeleton:
             rows = [i for i, (child, _) in enumerate(layout.bones) if depth[child] == level]
             bones = np.array([layout.bones[i] for i in rows])
             self._levels.append((bones[:, 0], bones[:, 1], lengths[rows, None]))
+        length_of = dict(zip(layout.bones, lengths))
+        self.legs = []
+        if all(name in layout.joint_names for leg in LEGS for name in leg):
+            for names in LEGS:
+                hip, knee, ankle, foot = (layout.joint(n) for n in names)
+                self.legs.append((hip, knee, ankle, foot, length_of[(knee, hip)],
+                                  length_of[(ankle, knee)], length_of[(foot, ankle)]))
         self.shell = ShellFollow(shell_radius)
 
     def reset(self) -> None:
@@ -63,6 +96,16 @@ class RigidSkeleton:
             # A bone the decoder collapsed to a point has no direction to keep: leave it.
             scale = np.divide(length, norm, out=np.ones_like(norm), where=norm > 1e-9)
             placed[:, child] = placed[:, parent] + direction * scale
+        # The feet stay where the decoder put them, as far as the legs reach: the skeleton's legs
+        # are longer or shorter than the decoded ones, and lengthened from the hips down the feet
+        # went through the floor.
+        for hip, knee, ankle, foot, thigh, shin, foot_bone in self.legs:
+            placed[:, knee], placed[:, ankle] = two_bone_ik(placed[:, hip], joints[:, knee],
+                                                            joints[:, ankle], thigh, shin)
+            direction = joints[:, foot] - joints[:, ankle]
+            norm = np.linalg.norm(direction, axis=-1, keepdims=True)
+            scale = np.divide(foot_bone, norm, out=np.ones_like(norm), where=norm > 1e-9)
+            placed[:, foot] = placed[:, ankle] + direction * scale
         correction = placed - joints
         return finish(motion, icosahedra, shell, correction, self.shell(shell, joints, correction))
 
