@@ -33,7 +33,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="model and training preset: paper sizes, or tiny for CPU runs")
     parser.add_argument("--shards", type=Path, default=None,
                         help="shards folder written by sarah-prep (with stats.h5); every stage "
-                             "but model needs it")
+                             "but model needs it (model: the skeleton of their training split, "
+                             "for a model that has none)")
     parser.add_argument("--out", type=Path, required=True, help="run folder, e.g. runs/NAME")
     parser.add_argument("--resume", action="store_true",
                         help="continue from OUT/<stage>.pt (exactly: same data order and noise)")
