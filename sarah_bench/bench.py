@@ -43,7 +43,7 @@ from sarah_models.accel import (
 from sarah_models.accel.threads import ThreadPolicy, stream_probe
 from sarah_models.config import STRIDE, StreamConfig
 from sarah_models.sampling.stream import StreamingGenerator, StreamingSession, generate_offline
-from sarah_models.testing import random_models, stream_deviation, synthetic_inputs
+from sarah_models.testing import random_models, stream_deviation, synthetic_inputs, without_foot_lock
 
 from .config import CHUNK_FRAMES, BenchConfig
 from .data import bench_hubert_windows, bench_loader, bench_prep, write_random_hubert
@@ -273,7 +273,7 @@ def shipped_deviation(cfg: BenchConfig) -> dict[str, Any]:
     from sarah_models.pretrained import model_path
     from sarah_models.training.model_file import load_model_file
 
-    shipped = load_model_file(model_path("fixture-tiny"))
+    shipped = without_foot_lock(load_model_file(model_path("fixture-tiny")))
     fast = optimize_for_inference(shipped, cfg.mode, decoder=cfg.decoder)
     return stream_deviation(shipped, fast, frames=cfg.deviation_frames, seed=cfg.seed).as_dict()
 

@@ -120,6 +120,16 @@ def generate_stream(models, inputs: tuple[np.ndarray, np.ndarray, np.ndarray],
                            for i in range(0, head.shape[0] - head.shape[0] % s, s)])
 
 
+def without_foot_lock(models):
+    """``models`` (LoadedModels) decoding without the foot lock, for precision comparisons: its
+    steps fire on thresholds, so a micrometre of kernel rounding can fire one a frame earlier
+    and move a foot by centimetres, which says nothing about the kernels."""
+    import dataclasses
+
+    models.vae.config = dataclasses.replace(models.vae.config, foot_lock=0.0)
+    return models
+
+
 def stream_deviation(reference, optimized, frames: int = 64, seed: int = 0,
                      config: StreamConfig = StreamConfig(),
                      inputs: tuple[np.ndarray, ...] | None = None,

@@ -33,7 +33,7 @@ from sarah_models.config import RunConfig, StreamConfig
 from sarah_models.nn.layers import KVCache, RopeAngles
 from sarah_models.sampling.solver import time_grid
 from sarah_models.sampling.stream import StreamingGenerator
-from sarah_models.testing import random_models, stream_deviation, stream_inputs
+from sarah_models.testing import random_models, stream_deviation, stream_inputs, without_foot_lock
 from sarah_models.training.checkpoint import LoadedModels
 
 AUDIO_DIM = 8
@@ -204,7 +204,7 @@ def shipped():
     from sarah_models.pretrained import model_path
     from sarah_models.training.model_file import load_model_file
 
-    return load_model_file(model_path("fixture-tiny"))
+    return without_foot_lock(load_model_file(model_path("fixture-tiny")))
 
 
 @pytest.mark.skipif(not packed_linears_available(), reason="this torch has no oneDNN linear")
