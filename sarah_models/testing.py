@@ -121,9 +121,9 @@ def generate_stream(models, inputs: tuple[np.ndarray, np.ndarray, np.ndarray],
 
 
 def without_foot_lock(models):
-    """``models`` (LoadedModels) decoding without the foot lock, for precision comparisons: its
-    steps fire on thresholds, so a micrometre of kernel rounding can fire one a frame earlier
-    and move a foot by centimetres, which says nothing about the kernels."""
+    """``models`` (LoadedModels, changed in place) decoding without the foot lock, for precision
+    comparisons: its steps fire on thresholds, so a micrometre of kernel rounding can fire one a
+    frame earlier and move a foot by centimetres, which says nothing about the kernels."""
     import dataclasses
 
     models.vae.config = dataclasses.replace(models.vae.config, foot_lock=0.0)

@@ -30,7 +30,7 @@ import numpy as np
 
 from sarah_data.skeleton import MotionLayout
 
-from .rigid_skeleton import LEGS, ShellFollow, finish, two_bone_ik
+from .rigid_skeleton import ShellFollow, finish, legs, two_bone_ik
 
 SWING_FRAMES = 12  # a step's swing, 0.4 s at 30 fps, as people walk
 LIFT = 0.10  # m: the swing arc's height above the decoded foot
@@ -47,13 +47,10 @@ class FootLock:
             raise ValueError(f"foot lock radius must be positive, got {radius}")
         if swing_frames < 4:
             raise ValueError(f"a step needs at least 4 swing frames, got {swing_frames}")
-        length_of = dict(zip(layout.bones, np.asarray(lengths, dtype=np.float64)))
         self.layout, self.radius, self.swing_frames, self.lift = layout, radius, swing_frames, lift
-        self.legs = []
-        for names in LEGS:
-            hip, knee, ankle, foot = (layout.joint(n) for n in names)
-            self.legs.append((hip, knee, ankle, foot, length_of[(knee, hip)],
-                              length_of[(ankle, knee)]))
+        self.legs = legs(layout, lengths)
+        if not self.legs:
+            raise ValueError("foot lock: the motion's layout has no hips, knees, ankles and feet")
         self.reset()
 
     def reset(self) -> None:
@@ -121,7 +118,7 @@ class FootLock:
     def _reach(self, joints: np.ndarray, leg: tuple, foot_target: np.ndarray) -> np.ndarray:
         """The corrections (J, 3) that put the leg's foot at ``foot_target``: ankle moved with
         the foot, knee by two-bone IK on the hip; a target out of reach is reached for."""
-        hip, knee, ankle, foot, thigh, shin = leg
+        hip, knee, ankle, foot, thigh, shin, _ = leg
         correction = np.zeros_like(joints)
         knee_at, ankle_at = two_bone_ik(joints[hip], joints[knee],
                                         joints[ankle] + foot_target - joints[foot], thigh, shin)

@@ -10,10 +10,10 @@ the pose, each bone's direction, and takes each bone's length from the training 
 its parent's corrected position plus the bone's length along its decoded direction, and its
 icosahedron moves with it (its rotation is the decoder's). The legs are the exception: their
 ankles stay where the decoder put them, as far as the legs reach (two-bone inverse kinematics
-on the hips, bending the way the decoded knees bend), so that feet stay on the floor. Shell points follow the joints near
-them (``ShellFollow``): each moves by a blend of the joints' corrections, weighted by a Gaussian
-of its distance to each (``shell_radius``) in the stream's first frame, the way skinning weights
-fall off.
+on the hips, bending the way the decoded knees bend), so that feet stay on the floor. Shell
+points follow the joints near them (``ShellFollow``): each moves by a blend of the joints'
+corrections, weighted by a Gaussian of its distance to each (``shell_radius``) in the stream's
+first frame, the way skinning weights fall off.
 
 Causal: a stream decoded block by block and the same frames at once agree exactly.
 """
@@ -27,6 +27,20 @@ from sarah_data.skeleton import MotionLayout
 SHELL_RADIUS = 0.05  # m: a shell point follows the joints within a few centimetres of it
 LEGS = (("left_hip", "left_knee", "left_ankle", "left_foot"),
         ("right_hip", "right_knee", "right_ankle", "right_foot"))
+
+
+def legs(layout: MotionLayout, lengths) -> list[tuple]:
+    """Each leg's (hip, knee, ankle, foot) joint indices and its (thigh, shin, foot) bone lengths
+    from ``lengths`` (one per ``layout.bones``); none when the layout lacks a leg joint."""
+    if not all(name in layout.joint_names for leg in LEGS for name in leg):
+        return []
+    length_of = dict(zip(layout.bones, np.asarray(lengths, dtype=np.float64)))
+    out = []
+    for names in LEGS:
+        hip, knee, ankle, foot = (layout.joint(n) for n in names)
+        out.append((hip, knee, ankle, foot, length_of[(knee, hip)], length_of[(ankle, knee)],
+                    length_of[(foot, ankle)]))
+    return out
 
 
 def two_bone_ik(root: np.ndarray, middle: np.ndarray, target: np.ndarray, upper: float,
@@ -73,13 +87,7 @@ class RigidSkeleton:
             rows = [i for i, (child, _) in enumerate(layout.bones) if depth[child] == level]
             bones = np.array([layout.bones[i] for i in rows])
             self._levels.append((bones[:, 0], bones[:, 1], lengths[rows, None]))
-        length_of = dict(zip(layout.bones, lengths))
-        self.legs = []
-        if all(name in layout.joint_names for leg in LEGS for name in leg):
-            for names in LEGS:
-                hip, knee, ankle, foot = (layout.joint(n) for n in names)
-                self.legs.append((hip, knee, ankle, foot, length_of[(knee, hip)],
-                                  length_of[(ankle, knee)], length_of[(foot, ankle)]))
+        self.legs = legs(layout, lengths)
         self.shell = ShellFollow(shell_radius)
 
     def reset(self) -> None:
