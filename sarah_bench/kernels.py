@@ -72,6 +72,7 @@ def decoder_kernels(shapes: list[tuple[int, int]], rows: int = DECODER_ROWS, see
     table = {"fp32, F.linear (MKL)": run(linears), "bf16, F.linear": run([BF16Linear(m) for m in linears])}
     if packed_linears_available():
         table["fp32, oneDNN-packed"] = run([PackedLinear(m) for m in linears])
+    if packed_linears_available(torch.bfloat16):
         table["bf16, oneDNN-packed"] = run([PackedLinear(m, torch.bfloat16) for m in linears])
     return table
 

@@ -141,7 +141,8 @@ def test_int8_mode_swaps_modules_and_keeps_the_reference_forwards(models):
 # oneDNN's linear over prepacked weights (what inductor's freezing uses; no public call has it).
 TORCH_PRIVATE = {"sarah_data/dataset.py": ("_new_shared",),
                  "sarah_data/features/hubert.py": ("_path",),
-                 "sarah_models/accel/cpu.py": ("_reorder_linear_weight", "_linear_pointwise")}
+                 "sarah_models/accel/cpu.py": ("_reorder_linear_weight", "_linear_pointwise",
+                                                 "_is_mkldnn_bf16_supported")}
 
 
 def _python_files(folder: Path) -> list[Path]:

@@ -24,9 +24,9 @@ def cpu_vendor() -> str:
 def has_cpu_feature(name: str) -> bool:
     """torch's own detection of an instruction set ("amx_tile", "avx512_bf16", ...).
 
-    This and ``onednn_linear_ops`` are the only places that read private torch helpers
-    (``torch.cpu._is_<name>_supported``, checked against torch 2.14.1); a torch without one
-    answers False."""
+    This, ``onednn_linear_ops`` and ``onednn_bf16_available`` are the only places that read
+    private torch helpers (``torch.cpu._is_<name>_supported``, checked against torch 2.14.1); a
+    torch without one answers False."""
     import torch.cpu
 
     return bool(getattr(torch.cpu, f"_is_{name}_supported", lambda: False)())
@@ -48,6 +48,19 @@ def onednn_linear_ops():
         return torch.ops.mkldnn._reorder_linear_weight, torch.ops.mkldnn._linear_pointwise
     except (AttributeError, RuntimeError):
         return None
+
+
+def onednn_bf16_available() -> bool:
+    """Whether oneDNN computes bfloat16 on this CPU (AVX-512 BF16, or AVX-NE-CONVERT): an
+    AVX2-only CPU refuses to pack bf16 weights ("bf16 path needs the cpu support ..."). Private
+    (``torch.ops.mkldnn._is_mkldnn_bf16_supported``, checked against torch 2.14.1), read here
+    only; a torch without it answers False."""
+    import torch
+
+    try:
+        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
 
 
 def int8_full_range() -> bool:

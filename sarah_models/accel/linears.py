@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .cpu import int8_full_range, onednn_linear_ops
+from .cpu import int8_full_range, onednn_bf16_available, onednn_linear_ops
 
 
 class Int8Linear(nn.Module):
@@ -97,6 +97,9 @@ class PackedLinear(nn.Module):
                                "which this torch does not have")
         if dtype not in (torch.float32, torch.bfloat16):
             raise ValueError(f"PackedLinear computes in float32 or bfloat16, not {dtype}")
+        if not packed_linears_available(dtype):
+            raise RuntimeError("oneDNN packs bfloat16 weights only on a CPU with AVX-512 BF16 or "
+                               "AVX-NE-CONVERT; use BF16Linear on this one")
         reorder, self._op = ops
         self.in_features, self.out_features, self.dtype = linear.in_features, linear.out_features, dtype
         weight = linear.weight.detach().cpu().to(dtype).contiguous()
@@ -120,8 +123,13 @@ class PackedLinear(nn.Module):
                 f"{str(self.dtype).removeprefix('torch.')}, oneDNN-packed")
 
 
-def packed_linears_available() -> bool:
-    return onednn_linear_ops() is not None
+def packed_linears_available(dtype: torch.dtype = torch.float32) -> bool:
+    """Whether a ``PackedLinear`` in ``dtype`` can be built here: torch's oneDNN linear ops, and
+    for bfloat16 a CPU that oneDNN computes it on (AVX-512 BF16 or AVX-NE-CONVERT); an AVX2-only
+    CPU refuses to pack bfloat16 weights, and ``BF16Linear`` stands in."""
+    if onednn_linear_ops() is None:
+        return False
+    return dtype != torch.bfloat16 or onednn_bf16_available()
 
 
 def linear_function(module: nn.Module) -> Callable[[Tensor], Tensor]:

@@ -132,7 +132,7 @@ def swap_decoder_linears(vae: CausalVAE, precision: str, packed: bool) -> None:
     """The VAE decoder's Linears in ``precision`` ("fp32" or "bf16"), oneDNN-packed when
     ``packed`` (never int8: 2.7 mm from fp32 at paper size, over the 1 mm limit)."""
     dtype = torch.bfloat16 if precision == "bf16" else torch.float32
-    if packed:
+    if packed and packed_linears_available(dtype):
         swap_linears(vae, decoder_linears(vae), partial(PackedLinear, dtype=dtype))
     elif precision == "bf16":
         swap_linears(vae, decoder_linears(vae), BF16Linear)
@@ -198,8 +198,9 @@ def optimize_for_inference(models, mode: str = "int8", *, stream_config: StreamC
         if mode == "int8":
             swap_linears(flow, flow_block_linears(flow), Int8Linear)
         elif mode == "bf16":
+            bf16_packed = packed and packed_linears_available(torch.bfloat16)
             swap_linears(flow, flow_block_linears(flow),
-                         partial(PackedLinear, dtype=torch.bfloat16) if packed else BF16Linear)
+                         partial(PackedLinear, dtype=torch.bfloat16) if bf16_packed else BF16Linear)
         table_decoder_rope(vae, fused)
         memoize_time_path(flow, fused)
         if fused:
