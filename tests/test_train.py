@@ -299,7 +299,7 @@ def test_training_writes_run_folder_and_checkpoints_load_weights_only(tmp_path):
     latent_std = models.normalizer.latent_std
     assert latent_std.shape == (8,) and torch.all(latent_std > 0)
     torch.testing.assert_close(models.vae.state_dict()["frame_in.weight"],
-                               load_models(path).vae.state_dict()["frame_in.weight"])
+                               load_models(path, device="cpu").vae.state_dict()["frame_in.weight"])
     (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match="bad.pt"):
         load_checkpoint(tmp_path / "bad.pt")

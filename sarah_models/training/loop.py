@@ -91,6 +91,8 @@ def train_loop(objective: nn.Module, batches: Iterable[Mapping[str, Tensor]],
             now = time.perf_counter()
             record = {"step": done, **{k: float(v) / count for k, v in sums.items()}, "lr": lr,
                       "steps_per_s": count / max(now - tick, 1e-9)}
+            if device.type == "cuda":  # what a batch size costs on this card, for sizing runs
+                record["cuda_peak_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
             records.append(record)
             if log is not None:
                 log.append(record)
