@@ -117,14 +117,19 @@ class VAEConfig:
     # Not in the paper (0 = off): lock planted feet, stepping when the decoded foot has moved
     # this many metres away (``sampling.foot_lock``); decoded feet glide and jitter.
     foot_lock: float = 0.0
+    # Not in the paper (0 = off): the body holds its place on the floor until the decoded pelvis
+    # has moved this many metres away, then follows (``sampling.root_hold``); the decoded
+    # pelvis wanders where people stand.
+    root_hold: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("boundary_inertia", "root_inertia"):
             value = getattr(self, name)
             if value is not None and not 0.0 <= value < 1.0:
                 raise ValueError(f"VAEConfig.{name} must be in [0, 1), got {value}")
-        if self.foot_lock < 0:
-            raise ValueError(f"VAEConfig.foot_lock (metres) must be >= 0, got {self.foot_lock}")
+        for name in ("foot_lock", "root_hold"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"VAEConfig.{name} (metres) must be >= 0, got {getattr(self, name)}")
         if self.recon_units not in RECON_UNITS:
             raise ValueError(f"VAEConfig.recon_units must be one of {RECON_UNITS}, got "
                              f"{self.recon_units!r}")

@@ -172,3 +172,45 @@ def test_the_decoding_needs_a_skeleton_and_says_where_to_get_one():
     normalizer.set("bone_length", np.full(54, 0.1), np.zeros(54))
     decoding = stream_decoding(vae, normalizer)
     assert [type(f).__name__ for f in decoding.filters] == ["SeamInertia", "RigidSkeleton"]
+
+
+def whole_body_moved(motion: np.ndarray, path: np.ndarray) -> np.ndarray:
+    """``motion`` with every point moved on the floor by ``path`` (T, 2) in x and z."""
+    points = motion.reshape(len(motion), -1, 3).copy()
+    points[..., 0] += path[:, None, 0]
+    points[..., 2] += path[:, None, 1]
+    return points.reshape(motion.shape)
+
+
+def test_a_wandering_body_holds_its_place_and_a_walking_one_follows_smoothly(windows):
+    from sarah_data.skeleton import ROOT
+    from sarah_models.sampling.root_hold import FOLLOW, RootHold
+
+    layout = MotionLayout.from_width(windows.motion_dim)
+    body = standing(windows[0], layout)
+    root = lambda m: layout.joint_positions(m, [ROOT])[:, 0]  # noqa: E731
+    t = np.arange(len(body))
+    # wandering up to 4.2 cm away (the decoder's wander): the body stands where it started
+    wander = np.stack([0.03 * np.sin(t / 3.0), 0.015 * (np.cos(t / 5.0) - 1.0)], axis=-1)
+    out = RootHold(layout, radius=0.05)(whole_body_moved(body, wander))
+    np.testing.assert_allclose(root(out), root(body), atol=1e-12)
+    np.testing.assert_allclose(out, body, atol=1e-12)  # pose and heights as decoded
+    # walking at 1 m/s from frame 10 after standing: it follows at a bounded lag, without a jump
+    speed, radius = 1.0 / 30, 0.05
+    walk = np.stack([np.clip(t - 10, 0, None) * speed, np.zeros(len(t))], axis=-1)
+    walking = whole_body_moved(body, walk)
+    out = RootHold(layout, radius=radius)(walking)
+    lag = np.linalg.norm((root(walking) - root(out))[:, [0, 2]], axis=-1)
+    steady = radius + speed * (1 - FOLLOW) / FOLLOW
+    assert lag.max() <= steady + 1e-9
+    assert abs(lag[-1] - steady) < 0.002  # walking on at the decoded pace
+    velocity = np.diff(root(out)[:, 0])
+    assert np.abs(np.diff(velocity)).max() < 0.25 * speed  # it starts walking smoothly
+    np.testing.assert_allclose(out[:, 1::3], walking[:, 1::3])  # every height as decoded
+    # causal: a stream fed in chunks gets the frames it gets at once
+    hold = RootHold(layout, radius=radius)
+    chunks = np.concatenate([hold(walking[i:i + 4]) for i in range(0, len(walking), 4)])
+    np.testing.assert_array_equal(chunks, out)
+    with pytest.raises(ValueError, match="radius"):
+        RootHold(layout, radius=0.0)
+

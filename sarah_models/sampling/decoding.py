@@ -1,8 +1,9 @@
 """What a stream's decoded motion goes through before anyone sees it, as its VAE config asks.
 
 In order: ``SeamInertia`` (``vae.boundary_inertia``, ``vae.root_inertia``: the seams between
-latent blocks), ``RigidSkeleton`` (``vae.rigid_bones``: bones at the training data's lengths)
-and ``FootLock`` (``vae.foot_lock``: planted feet, and steps). All three are causal and off in
+latent blocks), ``RootHold`` (``vae.root_hold``: a body that stands still until the decoder
+walks it), ``RigidSkeleton`` (``vae.rigid_bones``: bones at the training data's lengths) and
+``FootLock`` (``vae.foot_lock``: planted feet, and steps). All four are causal and off in
 the paper's config; one ``StreamDecoding`` per stream, fed its frames in order, whole blocks at a
 time; streaming, the offline protocol and sarah-eval's VAE row all decode through it.
 """
@@ -16,6 +17,7 @@ from sarah_data.skeleton import ROOT, MotionLayout
 from .continuity import SeamInertia
 from .foot_lock import FootLock
 from .rigid_skeleton import RigidSkeleton
+from .root_hold import RootHold
 
 
 class StreamDecoding:
@@ -52,6 +54,8 @@ def stream_decoding(vae, normalizer) -> StreamDecoding:
     channels = layout.joint_slice(ROOT)
     filters: list = [SeamInertia(vae.stride, cfg.boundary_inertia, cfg.root_inertia,
                                  slice(channels.start // 3, channels.stop // 3))]
+    if cfg.root_hold:
+        filters.append(RootHold(layout, cfg.root_hold))
     if cfg.rigid_bones or cfg.foot_lock:
         lengths = skeleton_lengths(normalizer)
         if cfg.rigid_bones:

@@ -37,7 +37,8 @@ PARTS = ("vae", "flow", "normalizer")
 
 # Config fields that change how a model decodes, not its weights: a model file may be written
 # again with other values, nothing trained (``sarah-train --stage model``).
-DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "rigid_bones", "foot_lock")}
+DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "rigid_bones", "foot_lock",
+                           "root_hold")}
 
 
 def write_model_file(source: str | Path, out: str | Path, decoding: Sequence[str] = (),

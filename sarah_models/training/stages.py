@@ -160,7 +160,7 @@ def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
 # Fields a fine-tune may change: they shape the loss or the decoding, not the weights.
 LOSS_FIELDS = {"vae": ("beta", "velocity_weight", "contact_weight", "head_weight", "latent_noise",
                        "recon_units", "boundary_inertia", "root_inertia", "rigid_bones",
-                       "foot_lock"),
+                       "foot_lock", "root_hold"),
                "flow": ("drop_prob", "min_denominator")}
 
 

@@ -1,0 +1,58 @@
+"""Root hold: a body that stands where it stands until the decoder really moves it.
+
+People in conversation mostly stand: they shift their weight and turn, and walk now and then.
+The decoded body does not stand still. On the fixture benchmark the shipped model's streamed
+pelvis moved at 0.3 m/s at the median frame where the ground truth's stood (0 m/s), travelling
+2.6x the ground truth's path per window, and its VAE's reconstruction of the ground truth drifted
+the same way (0.26 m/s): the decoder's floor position wanders by a few millimetres per frame
+(docs/results.md, seventeenth and eighteenth runs). Drawn on the feet, that wander is what the
+foot lock turns into steps that the ground truth never takes.
+
+``RootHold`` moves the whole body on the floor (x and z of every point; heights stay the
+decoder's) so that its pelvis holds still while the decoded pelvis stays within ``radius`` of
+it, and follows it beyond that: each frame the held position closes ``FOLLOW`` of the decoded
+pelvis's distance beyond ``radius`` -- a dead zone and a first-order lag, so the body starts and
+stops walking without a jump in velocity and walks ``radius`` plus ``v (1 - FOLLOW) / (fps
+FOLLOW)`` behind the decoded pelvis (18 cm at 1 m/s with a 5 cm radius). Causal, frame by frame, from the
+stream's first frame (where nothing is moved), so a stream decoded in chunks and the same frames
+decoded at once are the same.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sarah_data.skeleton import ROOT, MotionLayout
+
+FOLLOW = 0.2  # of the distance beyond the radius, per frame: a 1 / 0.2 = 5-frame lag
+
+
+class RootHold:
+    """Causal filter of one stream's motion, in metres with y up; call it on the stream's
+    frames in order."""
+
+    def __init__(self, layout: MotionLayout, radius: float, follow: float = FOLLOW) -> None:
+        if not radius > 0:
+            raise ValueError(f"root hold radius must be positive, got {radius}")
+        if not 0 < follow <= 1:
+            raise ValueError(f"root hold follow must be in (0, 1], got {follow}")
+        self.layout, self.radius, self.follow = layout, radius, follow
+        self.reset()
+
+    def reset(self) -> None:
+        self._held: np.ndarray | None = None  # the body's pelvis on the floor (x, z)
+
+    def __call__(self, motion: np.ndarray) -> np.ndarray:
+        x = np.asarray(motion, dtype=np.float64)
+        decoded = self.layout.joint_positions(x, [ROOT])[:, 0, [0, 2]]
+        shift = np.zeros((len(x), 3))
+        for t in range(len(x)):
+            if self._held is None:
+                self._held = decoded[t].copy()
+            away = decoded[t] - self._held
+            distance = float(np.hypot(*away))
+            if distance > self.radius:
+                self._held += away * (self.follow * (distance - self.radius) / distance)
+            shift[t, [0, 2]] = self._held - decoded[t]
+        points = x.reshape(len(x), -1, 3) + shift[:, None]
+        return points.reshape(x.shape).astype(motion.dtype)
