@@ -92,12 +92,13 @@ train run15b flow "${W400[@]}" "${HEAD[@]}" "${NO_CONTACT[@]}" --init-from "$WOR
 # written again to decode with seam inertia (every decoded point continues across the seam
 # between latent blocks: the pose's spring at 0.7, the root's at 0.9), onto a rigid skeleton
 # (every bone at the training split's length: stats.h5's bone_length, which --shards adds to a
-# model trained before prep wrote it) and with planted feet that step (the foot lock at 10 cm),
+# model trained before prep wrote it), with planted feet that step (the foot lock at 10 cm)
+# and a body that holds its place until the decoded pelvis has moved 20 cm (the eighteenth run),
 # docs/models.md; nothing is trained.
 if [ ! -f "$WORK/fixture-tiny/model.done" ]; then
   $PYTHON -m sarah_cli.train --stage model --init-from "$WORK/run15b" --out "$WORK/fixture-tiny" \
     --shards "$WORK/shards" --set vae.boundary_inertia=0.7 --set vae.root_inertia=0.9 \
-    --set vae.rigid_bones=true --set vae.foot_lock=0.1
+    --set vae.rigid_bones=true --set vae.foot_lock=0.1 --set vae.root_hold=0.2
   touch "$WORK/fixture-tiny/model.done"
 fi
 

@@ -33,7 +33,7 @@ MODELS = {model.name: model for model in (
     Pretrained(
         name="fixture-tiny",
         file="fixture-tiny.safetensors",
-        sha256="dc7eb6718518aae80a4aaea7beea044d56b69d291320822ec4a3d85c20d3ae3f",
+        sha256="36656687177f24c86d953259a299aa495bee1cd995b46dc39a028176fa369450",
         script="scripts/pretrained_fixture_model.sh",
         fixture_seed=0,
         about="the tiny preset trained on 40 dyad-minutes of fixture dyads for about 125 "
