@@ -710,7 +710,7 @@ def test_stage_model_rewrites_decoding_settings_and_nothing_else(tmp_path, capsy
     assert main(["--stage", "model", "--init-from", str(source), "--out", str(tmp_path / "no"),
                  "--set", "vae.hidden=64"]) == 2
     assert ("only decoding settings (vae.boundary_inertia, vae.root_inertia, vae.rigid_bones, "
-            "vae.foot_lock)") in capsys.readouterr().err
+            "vae.foot_lock, vae.root_hold)") in capsys.readouterr().err
     assert not (tmp_path / "no").exists()
 
 
