@@ -3,19 +3,19 @@
 People in conversation mostly stand: they shift their weight and turn, and walk now and then.
 The decoded body does not stand still. On the fixture benchmark the shipped model's streamed
 pelvis moved at 0.3 m/s at the median frame where the ground truth's stood (0 m/s), travelling
-2.6x the ground truth's path per window, and its VAE's reconstruction of the ground truth drifted
-the same way (0.26 m/s): the decoder's floor position wanders by a few millimetres per frame
-(docs/results.md, seventeenth and eighteenth runs). Drawn on the feet, that wander is what the
-foot lock turns into steps that the ground truth never takes.
+2.6x the ground truth's path per window: the decoder's floor position wanders slowly and
+widely, back and forth over tens of centimetres (docs/results.md, seventeenth and eighteenth
+runs). Drawn on the feet, that wander is what the foot lock turns into steps that the ground
+truth never takes.
 
 ``RootHold`` moves the whole body on the floor (x and z of every point; heights stay the
 decoder's) so that its pelvis holds still while the decoded pelvis stays within ``radius`` of
 it, and follows it beyond that: each frame the held position closes ``FOLLOW`` of the decoded
 pelvis's distance beyond ``radius`` -- a dead zone and a first-order lag, so the body starts and
 stops walking without a jump in velocity and walks ``radius`` plus ``v (1 - FOLLOW) / (fps
-FOLLOW)`` behind the decoded pelvis (18 cm at 1 m/s with a 5 cm radius). Causal, frame by frame, from the
-stream's first frame (where nothing is moved), so a stream decoded in chunks and the same frames
-decoded at once are the same.
+FOLLOW)`` behind the decoded pelvis (33 cm at 1 m/s with the shipped model's 20 cm radius).
+Causal, frame by frame, from the stream's first frame (where nothing is moved), so a stream
+decoded in chunks and the same frames decoded at once are the same.
 """
 
 from __future__ import annotations
