@@ -27,8 +27,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="what to train; flow needs OUT/vae.pt; model trains nothing: it "
                              "writes OUT/model.safetensors from --init-from's weights with the "
                              "decoding settings given by --set (vae.boundary_inertia, "
-                             "vae.root_inertia, vae.rigid_bones, vae.foot_lock; with --shards, "
-                             "the skeleton of their training split when the model has none)")
+                             "vae.root_inertia, vae.rigid_bones, vae.foot_lock, vae.root_hold; "
+                             "with --shards, the skeleton of their training split when the "
+                             "model has none)")
     parser.add_argument("--config", choices=PRESETS, default="paper",
                         help="model and training preset: paper sizes, or tiny for CPU runs")
     parser.add_argument("--shards", type=Path, default=None,
