@@ -9,7 +9,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_models.config import PRESETS, RunConfig
+from sarah_models.config import PRESETS, RunConfig, decoding_settings
 from sarah_cli.arguments import HelpFormatter
 
 EXIT_ERROR = 2
@@ -26,8 +26,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--stage", choices=("vae", "flow", "all", "model"), default="all",
                         help="what to train; flow needs OUT/vae.pt; model trains nothing: it "
                              "writes OUT/model.safetensors from --init-from's weights with the "
-                             "decoding settings given by --set (vae.boundary_inertia, "
-                             "vae.root_inertia, vae.rigid_bones, vae.foot_lock, vae.root_hold; "
+                             f"decoding settings given by --set ({', '.join(decoding_settings())}; "
                              "with --shards, the skeleton of their training split when the "
                              "model has none)")
     parser.add_argument("--config", choices=PRESETS, default="paper",

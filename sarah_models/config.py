@@ -186,6 +186,18 @@ class FlowConfig:
                    position_tokens=TINY_WINDOW // STRIDE, attention_window=HISTORY_TOKENS + 1)
 
 
+# Config fields that change how a model decodes, not its weights: a model file may be written
+# again with other values, nothing trained (``sarah-train --stage model``), and a fine-tune may
+# change them.
+DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "rigid_bones", "foot_lock",
+                           "root_hold")}
+
+
+def decoding_settings() -> list[str]:
+    """DECODING_FIELDS as ``section.field`` names, for messages and --help."""
+    return [f"{section}.{name}" for section, names in DECODING_FIELDS.items() for name in names]
+
+
 LR_SCHEDULES = ("constant", "linear", "cosine")
 
 

@@ -97,7 +97,7 @@ class PackedLinear(nn.Module):
                                "which this torch does not have")
         if dtype not in (torch.float32, torch.bfloat16):
             raise ValueError(f"PackedLinear computes in float32 or bfloat16, not {dtype}")
-        if not packed_linears_available(dtype):
+        if dtype == torch.bfloat16 and not onednn_bf16_available():
             raise RuntimeError("oneDNN packs bfloat16 weights only on a CPU with AVX-512 BF16 or "
                                "AVX-NE-CONVERT; use BF16Linear on this one")
         reorder, self._op = ops

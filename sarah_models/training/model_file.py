@@ -25,7 +25,7 @@ from safetensors.torch import load_file, safe_open, save
 
 from sarah_data.atomic import atomic_path
 
-from ..config import RunConfig
+from ..config import RunConfig, decoding_settings
 from ..nn.normalizer import Normalizer
 from .checkpoint import LoadedModels, build_models, load_checkpoint
 
@@ -34,11 +34,6 @@ FORMAT = "sarah-model"
 VERSION = "1"
 PARTS = ("vae", "flow", "normalizer")
 
-
-# Config fields that change how a model decodes, not its weights: a model file may be written
-# again with other values, nothing trained (``sarah-train --stage model``).
-DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "rigid_bones", "foot_lock",
-                           "root_hold")}
 
 
 def write_model_file(source: str | Path, out: str | Path, decoding: Sequence[str] = (),
@@ -53,7 +48,7 @@ def write_model_file(source: str | Path, out: str | Path, decoding: Sequence[str
                          f"the flow stage")
     config = data["config"]
     if decoding:
-        allowed = [f"{section}.{name}" for section, names in DECODING_FIELDS.items() for name in names]
+        allowed = decoding_settings()
         for text in decoding:
             if text.partition("=")[0].strip() not in allowed:
                 raise ValueError(f"--set {text!r}: only decoding settings ({', '.join(allowed)}) "

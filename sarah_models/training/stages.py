@@ -32,7 +32,7 @@ from torch.utils.data import Dataset
 
 from sarah_data.atomic import atomic_write_text
 
-from ..config import RunConfig, TrainConfig
+from ..config import DECODING_FIELDS, RunConfig, TrainConfig
 from ..nn.normalizer import Normalizer
 from .batches import EpochBatches, phased_batches
 from .checkpoint import (
@@ -159,8 +159,7 @@ def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
 
 # Fields a fine-tune may change: they shape the loss or the decoding, not the weights.
 LOSS_FIELDS = {"vae": ("beta", "velocity_weight", "contact_weight", "head_weight", "latent_noise",
-                       "recon_units", "boundary_inertia", "root_inertia", "rigid_bones",
-                       "foot_lock", "root_hold"),
+                       "recon_units", *DECODING_FIELDS["vae"]),
                "flow": ("drop_prob", "min_denominator")}
 
 
