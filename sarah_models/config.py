@@ -73,6 +73,11 @@ class VAEConfig:
     # differences. Short CPU runs leave frame-to-frame noise that a position loss barely sees
     # (docs/models.md); this term targets it directly.
     velocity_weight: float = 0.0
+    # Not in the paper (0 = the paper): the same for second differences. A position loss and a
+    # velocity loss both reward a decoder that smooths what it cannot place exactly: the
+    # fixtures' hands and steps come back with a fraction of their acceleration, and FGD_acc
+    # scores exactly that (docs/results.md, nineteenth run).
+    acceleration_weight: float = 0.0
     # Not in the paper (0 = the paper): weight of the planted-foot term, the squared error of
     # the decoded feet's horizontal step on the frames where the true foot is planted (by the
     # foot-slide metric's own thresholds), in units of that metric's slide threshold. The

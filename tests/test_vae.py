@@ -1,5 +1,7 @@
 """The causal VAE: shapes, KL, streaming decode, and that it learns."""
 
+from dataclasses import replace
+
 import pytest
 import torch
 from torch.distributions import Normal, kl_divergence
@@ -23,10 +25,11 @@ def test_shapes(vae):
     assert mu.shape == logvar.shape == (3, 8, CFG.latent_dim)
     assert vae.decode(mu).shape == x.shape
     out = vae(x, torch.Generator().manual_seed(0))
-    assert set(out) >= {"loss", "recon", "velocity", "kl", "x_hat"}
+    assert set(out) >= {"loss", "recon", "velocity", "acceleration", "kl", "x_hat"}
     assert out["x_hat"].shape == x.shape and out["loss"].dim() == 0
     torch.testing.assert_close(out["loss"], out["recon"] + CFG.beta * out["kl"]
-                               + CFG.velocity_weight * out["velocity"])
+                               + CFG.velocity_weight * out["velocity"]
+                               + CFG.acceleration_weight * out["acceleration"])
 
 
 def test_velocity_term_is_the_error_of_frame_differences():
@@ -45,6 +48,27 @@ def test_velocity_term_is_the_error_of_frame_differences():
     assert vae.loss_terms(x_hat, x - 0.5)["recon"] > out["recon"] + 0.2
     assert VAEConfig.paper().velocity_weight == 0.0  # eq. 3 of the paper has no such term
     assert VAEConfig.tiny().velocity_weight > 0
+
+
+def test_acceleration_term_is_the_error_of_second_differences():
+    """Not in the paper: the MSE of the error's second difference, so a target moved by any
+    straight line in time (offset plus drift) costs nothing there; weighted into the loss."""
+    torch.manual_seed(0)
+    config = replace(VAEConfig.tiny(), acceleration_weight=30.0)
+    vae = CausalVAE(config, DX).eval()
+    x = torch.randn(1, 4 * CFG.stride, DX)
+    out = vae(x, torch.Generator().manual_seed(0))
+    error = out["x_hat"].detach() - x
+    bend = error[:, 2:] - 2 * error[:, 1:-1] + error[:, :-2]
+    torch.testing.assert_close(out["acceleration"], bend.square().mean())
+    drift = 0.5 + 0.1 * torch.arange(x.shape[1], dtype=x.dtype)[None, :, None]
+    moved = vae.loss_terms(out["x_hat"].detach(), x - drift)
+    torch.testing.assert_close(moved["acceleration"], out["acceleration"])
+    assert moved["velocity"] > out["velocity"] + 0.005
+    torch.testing.assert_close(out["loss"], out["recon"] + config.beta * out["kl"]
+                               + config.velocity_weight * out["velocity"]
+                               + 30.0 * out["acceleration"])
+    assert VAEConfig.paper().acceleration_weight == 0.0
 
 
 def test_rejects_length_not_multiple_of_stride(vae):

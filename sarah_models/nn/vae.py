@@ -33,7 +33,8 @@ latency of one block.
 Positions: RoPE over the index of each token in its interleaved sequence. The loss is the mean
 squared error per motion element plus beta times the KL per latent element (both means, so
 beta = 1e-4 keeps its paper meaning of "a small KL weight" independent of T, Dx and Dz), plus
-``velocity_weight`` times the mean squared error of frame-to-frame differences (0 in the paper).
+``velocity_weight`` times the mean squared error of frame-to-frame differences and
+``acceleration_weight`` times that of second differences (both 0 in the paper).
 ``latent_noise`` > 0 adds noise to the decoder's input latents in training (0 in the paper).
 ``recon_units="metres"`` weights each channel's squared error by its variance (the objective
 passes ``channel_weight``), so the loss counts a millimetre the same on every axis.
@@ -195,17 +196,19 @@ class CausalVAE(nn.Module):
         x_hat = self.decode(z)
         terms = self.loss_terms(x_hat, x, channel_weight)
         kl = self.kl(mu.float(), logvar.float())
-        loss = terms["recon"] + self.config.beta * kl + self.config.velocity_weight * terms["velocity"]
+        loss = (terms["recon"] + self.config.beta * kl + self.config.velocity_weight * terms["velocity"]
+                + self.config.acceleration_weight * terms["acceleration"])
         return {"loss": loss, **terms, "kl": kl, "x_hat": x_hat, "mu": mu, "logvar": logvar}
 
     @staticmethod
     def loss_terms(x_hat: Tensor, x: Tensor, channel_weight: Tensor | None = None
                    ) -> dict[str, Tensor]:
-        """Reconstruction MSE and the MSE of frame-to-frame differences (velocity error), each
-        channel's squared error times ``channel_weight`` when given (mean 1 keeps the scale)."""
+        """Reconstruction MSE and the MSEs of the error's first and second frame differences
+        (velocity and acceleration errors), each channel's squared error times ``channel_weight``
+        when given (mean 1 keeps the scale)."""
         error = x_hat.float() - x.float()
         step = error[:, 1:] - error[:, :-1]
-        if channel_weight is None:
-            return {"recon": error.square().mean(), "velocity": step.square().mean()}
-        return {"recon": (error.square() * channel_weight).mean(),
-                "velocity": (step.square() * channel_weight).mean()}
+        bend = step[:, 1:] - step[:, :-1]
+        weight = 1.0 if channel_weight is None else channel_weight
+        return {name: (value.square() * weight).mean()
+                for name, value in (("recon", error), ("velocity", step), ("acceleration", bend))}

@@ -108,7 +108,7 @@ def train_loop(objective: nn.Module, batches: Iterable[Mapping[str, Tensor]],
     return records
 
 
-PLOTTED = ("loss", "recon", "velocity", "contact", "kl")  # positive losses, drawn on a log scale
+PLOTTED = ("loss", "recon", "velocity", "acceleration", "contact", "kl")  # positive losses, drawn on a log scale
 
 
 class RunLog:

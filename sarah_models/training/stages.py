@@ -158,8 +158,8 @@ def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
 
 
 # Fields a fine-tune may change: they shape the loss or the decoding, not the weights.
-LOSS_FIELDS = {"vae": ("beta", "velocity_weight", "contact_weight", "head_weight", "latent_noise",
-                       "recon_units", *DECODING_FIELDS["vae"]),
+LOSS_FIELDS = {"vae": ("beta", "velocity_weight", "acceleration_weight", "contact_weight",
+                       "head_weight", "latent_noise", "recon_units", *DECODING_FIELDS["vae"]),
                "flow": ("drop_prob", "min_denominator")}
 
 
