@@ -1,7 +1,7 @@
 """Where a model's motion differs from the ground truth's: root against pose, which joints carry
 the acceleration, how far the body travels, whether the feet step (docs/results.md, seventeenth
 run). Streams the model (as sarah-eval's model row, g = none) on every 400-frame window of a
-split and prints four tables:
+split and prints five tables:
 
     python scripts/motion_anatomy.py --pretrained fixture-tiny --shards test_shards --split train
 
@@ -9,7 +9,11 @@ split and prints four tables:
    trajectory, and the model's pose on the ground truth's root; what each part costs;
 2. the shell's acceleration energy per frame and its share by nearest body joint;
 3. the root's path per window and its speed;
-4. the feet: height percentiles, steps per window and foot, frames per step.
+4. the feet: height percentiles, steps per window and foot, frames per step;
+5. where the acceleration energy lies in frequency (the shell's, by band; the joints', by body
+   part), for the model and for its VAE reconstructing the ground truth, each against the
+   ground truth's (docs/results.md, nineteenth run): what FGD_acc weighs, and which of the
+   two, VAE or flow, loses it.
 """
 
 from __future__ import annotations
@@ -28,26 +32,33 @@ from sarah_models.evaluation.tables import MethodResult
 from sarah_models.evaluation.windows import motion_clip
 
 BODY = 22  # SMPL-X body joints: shell points are put on the nearest of these
+BANDS = ((0, 2), (2, 4), (4, 6), (6, 8), (8, 10), (10, FPS / 2 + 1))  # Hz; the last holds Nyquist
+BEATS = (2, 7)  # Hz: the fixtures' syllable-rate gestures (~4.5 Hz) and what blurs them
+PARTS = {"fingers": ("index", "middle", "ring", "pinky", "thumb"), "wrists": ("wrist",),
+         "arms": ("collar", "shoulder", "elbow"), "legs": ("hip", "knee", "ankle", "foot"),
+         "trunk and head": ("pelvis", "spine", "neck", "head", "jaw", "eye")}
 
 
 def streamed_windows(model: str, shards: Path, split: str, threads: int):
-    """(ground truth, model motion, user head) of every window, streamed as sarah-eval does."""
+    """(ground truth, model motion, user head, VAE reconstruction) of every window, streamed and
+    reconstructed as sarah-eval's model and VAE rows are."""
     import torch
 
     from sarah_data.dataset import WindowDataset
-    from sarah_models.evaluation.runner import EvalConfig, _model_producer
+    from sarah_models.evaluation.runner import EvalConfig, _model_producer, _vae_producer
     from sarah_models.generation.run import load_run
 
     torch.set_num_threads(threads)
     models, _ = load_run(model, None, device="cpu", need_flow=True)
     windows = WindowDataset.sliding(shards, split, extractor=models.features, window=400)
-    produce = _model_producer(models, EvalConfig(), None)
+    produce, reconstruct = _model_producer(models, EvalConfig(), None), _vae_producer(models)
     out = []
     with torch.inference_mode():
         for i in range(len(windows)):
             item = windows[i]
             out.append((item["motion"].numpy().astype(np.float64),
-                        produce(item, i).astype(np.float64), item["user_head"].numpy()))
+                        produce(item, i).astype(np.float64), item["user_head"].numpy(),
+                        reconstruct(item, i).astype(np.float64)))
     return out
 
 
@@ -60,11 +71,11 @@ def with_root(pose_of: np.ndarray, root_of: np.ndarray, layout: MotionLayout) ->
 
 def hybrids(clips, layout: MotionLayout) -> None:
     print("| clips | pooled FGD (÷10) | FGD_acc (÷1e5) | foot slide |\n|---|---|---|---|")
-    gt = [motion_clip(g, u) for g, _, u in clips]
+    gt = [motion_clip(g, u) for g, _, u, _ in clips]
     for label, make in (("model", lambda g, m: m),
                         ("ground truth's pose on the model's root", lambda g, m: with_root(g, m, layout)),
                         ("model's pose on the ground truth's root", lambda g, m: with_root(m, g, layout))):
-        table = evaluate([motion_clip(make(g, m), u) for g, m, u in clips], gt,
+        table = evaluate([motion_clip(make(g, m), u) for g, m, u, _ in clips], gt,
                          np.zeros(len(clips), bool), config=MetricsConfig(normalize_window=False))
         shown = MethodResult(label, label, True, None, table, None, False).shown()
 
@@ -128,6 +139,57 @@ def feet(clips, layout: MotionLayout) -> None:
           f"when it does so below {FOOT_MAX_HEIGHT * 100:g} cm)")
 
 
+def acceleration_power(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(T, ...) positions in metres -> (frequencies in Hz, the power of their accelerations per
+    frequency, summed over every coordinate)."""
+    x = points.reshape(len(points), -1)
+    a = (x[2:] - 2 * x[1:-1] + x[:-2]) * FPS ** 2
+    power = np.abs(np.fft.rfft(a - a.mean(axis=0), axis=0)) ** 2
+    return np.fft.rfftfreq(len(a), 1.0 / FPS), power.sum(axis=1)
+
+
+def band_energy(points: np.ndarray, bands=BANDS) -> np.ndarray:
+    """The acceleration power of ``points`` in each band [low, high) Hz."""
+    freqs, power = acceleration_power(points)
+    return np.array([power[(freqs >= low) & (freqs < high)].sum() for low, high in bands])
+
+
+def part_joints(names) -> dict[str, list[int]]:
+    """Joint indices of each of PARTS, by name."""
+    return {part: [j for j, name in enumerate(names) if any(k in name for k in keys)]
+            for part, keys in PARTS.items()}
+
+
+def spectrum(clips, layout: MotionLayout) -> None:
+    sums = {}  # (motion index, what) -> band energies summed over clips
+    parts = part_joints(layout.joint_names)
+    for clip in clips:
+        for index in (0, 1, 3):
+            shell = layout.split(clip[index])[1]
+            joints = layout.joint_positions(clip[index])
+            rows = {"shell": band_energy(shell)}
+            rows.update({part: band_energy(joints[:, js], BANDS + (BEATS,))
+                         for part, js in parts.items()})
+            for what, e in rows.items():
+                sums[index, what] = sums.get((index, what), 0) + e
+    gt_shell = sums[0, "shell"]
+    print("\n| shell acceleration, band (Hz) | " + " | ".join(f"{lo:g}-{min(hi, FPS / 2):g}" for lo, hi in BANDS)
+          + " |\n|---|" + "---|" * len(BANDS))
+    print("| ground truth's share | " + " | ".join(f"{e:.2f}" for e in gt_shell / gt_shell.sum()) + " |")
+    for label, index in (("model / ground truth", 1), ("VAE / ground truth", 3)):
+        print(f"| {label} | " + " | ".join(f"{e:.2f}" for e in sums[index, "shell"] / gt_shell) + " |")
+    total = sum(sums[0, part][:len(BANDS)].sum() for part in parts)
+    beats = f"{BEATS[0]:g}-{BEATS[1]:g} Hz"
+    print(f"\n| joints | share of the ground truth's energy | model / GT | VAE / GT | share in {beats} | "
+          f"model / GT, {beats} | VAE / GT, {beats} |\n|---|---|---|---|---|---|---|")
+    for part in parts:
+        gt, model, vae = (sums[i, part] for i in (0, 1, 3))
+        whole = gt[:len(BANDS)].sum()
+        print(f"| {part} | {whole / total:.2f} | {model[:len(BANDS)].sum() / whole:.2f} | "
+              f"{vae[:len(BANDS)].sum() / whole:.2f} | {gt[-1] / total:.2f} | {model[-1] / gt[-1]:.2f} | "
+              f"{vae[-1] / gt[-1]:.2f} |")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -157,6 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     energy(clips, layout)
     travel(clips, layout)
     feet(clips, layout)
+    spectrum(clips, layout)
     return 0
 
 

@@ -1,0 +1,41 @@
+"""scripts/motion_anatomy.py's spectrum: the band energies that the nineteenth run's diagnosis
+(docs/results.md) reads."""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+
+from sarah_data.constants import FPS, JOINT_NAMES
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "motion_anatomy.py"
+spec = importlib.util.spec_from_file_location("motion_anatomy", SCRIPT)
+anatomy = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(anatomy)
+
+
+def test_a_beat_puts_its_acceleration_in_its_band_and_a_walk_puts_none():
+    t = np.arange(400) / FPS
+    points = np.zeros((400, 3, 3))
+    points[:, 0, 0] = 0.02 * np.sin(2 * np.pi * 4.5 * t)  # a 4.5 Hz beat of 2 cm
+    points[:, 1, 2] = 1.2 * t  # a steady walk: no acceleration at all
+    energy = anatomy.band_energy(points)
+    bands = [i for i, (low, high) in enumerate(anatomy.BANDS) if low <= 4.5 < high]
+    assert energy[bands[0]] > 0.98 * energy.sum()
+    # the power is the second difference's (Parseval over the one-sided spectrum): a sine's
+    # acceleration amplitude is (2 FPS sin(pi f / FPS))^2 x its amplitude
+    frames = 398
+    expected = (2 * FPS * np.sin(np.pi * 4.5 / FPS)) ** 4 * 0.02 ** 2 / 4 * frames ** 2
+    assert abs(energy.sum() / expected - 1) < 0.05
+    assert anatomy.band_energy(points[:, 1:]).sum() < 1e-12 * energy.sum()
+    # the last band holds the Nyquist frequency
+    nyquist = np.zeros((400, 1, 3))
+    nyquist[::2, 0, 1] = 0.001
+    assert anatomy.band_energy(nyquist)[-1] > 0.99 * anatomy.band_energy(nyquist).sum()
+
+
+def test_every_joint_belongs_to_one_body_part():
+    parts = anatomy.part_joints(JOINT_NAMES)
+    members = sorted(j for joints in parts.values() for j in joints)
+    assert members == list(range(len(JOINT_NAMES)))
+    assert len(parts["fingers"]) == 30 and len(parts["legs"]) == 8
