@@ -173,21 +173,23 @@ def spectrum(clips, layout: MotionLayout) -> None:
             for what, e in rows.items():
                 sums[index, what] = sums.get((index, what), 0) + e
     gt_shell = sums[0, "shell"]
-    print("\n| shell acceleration, band (Hz) | " + " | ".join(f"{lo:g}-{min(hi, FPS / 2):g}" for lo, hi in BANDS)
-          + " |\n|---|" + "---|" * len(BANDS))
-    print("| ground truth's share | " + " | ".join(f"{e:.2f}" for e in gt_shell / gt_shell.sum()) + " |")
+    row = lambda label, values: print(f"| {label} | " + " | ".join(values) + " |")  # noqa: E731
+    row("shell acceleration, band (Hz)", [f"{lo:g}-{min(hi, FPS / 2):g}" for lo, hi in BANDS])
+    print("|---|" + "---|" * len(BANDS))
+    row("ground truth's share", [f"{e:.2f}" for e in gt_shell / gt_shell.sum()])
     for label, index in (("model / ground truth", 1), ("VAE / ground truth", 3)):
-        print(f"| {label} | " + " | ".join(f"{e:.2f}" for e in sums[index, "shell"] / gt_shell) + " |")
+        row(label, [f"{e:.2f}" for e in sums[index, "shell"] / gt_shell])
     total = sum(sums[0, part][:len(BANDS)].sum() for part in parts)
     beats = f"{BEATS[0]:g}-{BEATS[1]:g} Hz"
-    print(f"\n| joints | share of the ground truth's energy | model / GT | VAE / GT | share in {beats} | "
-          f"model / GT, {beats} | VAE / GT, {beats} |\n|---|---|---|---|---|---|---|")
+    print()
+    row("joints", ["share of the ground truth's energy", "model / GT", "VAE / GT", f"share in {beats}",
+                   f"model / GT, {beats}", f"VAE / GT, {beats}"])
+    print("|---|---|---|---|---|---|---|")
     for part in parts:
         gt, model, vae = (sums[i, part] for i in (0, 1, 3))
-        whole = gt[:len(BANDS)].sum()
-        print(f"| {part} | {whole / total:.2f} | {model[:len(BANDS)].sum() / whole:.2f} | "
-              f"{vae[:len(BANDS)].sum() / whole:.2f} | {gt[-1] / total:.2f} | {model[-1] / gt[-1]:.2f} | "
-              f"{vae[-1] / gt[-1]:.2f} |")
+        whole, n = gt[:len(BANDS)].sum(), len(BANDS)
+        row(part, [f"{x:.2f}" for x in (whole / total, model[:n].sum() / whole, vae[:n].sum() / whole,
+                                        gt[-1] / total, model[-1] / gt[-1], vae[-1] / gt[-1])])
 
 
 def main(argv: list[str] | None = None) -> int:

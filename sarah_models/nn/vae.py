@@ -196,8 +196,9 @@ class CausalVAE(nn.Module):
         x_hat = self.decode(z)
         terms = self.loss_terms(x_hat, x, channel_weight)
         kl = self.kl(mu.float(), logvar.float())
-        loss = (terms["recon"] + self.config.beta * kl + self.config.velocity_weight * terms["velocity"]
-                + self.config.acceleration_weight * terms["acceleration"])
+        cfg = self.config
+        loss = (terms["recon"] + cfg.beta * kl + cfg.velocity_weight * terms["velocity"]
+                + cfg.acceleration_weight * terms["acceleration"])
         return {"loss": loss, **terms, "kl": kl, "x_hat": x_hat, "mu": mu, "logvar": logvar}
 
     @staticmethod

@@ -108,7 +108,8 @@ def train_loop(objective: nn.Module, batches: Iterable[Mapping[str, Tensor]],
     return records
 
 
-PLOTTED = ("loss", "recon", "velocity", "acceleration", "contact", "kl")  # positive losses, drawn on a log scale
+# positive losses, drawn on a log scale
+PLOTTED = ("loss", "recon", "velocity", "acceleration", "contact", "kl")
 
 
 class RunLog:
