@@ -35,7 +35,6 @@ VERSION = "1"
 PARTS = ("vae", "flow", "normalizer")
 
 
-
 def write_model_file(source: str | Path, out: str | Path, decoding: Sequence[str] = (),
                      shards: str | Path | None = None) -> Path:
     """``out`` (a .safetensors path) from a flow-stage checkpoint or another model file, written
