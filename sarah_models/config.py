@@ -175,8 +175,17 @@ class FlowConfig:
     # windows is layers * 2 + 1 tokens). On the fixture benchmark (docs/results.md, ninth run)
     # it cut the streamed FGD_acc 4x at equal budget, so the tiny preset uses it.
     attention_window: int | None = None
+    # Not in the paper (0 = the paper): weight of the MSE between the predicted and the true
+    # latents' token-to-token differences, beside eq. 5's MSE of the latents. Its minimum is the
+    # same conditional mean, so it changes no target, only which errors cost most: sampled
+    # latents change ~2x as much from one token to the next as the encoder's (docs/results.md,
+    # twentieth run), and that jitter is what a position error barely sees.
+    difference_weight: float = 0.0
 
     def __post_init__(self) -> None:
+        if self.difference_weight < 0:
+            raise ValueError(f"FlowConfig.difference_weight must be >= 0, got "
+                             f"{self.difference_weight}")
         if self.attention_window is not None and self.attention_window < 1:
             raise ValueError(f"FlowConfig.attention_window must be >= 1 or None, got "
                              f"{self.attention_window}")

@@ -152,6 +152,27 @@ def test_flow_loss_falls():
     assert after < before / 3, (before, after)
 
 
+def test_difference_term_weighs_the_error_of_token_to_token_changes():
+    """flow.difference_weight adds the MSE of the error's token-to-token differences; at 0 (the
+    paper) the loss is eq. 5 alone."""
+    from dataclasses import replace
+
+    g = torch.Generator().manual_seed(0)
+    cond, z = make_cond(2, g), torch.randn(2, K, DZ, generator=g)
+    paper = trained_weights(FlowModel(FlowConfig.tiny(), DZ, S, DA))
+    weighted = FlowModel(replace(FlowConfig.tiny(), difference_weight=3.0), DZ, S, DA)
+    weighted.load_state_dict(paper.state_dict())
+    with torch.no_grad():
+        a = flow_matching_loss(paper, z, cond, torch.Generator().manual_seed(1))
+        b = flow_matching_loss(weighted, z, cond, torch.Generator().manual_seed(1))
+    error = a["z1_pred"] - z
+    assert torch.allclose(a["loss"], error.square().mean())
+    assert torch.allclose(b["difference"], (error[:, 1:] - error[:, :-1]).square().mean())
+    assert torch.allclose(b["loss"], a["loss"] + 3.0 * b["difference"])
+    with pytest.raises(ValueError, match="difference_weight"):
+        FlowConfig(difference_weight=-1.0)
+
+
 def test_attention_window_limits_each_layer_to_the_streaming_context():
     """flow.attention_window = history + 1 limits every layer to the last 3 tokens, so token k
     depends on tokens k - layers * 2 .. k only (receptive field of stacked windows)."""

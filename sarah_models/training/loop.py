@@ -109,7 +109,7 @@ def train_loop(objective: nn.Module, batches: Iterable[Mapping[str, Tensor]],
 
 
 # positive losses, drawn on a log scale
-PLOTTED = ("loss", "recon", "velocity", "acceleration", "contact", "kl")
+PLOTTED = ("loss", "recon", "velocity", "acceleration", "difference", "contact", "kl")
 
 
 class RunLog:

@@ -156,12 +156,17 @@ class FlowObjective(nn.Module):
 
 def flow_matching_loss(flow: FlowModel, z: Tensor, cond: Mapping[str, Tensor],
                        generator: torch.Generator | None = None) -> dict[str, Tensor]:
-    """x1-prediction flow-matching loss (eq. 4-5) with tau ~ U[0, 1] and CFG dropout."""
+    """x1-prediction flow-matching loss (eq. 4-5) with tau ~ U[0, 1] and CFG dropout, plus
+    ``flow.config.difference_weight`` times the MSE of the tokens' differences ("difference")."""
     b = z.shape[0]
     tau = torch.rand(b, generator=generator, device=z.device)
     eps = torch.randn(z.shape, generator=generator, device=z.device, dtype=z.dtype)
     z_tau = interpolate(eps, z, tau[:, None, None].to(z.dtype))
     drop = sample_drop_mask(b, flow.config.drop_prob, generator, z.device)
     z1_pred = flow(z_tau, tau, cond, drop)
-    loss = (z1_pred.float() - z.float()).square().mean()
-    return {"loss": loss, "z1_pred": z1_pred, "drop_rate": drop.float().mean()}
+    error = z1_pred.float() - z.float()
+    recon = error.square().mean()
+    difference = error.diff(dim=1).square().mean() if z.shape[1] > 1 else error.new_zeros(())
+    loss = recon + flow.config.difference_weight * difference
+    return {"loss": loss, "recon": recon, "difference": difference, "z1_pred": z1_pred,
+            "drop_rate": drop.float().mean()}

@@ -160,7 +160,7 @@ def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
 # Fields a fine-tune may change: they shape the loss or the decoding, not the weights.
 LOSS_FIELDS = {"vae": ("beta", "velocity_weight", "acceleration_weight", "contact_weight",
                        "head_weight", "latent_noise", "recon_units", *DECODING_FIELDS["vae"]),
-               "flow": ("drop_prob", "min_denominator")}
+               "flow": ("drop_prob", "min_denominator", "difference_weight")}
 
 
 def load_init_source(path: str | Path, stage: str) -> dict[str, Any]:
