@@ -13,6 +13,7 @@ from sarah_data.constants import NUM_JOINTS, SAMPLES_PER_FRAME
 from sarah_data.frames import rotation_about_y, window_transform
 from sarah_models.config import RunConfig, StreamConfig
 from sarah_models.nn.flow import MODALITIES
+from sarah_models.sampling.decoding import stream_decoding
 from sarah_models.sampling.guidance import drop_masks
 from sarah_models.sampling.solver import imputer, integrate
 from sarah_models.sampling.stream import (
@@ -201,6 +202,34 @@ def test_streaming_equals_offline_where_the_maths_says_so(models):
     streamed, offline = stream(models, inputs, full), generate_offline(*models, head, a, b, full)
     np.testing.assert_allclose(streamed[:S], offline[:S], atol=1e-5)
     assert np.abs(streamed[S:] - offline[S:]).max() > 1e-4
+
+
+def test_recorded_latents_are_the_ones_decoded(models):
+    """generate()'s Result.latents (what motion_anatomy's latent table reads) are the flow's
+    standardized latents of each protocol: decoding them gives the motion, token 1 is the same
+    in both protocols (causality) and later tokens are not."""
+    from sarah_models.generation.inputs import Inputs
+    from sarah_models.generation.run import generate
+    from sarah_models.sampling.stream import IDENTITY
+    from sarah_models.training.checkpoint import LoadedModels
+
+    vae, flow, normalizer = models
+    head, a, b = make_inputs(24)
+    loaded = LoadedModels(vae, flow, normalizer, RunConfig.preset("tiny"), {}, "logmel", 0, "flow")
+    inputs = Inputs(user_head=head, agent_speaking=np.zeros(24, bool),
+                    user_speaking=np.zeros(24, bool), anchor=IDENTITY, source={},
+                    agent_audio=a, user_audio=b)
+    config = StreamConfig(history_tokens=None)
+    streamed, offline = (generate(loaded, inputs, config, offline=o) for o in (False, True))
+    assert streamed.latents.shape == offline.latents.shape == (24 // S, flow.latent_dim)
+    np.testing.assert_allclose(streamed.latents[0], offline.latents[0], atol=1e-5)
+    assert np.abs(streamed.latents[1:] - offline.latents[1:]).max() > 1e-4
+    for result in (streamed, offline):
+        z = normalizer.denormalize("latent", torch.from_numpy(result.latents))
+        with torch.inference_mode():
+            motion = normalizer.denormalize("motion", vae.decode(z[None])[0]).double().numpy()
+        decoded = stream_decoding(vae, normalizer)(motion)
+        np.testing.assert_allclose(decoded.astype(np.float32), result.motion, atol=1e-4)
 
 
 @pytest.mark.parametrize("solver, order", [("midpoint", 2), ("euler", 1)])

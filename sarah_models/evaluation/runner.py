@@ -182,13 +182,15 @@ def _window_seed(seed: int, index: int) -> int:
     return int(np.random.default_rng((seed, index)).integers(2**31 - 1))
 
 
-def _model_producer(models, config: EvalConfig, gaze: float | None):
+def window_generator(models, config: EvalConfig, gaze: float | None):
+    """A function (window item, its index) -> the model's ``generation.outputs.Result`` for that
+    window, generated as the model's Table 1 row is (``config.protocol``, steps, cfg, seed)."""
     from ..config import StreamConfig
     from ..generation.inputs import Inputs
     from ..generation.run import generate
     from ..sampling.stream import IDENTITY
 
-    def produce(item: dict, index: int) -> np.ndarray:
+    def run(item: dict, index: int):
         # Windows are already in the window frame: the identity anchor generates in that frame.
         inputs = Inputs(user_head=item["user_head"].numpy(),
                         agent_speaking=item["agent_speaking"].numpy() > 0.5,
@@ -198,9 +200,14 @@ def _model_producer(models, config: EvalConfig, gaze: float | None):
                         user_audio=item["user_audio"].numpy())
         stream = StreamConfig(steps=config.steps, cfg_scale=config.cfg_scale, gaze=gaze,
                               seed=_window_seed(config.seed, index))
-        return generate(models, inputs, stream, offline=config.protocol == "offline").motion
+        return generate(models, inputs, stream, offline=config.protocol == "offline")
 
-    return produce
+    return run
+
+
+def _model_producer(models, config: EvalConfig, gaze: float | None):
+    run = window_generator(models, config, gaze)
+    return lambda item, index: run(item, index).motion
 
 
 def _vae_producer(models):

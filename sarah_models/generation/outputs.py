@@ -25,6 +25,10 @@ class Result:
     user_audio: np.ndarray
     latencies: list[float] = field(default_factory=list)  # seconds per chunk (streaming)
     seconds: float = 0.0  # total generation time
+    # (K, Dz) the flow's standardized latents, one per block of s frames (None: not recorded,
+    # e.g. a remote stream): where a sample differs from the encoder's latents of real motion
+    # (scripts/motion_anatomy.py)
+    latents: np.ndarray | None = None
 
     @property
     def fps(self) -> float:

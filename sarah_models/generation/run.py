@@ -21,7 +21,7 @@ from sarah_data.gaze import FACING_AXIS
 from sarah_data.skeleton import HEAD, MotionLayout
 
 from ..config import StreamConfig, check_gaze
-from ..sampling.stream import StreamingGenerator, StreamingSession, generate_offline
+from ..sampling.stream import StreamingGenerator, StreamingSession, offline_with_latents
 from ..training.checkpoint import LoadedModels, load_models
 from ..training.model_file import MODEL_FILE, load_model_file
 from .inputs import (
@@ -94,13 +94,14 @@ def generate(models: LoadedModels, inputs: Inputs, config: StreamConfig, offline
             a, b = inputs.agent_audio, inputs.user_audio
         apply_threads()
         tick = time.perf_counter()
-        motion = generate_offline(vae, flow, normalizer, inputs.user_head, a, b, config,
-                                  inputs.anchor)
+        motion, z = offline_with_latents(vae, flow, normalizer, inputs.user_head, a, b, config,
+                                         inputs.anchor)
         _synchronize(flow)
-        return Result(motion, a, b, seconds=time.perf_counter() - tick)
+        return Result(motion, a, b, seconds=time.perf_counter() - tick,
+                      latents=z.float().cpu().numpy())
 
     generator = StreamingGenerator(vae, flow, normalizer, config, inputs.anchor)
-    chunks, latencies = [], []
+    chunks, latencies, latents = [], [], []
     if inputs.agent_audio is not None:
         a, b = inputs.agent_audio, inputs.user_audio
         for i in range(0, count, s):
@@ -109,6 +110,7 @@ def generate(models: LoadedModels, inputs: Inputs, config: StreamConfig, offline
             chunks.append(generator.step(inputs.user_head[i:i + s], a[i:i + s], b[i:i + s]))
             _synchronize(flow)
             latencies.append(time.perf_counter() - tick)
+            latents.append(generator.last_latent)
     else:
         session = StreamingSession(generator, extractor)
         n = s * SAMPLES_PER_FRAME
@@ -124,7 +126,9 @@ def generate(models: LoadedModels, inputs: Inputs, config: StreamConfig, offline
     motion = np.concatenate(chunks)
     if motion.shape[0] != count:
         raise RuntimeError(f"streaming produced {motion.shape[0]} of {count} frames")
-    return Result(motion, a, b, latencies, seconds=float(sum(latencies)))
+    # A push of raw audio may generate no block or several: latents are kept from features only.
+    z = torch.stack(latents).float().cpu().numpy() if latents else None
+    return Result(motion, a, b, latencies, seconds=float(sum(latencies)), latents=z)
 
 
 def _synchronize(module: torch.nn.Module) -> None:

@@ -173,6 +173,7 @@ class StreamingGenerator:
         self._decoder = self._m.vae.new_decoder_cache(cfg.decoder_blocks)
         self._decoding = self._m.decoding()
         self.frames_generated = 0
+        self.last_latent: Tensor | None = None  # the latest block's standardized latent (Dz,)
 
     def set_gaze(self, gaze: float | None) -> None:
         """Change the target gaze score for the blocks that follow (live control)."""
@@ -196,6 +197,7 @@ class StreamingGenerator:
         noise = torch.stack([*self._noise, eps])
         known = torch.stack(list(self._latents)) if self._latents else None
         z = solve(m.flow, cond_tokens, noise, known, self.config)[-1]
+        self.last_latent = z
         self._latents.append(z)  # a deque of maxlen 0 keeps nothing: no history
         self._noise.append(eps)
         frames = m.vae.decoder_step(m.latent_for_decoder(z)[None], self._decoder)[0]
@@ -209,6 +211,15 @@ def generate_offline(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer,
                      anchor: WindowTransform | None = None) -> np.ndarray:
     """The paper's offline protocol: all K = T/s tokens denoised jointly (causal mask, same
     solver, guidance and per-token noise as streaming); returns world motion (T, Dx)."""
+    return offline_with_latents(vae, flow, normalizer, user_head, agent_audio, user_audio,
+                                config, anchor)[0]
+
+
+@torch.inference_mode()
+def offline_with_latents(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer,
+                         user_head, agent_audio, user_audio, config: StreamConfig = StreamConfig(),
+                         anchor: WindowTransform | None = None) -> tuple[np.ndarray, Tensor]:
+    """``generate_offline``'s motion and the standardized latents it decoded (K, Dz)."""
     m = _Models(vae, flow, normalizer, config, anchor)
     cond = m.condition(user_head, agent_audio, user_audio, config.gaze, None)
     t = cond["user_head"].shape[1]
@@ -219,7 +230,7 @@ def generate_offline(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer,
     noise = torch.stack([token_noise(generator, flow.latent_dim)
                          for _ in range(t // m.stride)]).to(m.device)
     z = solve(flow, m.cond_tokens(cond, config.gaze), noise, None, config)
-    return m.to_world(vae.decode(m.latent_for_decoder(z)[None])[0], m.decoding())
+    return m.to_world(vae.decode(m.latent_for_decoder(z)[None])[0], m.decoding()), z
 
 
 class StreamingSession:
