@@ -1,7 +1,7 @@
 """Where a model's motion differs from the ground truth's: root against pose, which joints carry
 the acceleration, how far the body travels, whether the feet step (docs/results.md, seventeenth
 run). Streams the model (as sarah-eval's model row, g = none) on every 400-frame window of a
-split and prints five tables:
+split and prints six tables:
 
     python scripts/motion_anatomy.py --pretrained fixture-tiny --shards test_shards --split train
 
@@ -13,7 +13,11 @@ split and prints five tables:
 5. where the acceleration energy lies in frequency (the shell's, by band; the joints', by body
    part), for the model and for its VAE reconstructing the ground truth, each against the
    ground truth's (docs/results.md, nineteenth run): what FGD_acc weighs, and which of the
-   two, VAE or flow, loses it.
+   two, VAE or flow, loses it;
+6. the flow's latents in frequency: the power of the sampled latents (streamed, and offline on
+   the same windows and seeds) in each band of token rate, against the encoder's latents of the
+   ground truth, and how far each moves from one token to the next (docs/results.md, twentieth
+   run): where the two protocols part.
 """
 
 from __future__ import annotations
@@ -40,25 +44,32 @@ PARTS = {"fingers": ("index", "middle", "ring", "pinky", "thumb"), "wrists": ("w
 
 
 def streamed_windows(model: str, shards: Path, split: str, threads: int):
-    """(ground truth, model motion, user head, VAE reconstruction) of every window, streamed and
-    reconstructed as sarah-eval's model and VAE rows are."""
+    """(ground truth, model motion, user head, VAE reconstruction, latents) of every window,
+    streamed and reconstructed as sarah-eval's model and VAE rows are; latents holds the
+    standardized (K, Dz) latents "encoder" (of the ground truth), "stream" and "offline"."""
     import torch
 
     from sarah_data.dataset import WindowDataset
-    from sarah_models.evaluation.runner import EvalConfig, _model_producer, _vae_producer
+    from sarah_models.evaluation.runner import EvalConfig, _vae_producer, window_generator
     from sarah_models.generation.run import load_run
 
     torch.set_num_threads(threads)
     models, _ = load_run(model, None, device="cpu", need_flow=True)
     windows = WindowDataset.sliding(shards, split, extractor=models.features, window=400)
-    produce, reconstruct = _model_producer(models, EvalConfig(), None), _vae_producer(models)
+    stream, offline = (window_generator(models, EvalConfig(protocol=p), None)
+                       for p in ("stream", "offline"))
+    reconstruct, nz = _vae_producer(models), models.normalizer
     out = []
     with torch.inference_mode():
         for i in range(len(windows)):
             item = windows[i]
+            streamed = stream(item, i)
+            mu, _ = models.vae.encode(nz.normalize("motion", item["motion"])[None])
+            latents = {"encoder": nz.normalize("latent", mu[0]).numpy(),
+                       "stream": streamed.latents, "offline": offline(item, i).latents}
             out.append((item["motion"].numpy().astype(np.float64),
-                        produce(item, i).astype(np.float64), item["user_head"].numpy(),
-                        reconstruct(item, i).astype(np.float64)))
+                        streamed.motion.astype(np.float64), item["user_head"].numpy(),
+                        reconstruct(item, i).astype(np.float64), latents))
     return out
 
 
@@ -71,11 +82,11 @@ def with_root(pose_of: np.ndarray, root_of: np.ndarray, layout: MotionLayout) ->
 
 def hybrids(clips, layout: MotionLayout) -> None:
     print("| clips | pooled FGD (÷10) | FGD_acc (÷1e5) | foot slide |\n|---|---|---|---|")
-    gt = [motion_clip(g, u) for g, _, u, _ in clips]
+    gt = [motion_clip(g, u) for g, _, u, *_ in clips]
     for label, make in (("model", lambda g, m: m),
                         ("ground truth's pose on the model's root", lambda g, m: with_root(g, m, layout)),
                         ("model's pose on the ground truth's root", lambda g, m: with_root(m, g, layout))):
-        table = evaluate([motion_clip(make(g, m), u) for g, m, u, _ in clips], gt,
+        table = evaluate([motion_clip(make(g, m), u) for g, m, u, *_ in clips], gt,
                          np.zeros(len(clips), bool), config=MetricsConfig(normalize_window=False))
         shown = MethodResult(label, label, True, None, table, None, False).shown()
 
@@ -192,6 +203,39 @@ def spectrum(clips, layout: MotionLayout) -> None:
                                         gt[-1] / total, model[-1] / gt[-1], vae[-1] / gt[-1])])
 
 
+LATENT_BANDS = ((0, 0.2), (0.2, 0.5), (0.5, 1), (1, 2), (2, 3), (3, FPS / 2))  # Hz; tokens at FPS / s
+
+
+def latent_band_power(latents: np.ndarray, token_rate: float, bands=LATENT_BANDS) -> np.ndarray:
+    """(K, Dz) latents -> the power of their deviation from their mean in each band [low, high)
+    Hz, summed over channels (the last band holds Nyquist)."""
+    x = latents - latents.mean(axis=0)
+    power = (np.abs(np.fft.rfft(x, axis=0)) ** 2).sum(axis=1)
+    freqs = np.fft.rfftfreq(len(x), 1.0 / token_rate)
+    last = len(bands) - 1
+    return np.array([power[(freqs >= low) & ((freqs < high) | (i == last))].sum()
+                     for i, (low, high) in enumerate(bands)])
+
+
+def latent_step(latents: np.ndarray) -> float:
+    """The RMS change of a latent from one token to the next (per channel)."""
+    return float(np.sqrt(np.mean(np.diff(latents, axis=0) ** 2)))
+
+
+def latent_spectrum(clips, token_rate: float) -> None:
+    kinds = ("encoder", "stream", "offline")
+    power = {k: sum(latent_band_power(c[4][k], token_rate) for c in clips) for k in kinds}
+    step = {k: np.mean([latent_step(c[4][k]) for c in clips]) for k in kinds}
+    print("| latents | token-to-token change | " + " | ".join(
+        f"{lo:g}-{min(hi, token_rate / 2):g} Hz" for lo, hi in LATENT_BANDS) + " |")
+    print("|---|---|" + "---|" * len(LATENT_BANDS))
+    print(f"| encoder (of the ground truth), power | {step['encoder']:.3f} | "
+          + " | ".join(f"{e:.0f}" for e in power["encoder"]) + " |")
+    for kind in ("stream", "offline"):
+        print(f"| {kind} / encoder | {step[kind]:.3f} | "
+              + " | ".join(f"{e:.2f}" for e in power[kind] / power["encoder"]) + " |")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -222,6 +266,8 @@ def main(argv: list[str] | None = None) -> int:
     travel(clips, layout)
     feet(clips, layout)
     spectrum(clips, layout)
+    print()
+    latent_spectrum(clips, FPS / (clips[0][0].shape[0] // len(clips[0][4]["encoder"])))
     return 0
 
 

@@ -39,3 +39,21 @@ def test_every_joint_belongs_to_one_body_part():
     members = sorted(j for joints in parts.values() for j in joints)
     assert members == list(range(len(JOINT_NAMES)))
     assert len(parts["fingers"]) == 30 and len(parts["legs"]) == 8
+
+
+def test_latent_power_lands_in_its_band_and_steps_measure_token_changes():
+    token_rate = FPS / 4
+    k = np.arange(100)
+    latents = np.zeros((100, 3))
+    latents[:, 0] = np.sin(2 * np.pi * 0.75 * k / token_rate)  # a 0.75 Hz wobble
+    latents[:, 1] = 5.0  # constant: no power anywhere
+    power = anatomy.latent_band_power(latents, token_rate)
+    wobble = [i for i, (low, high) in enumerate(anatomy.LATENT_BANDS) if low <= 0.75 < high]
+    assert power[wobble[0]] > 0.99 * power.sum()
+    # Parseval over the one-sided spectrum: a sine of amplitude 1 over N samples has power N^2 / 4
+    assert abs(power.sum() / (100 ** 2 / 4) - 1) < 0.05
+    # token-to-token alternation sits at Nyquist, in the last band
+    alternating = np.where(k % 2 == 0, 1.0, -1.0)[:, None]
+    assert anatomy.latent_band_power(alternating, token_rate)[-1] > 0.99 * 100 ** 2
+    ramp = np.outer(k, [0.1, 0.1]).astype(float)
+    assert abs(anatomy.latent_step(ramp) - 0.1) < 1e-12
