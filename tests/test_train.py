@@ -419,6 +419,43 @@ def test_init_from_takes_a_model_file(tmp_path):
         train("vae", config, None, tmp_path / "d", init_from=other, **common)
 
 
+def test_a_flow_fine_tune_takes_its_vae_from_the_model_file(tmp_path):
+    """--stage flow --init-from a model file into an empty folder fine-tunes that file's flow on
+    that file's VAE (copied to vae.pt, bit for bit, decoding settings and all); without a source
+    the stage still asks for a VAE."""
+    from sarah_models.training.model_file import read_model_file, write_model_file
+
+    base = tmp_path / "base"
+    run("vae", base, 2)
+    run("flow", base, 2)
+    shared = write_model_file(base / "flow.pt", tmp_path / "shared.safetensors",
+                              ["vae.boundary_inertia=0.5"])
+    config = tiny_config(2)
+    config = replace(config, flow=replace(config.flow, difference_weight=5.0))
+    common = dict(device="cpu", dataset=SyntheticWindows(), stats=STATS, progress=False,
+                  echo=lambda _: None)
+    with pytest.raises(FileNotFoundError, match="run the vae stage first"):
+        train("flow", config, None, tmp_path / "empty", **common)
+    out = tmp_path / "tuned"
+    train("flow", config, None, out, init_from=shared, **common)
+    source, vae_ckpt = read_model_file(shared), load_checkpoint(out / "vae.pt")
+    tuned = load_checkpoint(out / "flow.pt")
+    for part in ("vae", "normalizer"):
+        for key, value in source[part].items():
+            if not key.startswith("latent"):  # the flow refits its latent statistics
+                assert torch.equal(value, vae_ckpt[part][key]), (part, key)
+    for key, value in source["vae"].items():
+        assert torch.equal(value, tuned["vae"][key]), key
+    assert tuned["config"]["vae"]["boundary_inertia"] == 0.5
+    assert tuned["config"]["flow"]["difference_weight"] == 5.0
+    assert tuned["init_from"] == {"path": str(shared), "step": 2}
+    assert not torch.equal(source["flow"]["out.proj.weight"], tuned["flow"]["out.proj.weight"])
+    # Resuming finds the copied VAE and goes on.
+    more = replace(config, train=replace(config.train, flow_steps=3))
+    train("flow", more, None, out, resume=True, **common)
+    assert load_checkpoint(out / "flow.pt")["step"] == 3
+
+
 def test_decoder_fine_tune_with_latent_noise_keeps_the_encoder(tmp_path):
     """train.freeze_encoder + vae.latent_noise: only the decoder moves, so the latents a flow
     was trained on stay exactly the same."""

@@ -198,6 +198,16 @@ def _check_compatible(source: Mapping[str, Any], stage: str, config: RunConfig,
                          f"uses {features!r}")
 
 
+def source_vae_checkpoint(source: Mapping[str, Any]) -> dict[str, Any]:
+    """A finished vae-stage checkpoint holding the VAE of ``source`` (a flow checkpoint or a
+    model file, as ``load_init_source`` reads it), so a flow can be fine-tuned on it."""
+    step = int(source["step"])
+    return {"stage": "vae", "step": step, "total_steps": step, "config": source["config"],
+            "dims": dict(source["dims"]), "features": source["features"],
+            "normalizer": source["normalizer"], "vae": source["vae"],
+            "init_from": {"path": str(source["path"]), "step": step}}
+
+
 def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir: str | Path,
           resume: bool = False, device: str | torch.device | None = None, *,
           init_from: str | Path | None = None,
@@ -265,8 +275,17 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
         run_config, objective = config, VAEObjective(vae, normalizer)
     else:
         if not (out_dir / "vae.pt").is_file():
-            raise FileNotFoundError(f"{out_dir / 'vae.pt'}: the flow stage needs a trained VAE; "
-                                    f"run the vae stage first (--stage vae or all)")
+            if previous is not None or source is None:
+                raise FileNotFoundError(f"{out_dir / 'vae.pt'}: the flow stage needs a trained "
+                                        f"VAE; run the vae stage first (--stage vae or all), or "
+                                        f"--init-from a model file or flow checkpoint to "
+                                        f"fine-tune its flow on its own VAE")
+            if info.is_main:  # a flow fine-tune on the source's VAE, kept for resuming
+                out_dir.mkdir(parents=True, exist_ok=True)
+                save_checkpoint(out_dir / "vae.pt", source_vae_checkpoint(source))
+                echo(f"vae: {out_dir / 'vae.pt'} is the VAE of {source['path']}, unchanged")
+            if info.world_size > 1:
+                dist.barrier()
         vae_ckpt = load_checkpoint(out_dir / "vae.pt")
         if vae_ckpt["features"] != tcfg.audio_features:
             raise ValueError(f"{out_dir / 'vae.pt'} holds statistics of audio features "
@@ -302,8 +321,9 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
     optimizer = make_optimizer(objective.trainable, tcfg)
     start = 0
     if previous is not None:
-        optimizer.load_state_dict(previous["optimizer"])
-        restore_rng_state(previous["rng"])
+        if "optimizer" in previous:  # not in a VAE copied from a flow fine-tune's source
+            optimizer.load_state_dict(previous["optimizer"])
+            restore_rng_state(previous["rng"])
         start = int(previous["step"])
     if info.is_main:
         out_dir.mkdir(parents=True, exist_ok=True)
