@@ -49,7 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "model.safetensors or a shipped one) with a fresh "
                              "step count, optimizer and LR schedule; loss weights (e.g. --set "
                              "vae.velocity_weight=100) and train.lr_schedule may differ, sizes "
-                             "may not")
+                             "may not; --stage flow into a folder without vae.pt fine-tunes "
+                             "CKPT's flow on CKPT's own VAE")
     parser.add_argument("--device", default=None,
                         help="cpu, cuda or cuda:N; None = cuda when available (cuda:LOCAL_RANK "
                              "under torchrun), else cpu")
