@@ -150,19 +150,19 @@ def feet(clips, layout: MotionLayout) -> None:
           f"when it does so below {FOOT_MAX_HEIGHT * 100:g} cm)")
 
 
-def acceleration_power(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(T, ...) positions in metres -> (frequencies in Hz, the power of their accelerations per
-    frequency, summed over every coordinate)."""
-    x = points.reshape(len(points), -1)
-    a = (x[2:] - 2 * x[1:-1] + x[:-2]) * FPS ** 2
-    power = np.abs(np.fft.rfft(a - a.mean(axis=0), axis=0)) ** 2
-    return np.fft.rfftfreq(len(a), 1.0 / FPS), power.sum(axis=1)
+def band_power(signals: np.ndarray, rate: float, bands) -> np.ndarray:
+    """(T, ...) signals sampled at ``rate`` Hz -> the power of their deviation from their mean in
+    each band [low, high) Hz, summed over every channel."""
+    x = signals.reshape(len(signals), -1)
+    power = (np.abs(np.fft.rfft(x - x.mean(axis=0), axis=0)) ** 2).sum(axis=1)
+    freqs = np.fft.rfftfreq(len(x), 1.0 / rate)
+    return np.array([power[(freqs >= low) & (freqs < high)].sum() for low, high in bands])
 
 
 def band_energy(points: np.ndarray, bands=BANDS) -> np.ndarray:
-    """The acceleration power of ``points`` in each band [low, high) Hz."""
-    freqs, power = acceleration_power(points)
-    return np.array([power[(freqs >= low) & (freqs < high)].sum() for low, high in bands])
+    """The acceleration power of ``points`` (T, ...) in metres, in each band [low, high) Hz."""
+    x = points.reshape(len(points), -1)
+    return band_power((x[2:] - 2 * x[1:-1] + x[:-2]) * FPS ** 2, FPS, bands)
 
 
 def part_joints(names) -> dict[str, list[int]]:
@@ -203,18 +203,12 @@ def spectrum(clips, layout: MotionLayout) -> None:
                                         gt[-1] / total, model[-1] / gt[-1], vae[-1] / gt[-1])])
 
 
-LATENT_BANDS = ((0, 0.2), (0.2, 0.5), (0.5, 1), (1, 2), (2, 3), (3, FPS / 2))  # Hz; tokens at FPS / s
+LATENT_BANDS = ((0, 0.2), (0.2, 0.5), (0.5, 1), (1, 2), (2, 3), (3, np.inf))  # Hz; the last holds Nyquist
 
 
 def latent_band_power(latents: np.ndarray, token_rate: float, bands=LATENT_BANDS) -> np.ndarray:
-    """(K, Dz) latents -> the power of their deviation from their mean in each band [low, high)
-    Hz, summed over channels (the last band holds Nyquist)."""
-    x = latents - latents.mean(axis=0)
-    power = (np.abs(np.fft.rfft(x, axis=0)) ** 2).sum(axis=1)
-    freqs = np.fft.rfftfreq(len(x), 1.0 / token_rate)
-    last = len(bands) - 1
-    return np.array([power[(freqs >= low) & ((freqs < high) | (i == last))].sum()
-                     for i, (low, high) in enumerate(bands)])
+    """(K, Dz) latents, one per token -> their power in each band [low, high) Hz."""
+    return band_power(latents, token_rate, bands)
 
 
 def latent_step(latents: np.ndarray) -> float:
