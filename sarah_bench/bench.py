@@ -47,6 +47,7 @@ from sarah_models.testing import random_models, stream_deviation, synthetic_inpu
 
 from .config import CHUNK_FRAMES, BenchConfig
 from .data import bench_hubert_windows, bench_loader, bench_prep, write_random_hubert
+from .kernels import chunk_weight_bytes, read_floor_ms
 from .naive import NaiveStreamer
 from .load import BackgroundLoad
 from .report import check_goals
@@ -145,6 +146,21 @@ def bench_kernel(thread_counts: tuple[int, ...], calls: int = 300) -> dict[str, 
                 layer(x)
                 times.append(time.perf_counter() - tick)
             out[str(threads)] = percentiles(times)
+    return out
+
+
+def bench_memory_floor(models, thread_counts: tuple[int, ...],
+                       config: StreamConfig = StreamConfig()) -> dict[str, Any]:
+    """The floor under a streamed chunk (``kernels.read_floor_ms``): its weight bytes, and per
+    thread count the ms to read them once in a chunk's order and the fps that allows. A stream
+    far above it is bound by its kernels and the operations between them; one near it, by the
+    machine's memory."""
+    weights = chunk_weight_bytes(models, config)
+    total = weights["evaluation"] * weights["evaluations"] + weights["chunk"] + weights["decoder"]
+    out: dict[str, Any] = {"megabytes": total / 2**20, "weights": weights, "threads": {}}
+    for threads in thread_counts:
+        ms = read_floor_ms(weights, threads)
+        out["threads"][str(threads)] = {"ms": ms, "fps": 1000.0 * CHUNK_FRAMES / ms}
     return out
 
 
@@ -263,6 +279,8 @@ class SizeBench:
                                                  self.cfg.concurrent_seconds, self.policy)
         if self.size == "paper":
             out["kernel"] = bench_kernel(tuple(range(1, len(self.policy.cpus) + 1)))
+        log(f"[{label}] memory floor: the time to read one streamed chunk's weights")
+        out["memory_floor"] = bench_memory_floor(self.fast, tuple(range(1, len(self.policy.cpus) + 1)))
         return out
 
 

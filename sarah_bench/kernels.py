@@ -11,6 +11,13 @@ latent token and the block's 4 frames) with the precisions the decoder may run i
 bf16 through ``F.linear``, and the same over oneDNN-packed weights (``accel.linears.PackedLinear``,
 in use where torch has oneDNN).
 
+``chunk_weight_bytes`` and ``read_floor_ms`` give the floor under a whole streamed chunk: the
+weight bytes its Linears read, in the order they read them (the flow's per-evaluation weights
+once per evaluation, then the decoder's), and the time this machine takes merely to read that
+many bytes. No kernel computes a chunk faster than it can read its weights once; where a
+chunk's weights do not fit in the last-level cache, every evaluation reads them from memory
+again, and ``sarah-bench`` reports the fps that floor allows beside the fps measured.
+
     python -m sarah_bench.kernels [--threads 1 2]
 """
 
@@ -24,10 +31,18 @@ import torch
 from torch import Tensor, nn
 
 from sarah_cli.arguments import HelpFormatter, positive_int
-from sarah_models.accel.linears import BF16Linear, Int8Linear, PackedLinear, packed_linears_available
-from sarah_models.config import HISTORY_TOKENS, STRIDE, FlowConfig, VAEConfig
+from sarah_models.accel.linears import (
+    BF16Linear,
+    Int8Linear,
+    PackedLinear,
+    packed_linears_available,
+)
+from sarah_models.config import HISTORY_TOKENS, STRIDE, FlowConfig, StreamConfig, VAEConfig
 from sarah_models.nn.flow import FlowModel
 from sarah_models.nn.vae import CausalVAE
+
+from sarah_models.sampling.solver import time_grid
+from sarah_models.training.checkpoint import unpack_models
 
 from .timing import percentiles, torch_threads
 
@@ -122,6 +137,70 @@ def kernels(shapes: list[tuple[int, int]], rows: int = ROWS, seed: int = 0) -> d
             torch._int_mm(x_int8[w.shape[0]], w).float() * row_scale[w.shape[0]] * s
             for w, s in zip(weights_t, scales)],
     }
+
+
+# The flow's Linears outside its blocks that run at every evaluation (the condition encoders and
+# ``cond_in`` run once per chunk: ``StreamingGenerator`` caches the condition tokens).
+FLOW_EVALUATION_OUTER = ("latent_in", "out.proj")
+
+
+LINEAR_KINDS = (Int8Linear, PackedLinear, BF16Linear, nn.Linear)
+
+
+def linear_names(root: nn.Module) -> list[str]:
+    """Names of every Linear of ``root``, plain or swapped in by ``optimize_for_inference``."""
+    return [name for name, m in root.named_modules() if isinstance(m, LINEAR_KINDS)]
+
+
+def weight_bytes(module: nn.Module) -> int:
+    """Bytes of weights one call of a Linear-like module reads (bias left out)."""
+    if isinstance(module, Int8Linear):
+        return module.in_features * module.out_features
+    if isinstance(module, BF16Linear):
+        return module.in_features * module.out_features * 2
+    if isinstance(module, PackedLinear):
+        return module.in_features * module.out_features * torch.finfo(module.dtype).bits // 8
+    if isinstance(module, nn.Linear):
+        return module.weight.numel() * module.weight.element_size()
+    raise TypeError(f"not a Linear: {type(module).__name__}")
+
+
+def chunk_weight_bytes(models, config: StreamConfig = StreamConfig()) -> dict[str, int]:
+    """The weight bytes one streamed chunk reads, by group: ``evaluation`` (the flow's block
+    Linears and its latent input and output projection, read once per solver evaluation),
+    ``evaluations`` (how many a chunk runs), ``chunk`` (the condition encoders and ``cond_in``,
+    once per chunk) and ``decoder`` (one VAE decoder step). ``models`` as for
+    ``optimize_for_inference`` (optimized or plain: each Linear counts in its own precision);
+    the AdaLN modulations and the time path are not counted, as the fast path memoizes them."""
+    vae, flow, _ = unpack_models(models)
+    names = linear_names(flow)
+    block = [n for n in names if n.startswith("blocks.") and ".modulation." not in n]
+    once = [n for n in names if n == "cond_in" or n.startswith("encoders.")]
+    # what ``accel.linears.decoder_linears`` names, in whichever precision they now are
+    decoder = [n for n in linear_names(vae) if n.startswith("decoder.") or n in ("latent_in", "frame_out")]
+    return {
+        "evaluation": sum(weight_bytes(flow.get_submodule(n)) for n in [*block, *FLOW_EVALUATION_OUTER]),
+        "evaluations": len(time_grid(config.steps, config.solver)),
+        "chunk": sum(weight_bytes(flow.get_submodule(n)) for n in once),
+        "decoder": sum(weight_bytes(vae.get_submodule(n)) for n in decoder),
+    }
+
+
+def read_floor_ms(weights: dict[str, int], threads: int, repeats: int = 20) -> float:
+    """Median ms to read ``chunk_weight_bytes``'s bytes in a chunk's order (the per-evaluation
+    weights ``evaluations`` times, then the per-chunk and the decoder's) with ``threads``
+    threads: the time no kernel can beat."""
+    buffers = {key: torch.ones(max(weights[key] // 8, 1), dtype=torch.int64)
+               for key in ("evaluation", "chunk", "decoder")}
+
+    def chunk() -> None:
+        for _ in range(weights["evaluations"]):
+            buffers["evaluation"].sum()
+        buffers["chunk"].sum()
+        buffers["decoder"].sum()
+
+    with torch_threads(threads):
+        return median_ms(chunk, repeats=repeats)
 
 
 def main() -> None:

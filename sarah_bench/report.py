@@ -180,6 +180,17 @@ def format_report(results: dict[str, Any]) -> str:
                 lr = loaded_kernel[threads]
                 text += f"   | {_f(1000 * lr['p50'], 0):>6}  {_f(1000 * lr['p99'], 0):>8}"
             lines.append(text)
+    floors = results.get("memory_floor", {})
+    if floors:
+        lines += ["", "memory floor: the time merely to read one streamed chunk's weights (every "
+                      "solver evaluation reads the flow's again); no kernel is faster"]
+        for label, section in (("idle", results), ("under load", loaded)):
+            for size, floor in section.get("memory_floor", {}).items():
+                reads = ", ".join(f"{threads} thread{'s' * (threads != '1')} {_f(row['ms'], 2)} ms "
+                                  f"({_f(row['fps'], 0)} fps)" for threads, row in floor["threads"].items())
+                fps = section.get("streaming", {}).get(size, {}).get("fps")
+                lines.append(f"  {size} {label}: {floor['megabytes']:,.0f} MB per chunk; read in {reads}; "
+                             f"streamed {_f(fps)} fps")
     hubert = results.get("hubert_streaming")
     if hubert:
         lines += ["", "HuBERT-Large causal streaming: one pass per 4-frame chunk (133 ms of audio)",

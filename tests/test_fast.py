@@ -27,7 +27,8 @@ import sarah_models.accel.optimize as optimize_module
 from sarah_bench.naive import NaiveStreamer
 from sarah_models.accel import optimize_for_inference, resolve_decoder
 from sarah_models.accel.linears import (BF16Linear, Int8Linear, PackedLinear, decoder_linears,
-                                        flow_outer_linears, packed_linears_available)
+                                        flow_block_linears, flow_outer_linears,
+                                        packed_linears_available)
 from sarah_models.accel.memo import InputMemo
 from sarah_models.config import RunConfig, StreamConfig
 from sarah_models.nn.layers import KVCache, RopeAngles
@@ -360,6 +361,10 @@ def test_bench_quick_runs_end_to_end(tmp_path):
     assert goals["prep.logmel.rtf"]["met"] is not None
     assert goals["streaming.tiny.deviation_shipped.max_joint_mm"]["value"] == shipped["max_joint_mm"]
     assert goals["offline.paper.fps"]["met"] is None  # the quick run has no paper-size model
+    floor = results["memory_floor"]["tiny"]
+    assert "1" in floor["threads"]  # every thread count up to this process's cores
+    for row in floor["threads"].values():
+        assert row["ms"] > 0 and row["fps"] == pytest.approx(4000.0 / row["ms"])
     lines = history.read_text().splitlines()
     assert lines[3].startswith("| ") and "int8" in lines[3] and lines[-1] == "after the table"
 
@@ -447,3 +452,24 @@ def test_every_decoder_kernel_of_the_kernel_bench_computes_the_same_product():
             assert out.shape == ref.shape and out.dtype == torch.float32, name
             tolerance = 1e-5 if name.startswith("fp32") else 0.02
             assert ((out - ref).abs().max() / ref.abs().max()).item() < tolerance, name
+
+
+@pytest.mark.parametrize("mode", ["none", "int8", "bf16"])
+def test_chunk_weight_bytes_counts_every_linear_a_chunk_reads_in_its_precision(tiny, mode):
+    """The bench's memory floor is only a floor if it counts every weight a streamed chunk
+    reads: the flow's block Linears and its latent input and output projection per evaluation
+    (int8: a byte each, bf16: two, fp32: four), the condition encoders once, the decoder's once."""
+    from sarah_bench.kernels import chunk_weight_bytes
+
+    plain_vae, plain_flow, _ = tiny
+    numel = lambda root, names: sum(root.get_submodule(n).weight.numel() for n in names)
+    block = numel(plain_flow, flow_block_linears(plain_flow))
+    outer = numel(plain_flow, ["latent_in", "out.proj"])
+    once = numel(plain_flow, [n for n in flow_outer_linears(plain_flow)
+                              if n == "cond_in" or n.startswith("encoders.")])
+    per_weight = {"none": 4, "int8": 1, "bf16": 2}[mode]
+    models = tiny if mode == "none" else optimize_for_inference(tiny, mode)
+    weights = chunk_weight_bytes(models, StreamConfig(steps=3))
+    assert weights == {"evaluation": per_weight * block + 4 * outer, "evaluations": 6,
+                       "chunk": 4 * once,
+                       "decoder": 4 * numel(plain_vae, decoder_linears(plain_vae))}
