@@ -47,7 +47,7 @@ from sarah_models.testing import random_models, stream_deviation, synthetic_inpu
 
 from .config import CHUNK_FRAMES, BenchConfig
 from .data import bench_hubert_windows, bench_loader, bench_prep, write_random_hubert
-from .kernels import chunk_weight_bytes, read_floor_ms
+from .kernels import chunk_weight_bytes, read_floor_ms, total_bytes
 from .naive import NaiveStreamer
 from .load import BackgroundLoad
 from .report import check_goals
@@ -156,8 +156,7 @@ def bench_memory_floor(models, thread_counts: tuple[int, ...],
     far above it is bound by its kernels and the operations between them; one near it, by the
     machine's memory."""
     weights = chunk_weight_bytes(models, config)
-    total = weights["evaluation"] * weights["evaluations"] + weights["chunk"] + weights["decoder"]
-    out: dict[str, Any] = {"megabytes": total / 2**20, "weights": weights, "threads": {}}
+    out: dict[str, Any] = {"megabytes": total_bytes(weights) / 2**20, "weights": weights, "threads": {}}
     for threads in thread_counts:
         ms = read_floor_ms(weights, threads)
         out["threads"][str(threads)] = {"ms": ms, "fps": 1000.0 * CHUNK_FRAMES / ms}

@@ -31,6 +31,7 @@ import torch
 from torch import Tensor, nn
 
 from sarah_cli.arguments import HelpFormatter, positive_int
+from sarah_models.accel import optimize_for_inference
 from sarah_models.accel.linears import (
     BF16Linear,
     Int8Linear,
@@ -42,6 +43,7 @@ from sarah_models.nn.flow import FlowModel
 from sarah_models.nn.vae import CausalVAE
 
 from sarah_models.sampling.solver import time_grid
+from sarah_models.testing import random_models
 from sarah_models.training.checkpoint import unpack_models
 
 from .timing import percentiles, torch_threads
@@ -186,6 +188,11 @@ def chunk_weight_bytes(models, config: StreamConfig = StreamConfig()) -> dict[st
     }
 
 
+def total_bytes(weights: dict[str, int]) -> int:
+    """All the bytes of ``chunk_weight_bytes``'s groups that one chunk reads."""
+    return weights["evaluation"] * weights["evaluations"] + weights["chunk"] + weights["decoder"]
+
+
 def read_floor_ms(weights: dict[str, int], threads: int, repeats: int = 20) -> float:
     """Median ms to read ``chunk_weight_bytes``'s bytes in a chunk's order (the per-evaluation
     weights ``evaluations`` times, then the per-chunk and the decoder's) with ``threads``
@@ -226,6 +233,13 @@ def main() -> None:
             timed = {name: median_ms(step) for name, step in decoder_kernels(shapes).items()}
         for name, ms in timed.items():
             print(f"threads {threads}  {name:34s} {ms:8.2f} ms / step")
+    weights = chunk_weight_bytes(optimize_for_inference(random_models("paper", audio_dim=80), "int8"))
+    print(f"one streamed paper-size chunk, int8 fast path: {total_bytes(weights) / 2**20:.0f} MB "
+          "of weights read")
+    for threads in args.threads:
+        ms = read_floor_ms(weights, threads)
+        print(f"threads {threads}  {'read them (memory floor)':34s} {ms:8.2f} ms / chunk "
+              f"({1000 * STRIDE / ms:5.0f} fps at most)")
 
 
 if __name__ == "__main__":
