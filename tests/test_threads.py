@@ -93,3 +93,24 @@ def test_a_real_busy_process_is_seen_and_its_core_given_up():
     assert policy.others_cores >= 0.5, policy.describe()
     assert policy.threads == max(1, len(cpus) - 1) or len(cpus) > 2
     assert load.running() == 0
+
+
+def test_calibration_interleaves_the_counts_so_drift_does_not_decide(tmp_path, monkeypatch):
+    """Two threads are truly 1 ms faster per chunk, but the machine slows by 0.5 ms with every
+    call (a shared VM's speed drifts): timed one count after the other, two threads would come
+    out slower; taking turns, they come out faster and become the ceiling."""
+    monkeypatch.setattr("sarah_models.accel.threads.usable_cpus", lambda: [0, 1])
+    write_stat(tmp_path / "stat", {0: (0, 0, 0), 1: (0, 0, 0)})
+    policy = ThreadPolicy(settle_s=0, stat_path=str(tmp_path / "stat"))
+    clock = {"now": 0.0, "calls": 0}
+    monkeypatch.setattr("sarah_models.accel.threads.time.perf_counter", lambda: clock["now"])
+    before = torch.get_num_threads()
+
+    def chunk() -> None:
+        clock["calls"] += 1
+        clock["now"] += (0.010 if torch.get_num_threads() == 1 else 0.009) + 0.0005 * clock["calls"]
+
+    medians = policy.calibrate(chunk, calls=6, warm=2)
+    assert clock["calls"] == 16 and torch.get_num_threads() == before
+    assert set(medians) == {1, 2} and medians[2] < medians[1]
+    assert policy.ceiling == 2 and policy.threads == 2

@@ -137,24 +137,26 @@ class ThreadPolicy:
         other processes leave free now: the median of ``calls`` calls after ``warm``. More
         threads than the fastest count are never used after: a small model's kernels are too
         short to share (the tiny preset streamed 1.5x faster on one thread than on two of an
-        idle 2-core VM; the paper size 1.2x faster on two). Returns {threads: median seconds}."""
+        idle 2-core VM; the paper size 1.2x faster on two). The counts take turns, call by call,
+        so that a machine whose speed drifts while it calibrates (a shared VM's does by a third
+        within minutes) slows each count alike instead of the one measured last.
+        Returns {threads: median seconds}."""
         if not self.automatic:
             return {}
         before = torch.get_num_threads()
-        free = self.update()
-        medians: dict[int, float] = {}
+        counts = range(1, self.update() + 1)
+        times: dict[int, list[float]] = {threads: [] for threads in counts}
         try:
-            for threads in range(1, free + 1):
-                torch.set_num_threads(threads)
-                times = []
-                for i in range(warm + calls):
+            for i in range(warm + calls):
+                for threads in counts:
+                    torch.set_num_threads(threads)
                     tick = time.perf_counter()
                     chunk()
                     if i >= warm:
-                        times.append(time.perf_counter() - tick)
-                medians[threads] = sorted(times)[len(times) // 2]
+                        times[threads].append(time.perf_counter() - tick)
         finally:
             torch.set_num_threads(before)
+        medians = {threads: sorted(t)[len(t) // 2] for threads, t in times.items()}
         if len(medians) == len(self.cpus):  # measured on a machine nobody else was using
             self.ceiling = min(medians, key=medians.get)
             self.threads = min(self.threads, self.ceiling)
