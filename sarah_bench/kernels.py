@@ -36,12 +36,14 @@ from sarah_models.accel.linears import (
     BF16Linear,
     Int8Linear,
     PackedLinear,
+    decoder_linears,
+    flow_block_linears,
+    flow_outer_linears,
     packed_linears_available,
 )
 from sarah_models.config import HISTORY_TOKENS, STRIDE, FlowConfig, StreamConfig, VAEConfig
 from sarah_models.nn.flow import FlowModel
 from sarah_models.nn.vae import CausalVAE
-
 from sarah_models.sampling.solver import time_grid
 from sarah_models.testing import random_models
 from sarah_models.training.checkpoint import unpack_models
@@ -146,14 +148,6 @@ def kernels(shapes: list[tuple[int, int]], rows: int = ROWS, seed: int = 0) -> d
 FLOW_EVALUATION_OUTER = ("latent_in", "out.proj")
 
 
-LINEAR_KINDS = (Int8Linear, PackedLinear, BF16Linear, nn.Linear)
-
-
-def linear_names(root: nn.Module) -> list[str]:
-    """Names of every Linear of ``root``, plain or swapped in by ``optimize_for_inference``."""
-    return [name for name, m in root.named_modules() if isinstance(m, LINEAR_KINDS)]
-
-
 def weight_bytes(module: nn.Module) -> int:
     """Bytes of weights one call of a Linear-like module reads (bias left out)."""
     if isinstance(module, Int8Linear):
@@ -175,16 +169,14 @@ def chunk_weight_bytes(models, config: StreamConfig = StreamConfig()) -> dict[st
     ``optimize_for_inference`` (optimized or plain: each Linear counts in its own precision);
     the AdaLN modulations and the time path are not counted, as the fast path memoizes them."""
     vae, flow, _ = unpack_models(models)
-    names = linear_names(flow)
-    block = [n for n in names if n.startswith("blocks.") and ".modulation." not in n]
-    once = [n for n in names if n == "cond_in" or n.startswith("encoders.")]
-    # what ``accel.linears.decoder_linears`` names, in whichever precision they now are
-    decoder = [n for n in linear_names(vae) if n.startswith("decoder.") or n in ("latent_in", "frame_out")]
+    outer = flow_outer_linears(flow)
+    once = [n for n in outer if n not in FLOW_EVALUATION_OUTER]
+    per_evaluation = flow_block_linears(flow) + [n for n in outer if n in FLOW_EVALUATION_OUTER]
     return {
-        "evaluation": sum(weight_bytes(flow.get_submodule(n)) for n in [*block, *FLOW_EVALUATION_OUTER]),
+        "evaluation": sum(weight_bytes(flow.get_submodule(n)) for n in per_evaluation),
         "evaluations": len(time_grid(config.steps, config.solver)),
         "chunk": sum(weight_bytes(flow.get_submodule(n)) for n in once),
-        "decoder": sum(weight_bytes(vae.get_submodule(n)) for n in decoder),
+        "decoder": sum(weight_bytes(vae.get_submodule(n)) for n in decoder_linears(vae)),
     }
 
 

@@ -123,6 +123,10 @@ class PackedLinear(nn.Module):
                 f"{str(self.dtype).removeprefix('torch.')}, oneDNN-packed")
 
 
+# A Linear as it stands before or after ``optimize_for_inference`` swapped it.
+LINEAR_KINDS = (nn.Linear, Int8Linear, BF16Linear, PackedLinear)
+
+
 def packed_linears_available(dtype: torch.dtype = torch.float32) -> bool:
     """Whether a ``PackedLinear`` in ``dtype`` can be built here: torch's oneDNN linear ops, and
     for bfloat16 a CPU that oneDNN computes it on (AVX-512 BF16 or AVX-NE-CONVERT); an AVX2-only
@@ -165,19 +169,19 @@ def flow_block_linears(flow: nn.Module) -> list[str]:
     (memoized) and stay fp32, as do input/output projections and condition encoders: quantizing
     them too multiplied the deviation by ten for a 2 % gain in speed."""
     return [name for name, m in flow.named_modules()
-            if isinstance(m, nn.Linear) and name.startswith("blocks.") and ".modulation." not in name]
+            if isinstance(m, LINEAR_KINDS) and name.startswith("blocks.") and ".modulation." not in name]
 
 
 def flow_outer_linears(flow: nn.Module) -> list[str]:
     """The flow's Linears outside its blocks that run at every evaluation or chunk: the
     latent input, the output projection, the condition encoders and ``cond_in`` (not the time
     path or the AdaLN modulations, which the time cache memoizes)."""
-    return [name for name, m in flow.named_modules() if isinstance(m, nn.Linear)
+    return [name for name, m in flow.named_modules() if isinstance(m, LINEAR_KINDS)
             and (name in ("latent_in", "out.proj", "cond_in") or name.startswith("encoders."))]
 
 
 def decoder_linears(vae: nn.Module) -> list[str]:
     """The Linears a streamed VAE decode step runs: the latent input, every decoder layer's and
     the frame output."""
-    return [name for name, m in vae.named_modules() if isinstance(m, nn.Linear)
+    return [name for name, m in vae.named_modules() if isinstance(m, LINEAR_KINDS)
             and (name.startswith("decoder.") or name in ("latent_in", "frame_out"))]
