@@ -157,8 +157,7 @@ def bench_memory_floor(models, thread_counts: tuple[int, ...],
     machine's memory."""
     weights = chunk_weight_bytes(models, config)
     out: dict[str, Any] = {"megabytes": total_bytes(weights) / 2**20, "weights": weights, "threads": {}}
-    for threads in thread_counts:
-        ms = read_floor_ms(weights, threads)
+    for threads, ms in read_floor_ms(weights, thread_counts).items():
         out["threads"][str(threads)] = {"ms": ms, "fps": 1000.0 * CHUNK_FRAMES / ms}
     return out
 

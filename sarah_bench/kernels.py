@@ -31,6 +31,7 @@ import torch
 from torch import Tensor, nn
 
 from sarah_cli.arguments import HelpFormatter, positive_int
+from sarah_data.features import get_extractor
 from sarah_models.accel import optimize_for_inference
 from sarah_models.accel.linears import (
     BF16Linear,
@@ -185,10 +186,11 @@ def total_bytes(weights: dict[str, int]) -> int:
     return weights["evaluation"] * weights["evaluations"] + weights["chunk"] + weights["decoder"]
 
 
-def read_floor_ms(weights: dict[str, int], threads: int, repeats: int = 20) -> float:
-    """Median ms to read ``chunk_weight_bytes``'s bytes in a chunk's order (the per-evaluation
-    weights ``evaluations`` times, then the per-chunk and the decoder's) with ``threads``
-    threads: the time no kernel can beat."""
+def read_floor_ms(weights: dict[str, int], thread_counts: tuple[int, ...],
+                  repeats: int = 20) -> dict[int, float]:
+    """Per thread count, the median ms to read ``chunk_weight_bytes``'s bytes in a chunk's order
+    (the per-evaluation weights ``evaluations`` times, then the per-chunk and the decoder's): the
+    time no kernel can beat."""
     buffers = {key: torch.ones(max(weights[key] // 8, 1), dtype=torch.int64)
                for key in ("evaluation", "chunk", "decoder")}
 
@@ -198,8 +200,11 @@ def read_floor_ms(weights: dict[str, int], threads: int, repeats: int = 20) -> f
         buffers["chunk"].sum()
         buffers["decoder"].sum()
 
-    with torch_threads(threads):
-        return median_ms(chunk, repeats=repeats)
+    floors = {}
+    for threads in thread_counts:
+        with torch_threads(threads):
+            floors[threads] = median_ms(chunk, repeats=repeats)
+    return floors
 
 
 def main() -> None:
@@ -225,11 +230,11 @@ def main() -> None:
             timed = {name: median_ms(step) for name, step in decoder_kernels(shapes).items()}
         for name, ms in timed.items():
             print(f"threads {threads}  {name:34s} {ms:8.2f} ms / step")
-    weights = chunk_weight_bytes(optimize_for_inference(random_models("paper", audio_dim=80), "int8"))
+    models = random_models("paper", audio_dim=get_extractor("logmel").dim)  # as sarah-bench's
+    weights = chunk_weight_bytes(optimize_for_inference(models, "int8"))
     print(f"one streamed paper-size chunk, int8 fast path: {total_bytes(weights) / 2**20:.0f} MB "
           "of weights read")
-    for threads in args.threads:
-        ms = read_floor_ms(weights, threads)
+    for threads, ms in read_floor_ms(weights, tuple(args.threads)).items():
         print(f"threads {threads}  {'read them (memory floor)':34s} {ms:8.2f} ms / chunk "
               f"({1000 * STRIDE / ms:5.0f} fps at most)")
 
