@@ -5,6 +5,7 @@ rest pose faces +z. Everything that needs these numbers imports them from here.
 """
 
 FPS = 30
+FLOOR_HEIGHT = 0.0  # m: the floor's y in the world convention above
 AUDIO_SAMPLE_RATE = 48_000
 SAMPLES_PER_FRAME = AUDIO_SAMPLE_RATE // FPS  # 1600: Embody 3D's audio and motion are locked
 NUM_BETAS = 300  # Embody 3D fits SMPL-X with 300 shape coefficients

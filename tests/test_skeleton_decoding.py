@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from sarah_data.constants import JOINT
+from sarah_data.constants import FLOOR_HEIGHT, JOINT
 from sarah_data.dataset import WindowDataset
 from sarah_data.skeleton import MotionLayout, bone_lengths
 from sarah_data.stats import load_stats
@@ -147,6 +147,25 @@ def test_a_gliding_body_steps_and_a_stream_gets_the_frames_at_once_gets(windows,
     lock.reset()
     blocks = np.concatenate([lock(decoded[i:i + 4]) for i in range(0, frames, 4)])
     np.testing.assert_array_equal(blocks, out)
+
+
+def test_a_body_the_decoder_sank_into_the_floor_stands_and_steps_on_it(windows, skeleton):
+    """Decoded feet sink under the floor, most before they step; a swing lifted from there
+    travelled under the foot slide's 5 cm (docs/results.md, twenty-second run)."""
+    layout = MotionLayout.from_width(windows.motion_dim)
+    body = next(b for b in (standing(windows[i], layout) for i in range(len(windows)))
+                if joints_of(b, layout)[0, FEET, 1].max() < 0.05)  # both feet on the floor
+    frames = len(body)
+    shifts = np.zeros((frames, 55, 3))
+    shifts[:, :, 0] = 0.5 / 30 * np.arange(frames)[:, None]  # gliding at 0.5 m/s: it must step
+    shifts[:, :, 1] = -0.05  # 5 cm low: the foot joints ~2 cm under the floor
+    decoded = shift_joints(body, layout, shifts)
+    assert joints_of(decoded, layout)[:, FEET, 1].max() < FLOOR_HEIGHT
+    lengths = bone_lengths(joints_of(body, layout), layout.bones)[0]
+    feet = joints_of(FootLock(layout, lengths, radius=0.1)(decoded), layout)[:, FEET]
+    assert feet[..., 1].min() >= FLOOR_HEIGHT - 1e-9  # standing on the floor, not in it
+    # every foot swings its full height above the floor
+    np.testing.assert_allclose(feet[..., 1].max(axis=0), FLOOR_HEIGHT + LIFT, atol=1e-9)
 
 
 def test_a_raised_foot_is_left_to_the_decoder(windows, skeleton):
