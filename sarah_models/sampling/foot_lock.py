@@ -23,7 +23,7 @@ benchmark, the shipped model's foot joints were under the floor in 3.6 % of fram
 -4.5 cm, while the ground truth's never go under 3 cm. An arc lifted from a foot 2 cm under the
 floor was still under 5 cm when the foot began to travel, so its first and last travelling
 frames made most of the benchmark's foot slide (0.0070 of frame steps, the ground truth's 0).
-Lifted from the floor, most clear it: 0.0026 (docs/results.md, twenty-second run).
+Lifted from the floor, most clear it: 0.0028 (docs/results.md, twenty-second run).
 
 The leg follows the foot: the ankle moves with it and the knee is placed by two-bone inverse
 kinematics on the hip (thigh and shin at the skeleton's lengths, bending the way the decoded
