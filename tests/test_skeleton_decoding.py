@@ -65,7 +65,8 @@ def test_rigid_skeleton_keeps_directions_and_puts_every_bone_at_its_length(windo
     np.testing.assert_allclose(bone_lengths(after, layout.bones),
                                np.broadcast_to(skeleton, (len(out), 54)), rtol=1e-9)
     legs = {(JOINT[child], JOINT[parent]) for side in ("left", "right")
-            for parent, child in ((f"{side}_hip", f"{side}_knee"), (f"{side}_knee", f"{side}_ankle"))}
+            for parent, child in ((f"{side}_hip", f"{side}_knee"), (f"{side}_knee", f"{side}_ankle"),
+                                  (f"{side}_ankle", f"{side}_foot"))}
     for child, parent in set(layout.bones) - legs:
         a, b = before[:, child] - before[:, parent], after[:, child] - after[:, parent]
         cosine = np.sum(a * b, -1) / np.linalg.norm(a, axis=-1) / np.linalg.norm(b, axis=-1)
@@ -79,11 +80,41 @@ def test_rigid_skeleton_keeps_directions_and_puts_every_bone_at_its_length(windo
         within = reach < 0.999 * longest
         assert within.mean() > 0.3  # a standing leg is nearly straight
         np.testing.assert_allclose(after[within, ankle], before[within, ankle], atol=1e-9)
+    # The feet at their decoded height, heading the decoded way on the floor.
+    for foot, ankle in ((10, 7), (11, 8)):
+        length = skeleton[layout.bones.index((foot, ankle))]
+        reachable = np.abs(before[:, foot, 1] - after[:, ankle, 1]) < length
+        assert reachable.mean() > 0.9
+        np.testing.assert_allclose(after[reachable, foot, 1], before[reachable, foot, 1], atol=1e-9)
+        a, b = ((x[:, foot] - x[:, ankle]) * [1, 0, 1] for x in (before, after))
+        cosine = np.sum(a * b, -1) / np.linalg.norm(a, axis=-1) / np.linalg.norm(b, axis=-1)
+        np.testing.assert_allclose(cosine[reachable], 1.0, atol=1e-9)
     shapes = [layout.split(m)[0] - joints_of(m, layout)[:, :, None] for m in (noisy, out)]
     np.testing.assert_allclose(shapes[0], shapes[1], atol=1e-9)  # rotations are the decoder's
     # A body already at those lengths is left as it is, shell points included.
     rigid = RigidSkeleton(layout, bone_lengths(joints_of(motion, layout), layout.bones)[0])
     np.testing.assert_allclose(rigid(motion), motion, atol=1e-6)
+
+
+def test_a_short_decoded_foot_stays_on_the_floor_and_lies_flatter(windows, skeleton):
+    """The decoder's foot bones come out short and steep; lengthened along their direction, the
+    feet went into the floor (docs/results.md, twenty-second run)."""
+    layout = MotionLayout.from_width(windows.motion_dim)
+    body = next(b for b in (standing(windows[i], layout) for i in range(len(windows)))
+                if joints_of(b, layout)[0, FEET, 1].max() < 0.05)  # both feet on the floor
+    joints = joints_of(body, layout)
+    lengths = bone_lengths(joints, layout.bones)[0]
+    shifts = np.zeros((len(body), 55, 3))
+    for foot in FEET:  # the foot joint 60 % of the way to the ankle on the floor, at its height
+        shifts[:, foot] = 0.6 * (joints[:, foot - 3] - joints[:, foot]) * [1, 0, 1]
+    decoded = joints_of(shift_joints(body, layout, shifts), layout)
+    steep = decoded[:, FEET] - decoded[:, [f - 3 for f in FEET]]
+    along = decoded[:, [f - 3 for f in FEET], 1] + steep[..., 1] * (
+        lengths[[layout.bones.index((f, f - 3)) for f in FEET]] / np.linalg.norm(steep, axis=-1))
+    assert along.max() < FLOOR_HEIGHT  # lengthened along its decoded direction: in the floor
+    out = joints_of(RigidSkeleton(layout, lengths)(shift_joints(body, layout, shifts)), layout)
+    np.testing.assert_allclose(out[:, FEET, 1], joints[:, FEET, 1], atol=1e-9)
+    np.testing.assert_allclose(out[:, FEET], joints[:, FEET], atol=1e-9)  # as it stood
 
 
 def test_shell_points_follow_the_joints_near_them(windows, skeleton):

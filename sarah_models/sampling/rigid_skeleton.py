@@ -10,7 +10,8 @@ the pose, each bone's direction, and takes each bone's length from the training 
 its parent's corrected position plus the bone's length along its decoded direction, and its
 icosahedron moves with it (its rotation is the decoder's). The legs are the exception: their
 ankles stay where the decoder put them, as far as the legs reach (two-bone inverse kinematics
-on the hips, bending the way the decoded knees bend), so that feet stay on the floor. Shell
+on the hips, bending the way the decoded knees bend), and the foot joints at the decoded
+feet's height (``foot_at_its_height``), so that feet stay on the floor. Shell
 points follow the joints near them (``ShellFollow``): each moves by a blend of the joints'
 corrections, weighted by a Gaussian of its distance to each (``shell_radius``) in the stream's
 first frame, the way skinning weights fall off.
@@ -110,12 +111,27 @@ class RigidSkeleton:
         for hip, knee, ankle, foot, thigh, shin, foot_bone in self.legs:
             placed[:, knee], placed[:, ankle] = two_bone_ik(placed[:, hip], joints[:, knee],
                                                             joints[:, ankle], thigh, shin)
-            direction = joints[:, foot] - joints[:, ankle]
-            norm = np.linalg.norm(direction, axis=-1, keepdims=True)
-            scale = np.divide(foot_bone, norm, out=np.ones_like(norm), where=norm > 1e-9)
-            placed[:, foot] = placed[:, ankle] + direction * scale
+            placed[:, foot] = foot_at_its_height(placed[:, ankle], joints[:, ankle],
+                                                 joints[:, foot], foot_bone)
         correction = placed - joints
         return finish(motion, icosahedra, shell, correction, self.shell(shell, joints, correction))
+
+
+def foot_at_its_height(ankle: np.ndarray, decoded_ankle: np.ndarray, decoded_foot: np.ndarray,
+                       length: float) -> np.ndarray:
+    """(..., 3) -> where a foot bone of ``length`` from ``ankle`` puts the foot joint: at the
+    decoded foot's height (as far as the bone reaches), pointing the way the decoded foot points
+    on the floor. The decoder's foot bones come out short (8 cm where the skeleton's is 13.6,
+    pointing ~40° down); lengthened along their decoded direction, the feet went 3-4 cm into the
+    floor (docs/results.md, twenty-second run). Kept at their height, they lie flatter instead."""
+    drop = np.clip(decoded_foot[..., 1] - ankle[..., 1], -length, length)
+    flat = (decoded_foot - decoded_ankle) * np.array([1.0, 0.0, 1.0])
+    norm = np.linalg.norm(flat, axis=-1, keepdims=True)
+    heading = np.divide(flat, norm, out=np.zeros_like(flat), where=norm > 1e-9)
+    reach = np.sqrt(np.maximum(length ** 2 - drop ** 2, 0.0))[..., None]
+    out = ankle + heading * reach
+    out[..., 1] += drop
+    return out
 
 
 def finish(motion, icosahedra, shell, correction, shell_correction) -> np.ndarray:
