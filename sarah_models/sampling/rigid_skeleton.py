@@ -131,6 +131,9 @@ def foot_at_its_height(ankle: np.ndarray, decoded_ankle: np.ndarray, decoded_foo
     reach = np.sqrt(np.maximum(length ** 2 - drop ** 2, 0.0))[..., None]
     out = ankle + heading * reach
     out[..., 1] += drop
+    # A decoded foot right below its ankle points nowhere on the floor: straight down, full length.
+    pointless = norm[..., 0] <= 1e-9
+    out[pointless] = ankle[pointless] - np.array([0.0, length, 0.0])
     return out
 
 
