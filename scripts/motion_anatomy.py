@@ -30,7 +30,7 @@ import numpy as np
 
 from sarah_data.constants import FPS, JOINT_NAMES
 from sarah_data.skeleton import FEET, ROOT, MotionLayout
-from sarah_models.evaluation.metrics import evaluate, foot_slide
+from sarah_models.evaluation.metrics import evaluate, foot_slide, foot_steps
 from sarah_models.evaluation.metrics.spec import FOOT_MAX_HEIGHT, FOOT_MIN_SPEED, MetricsConfig
 from sarah_models.evaluation.tables import MethodResult
 from sarah_models.evaluation.windows import motion_clip
@@ -137,11 +137,9 @@ def feet(clips, layout: MotionLayout) -> None:
         for clip in clips:
             p = layout.joint_positions(clip[index], list(FEET))
             heights.append(p[..., 1].ravel())
-            moving = np.linalg.norm(np.diff(p[..., [0, 2]], axis=0), axis=-1) * FPS > FOOT_MIN_SPEED
-            for side in range(p.shape[1]):
-                edges = np.flatnonzero(np.diff(np.concatenate([[0], moving[:, side], [0]])))
-                steps.append(len(edges) // 2)
-                lengths += list(edges[1::2] - edges[0::2])
+            for foot in foot_steps(p):
+                steps.append(len(foot))
+                lengths += [end - start for start, end in foot]
             slides.append(foot_slide(layout.joint_positions(clip[index])))
         h = np.percentile(np.concatenate(heights), [5, 50, 95]) * 100
         print(f"| {label} | {h[0]:.1f} / {h[1]:.1f} / {h[2]:.1f} | {np.mean(steps):.1f} | "

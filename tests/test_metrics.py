@@ -117,6 +117,18 @@ def _still_pose(frames_: int) -> tuple[np.ndarray, np.ndarray]:
     return positions, rotations
 
 
+def test_foot_steps_are_the_runs_a_foot_moves_in():
+    from sarah_models.evaluation.metrics import foot_steps
+
+    feet = np.zeros((20, 2, 3))
+    feet[4:8, 0, 0] = 0.05 * np.arange(1, 5)  # frames 3 -> 7 move, then the foot stands there
+    feet[8:, 0, 0] = 0.2
+    feet[12:, 1, 2] = 0.3  # one jump between frames 11 and 12
+    feet[:, 1, 0] = 0.0005 * np.arange(20)  # 1.5 cm/s of drift: under the 3 cm/s a step needs
+    assert foot_steps(feet) == [[(3, 7)], [(11, 12)]]
+    assert foot_steps(np.zeros((5, 2, 3))) == [[], []]
+
+
 def test_foot_slide_on_constructed_skating():
     t = np.arange(31) / FPS
     skate, _ = _still_pose(31)

@@ -184,8 +184,7 @@ def test_a_step_rises_as_high_as_the_datas_steps(prepared_shards):
     """The foot lock's swing rises as the ground truth's steps do (7.8 cm on the fixtures); the
     10 cm it rose before was higher than any fixture step, and its vertical acceleration
     showed in FGD_acc (docs/results.md, twenty-third run)."""
-    from sarah_data.constants import FPS
-    from sarah_models.evaluation.metrics.spec import FOOT_MIN_SPEED
+    from sarah_models.evaluation.metrics import foot_steps
 
     long_windows = WindowDataset(prepared_shards, "train", extractor="logmel", window=300, seed=0,
                                  length=8)
@@ -193,11 +192,8 @@ def test_a_step_rises_as_high_as_the_datas_steps(prepared_shards):
     rises = []
     for i in range(len(long_windows)):
         feet = joints_of(long_windows[i]["motion"].numpy(), layout)[:, FEET]
-        moving = np.linalg.norm(np.diff(feet[..., [0, 2]], axis=0), axis=-1) * FPS > FOOT_MIN_SPEED
-        for side in range(len(FEET)):
-            edges = np.flatnonzero(np.diff(np.concatenate([[0], moving[:, side], [0]])))
-            rises += [feet[a:b + 1, side, 1].max() - feet[max(a - 1, 0), side, 1]
-                      for a, b in zip(edges[0::2], edges[1::2])]
+        for side, steps in enumerate(foot_steps(feet)):
+            rises += [feet[a:b + 1, side, 1].max() - feet[max(a - 1, 0), side, 1] for a, b in steps]
     assert len(rises) >= 10
     assert abs(np.median(rises) - LIFT) < 0.01
 

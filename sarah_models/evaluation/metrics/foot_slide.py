@@ -29,6 +29,19 @@ def foot_slide(joint_positions, fps: float = FPS, max_height: float = FOOT_MAX_H
     return float(np.mean(np.any(low & (speed > min_speed), axis=1)))
 
 
+def foot_steps(feet, fps: float = FPS, min_speed: float = FOOT_MIN_SPEED) -> list[list[tuple[int, int]]]:
+    """Per foot, its steps in (T, F, 3) foot positions (metres, y up): the runs [start, end) of
+    frame steps in which the foot moves horizontally faster than ``min_speed`` (m/s), the
+    speed foot slide counts; a step carries the foot from frame ``start`` to frame ``end``."""
+    p = np.asarray(as_numpy(feet), dtype=np.float64)
+    moving = np.linalg.norm(np.diff(p[..., [0, 2]], axis=0), axis=-1) * fps > min_speed
+    steps = []
+    for foot in range(p.shape[1]):
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], moving[:, foot], [0]])))
+        steps.append([(int(a), int(b)) for a, b in zip(edges[0::2], edges[1::2])])
+    return steps
+
+
 METRIC = Metric(name="foot_slide", label="Foot Slide", kind="clip", order=30,
                 unit="fraction of frame steps", decimals=2, better="lower", value_range=" ∈ [0, 1]",
                 function=lambda clip, config: foot_slide(
