@@ -17,7 +17,11 @@ split and prints six tables:
 6. the flow's latents in frequency: the power of the sampled latents (streamed, and offline on
    the same windows and seeds) in each band of token rate, against the encoder's latents of the
    ground truth, and how far each moves from one token to the next (docs/results.md, twentieth
-   run): where the two protocols part.
+   run): where the two protocols part;
+7. FGD_acc by body part: the same Fréchet distance as sarah-eval's FGD_acc (batches of 16 clips,
+   their mean, a bootstrap interval over batches) on the shell points nearest each part's
+   joints only, for the model (streamed and offline) and for its VAE, with each part's acceleration energy against the
+   ground truth's (docs/results.md, twenty-fourth run): which part of the body the distance is in.
 """
 
 from __future__ import annotations
@@ -29,9 +33,13 @@ from pathlib import Path
 import numpy as np
 
 from sarah_data.constants import FPS, JOINT_NAMES
+from sarah_data.moments import Moments
 from sarah_data.skeleton import FEET, ROOT, MotionLayout
 from sarah_models.evaluation.metrics import evaluate, foot_slide, foot_steps
+from sarah_models.evaluation.metrics.clips import accelerations
+from sarah_models.evaluation.metrics.frechet import moments_distance
 from sarah_models.evaluation.metrics.spec import FOOT_MAX_HEIGHT, FOOT_MIN_SPEED, MetricsConfig
+from sarah_models.evaluation.metrics.table import bootstrap_interval
 from sarah_models.evaluation.tables import MethodResult
 from sarah_models.evaluation.windows import motion_clip
 
@@ -44,9 +52,10 @@ PARTS = {"fingers": ("index", "middle", "ring", "pinky", "thumb"), "wrists": ("w
 
 
 def streamed_windows(model: str, shards: Path, split: str, threads: int):
-    """(ground truth, model motion, user head, VAE reconstruction, latents) of every window,
-    streamed and reconstructed as sarah-eval's model and VAE rows are; latents holds the
-    standardized (K, Dz) latents "encoder" (of the ground truth), "stream" and "offline"."""
+    """(ground truth, model motion, user head, VAE reconstruction, latents, offline motion) of
+    every window, streamed, generated offline and reconstructed as sarah-eval's model (both
+    protocols) and VAE rows are; latents holds the standardized (K, Dz) latents "encoder" (of
+    the ground truth), "stream" and "offline"."""
     import torch
 
     from sarah_data.dataset import WindowDataset
@@ -63,13 +72,14 @@ def streamed_windows(model: str, shards: Path, split: str, threads: int):
     with torch.inference_mode():
         for i in range(len(windows)):
             item = windows[i]
-            streamed = stream(item, i)
+            streamed, joint = stream(item, i), offline(item, i)
             mu, _ = models.vae.encode(nz.normalize("motion", item["motion"])[None])
             latents = {"encoder": nz.normalize("latent", mu[0]).numpy(),
-                       "stream": streamed.latents, "offline": offline(item, i).latents}
+                       "stream": streamed.latents, "offline": joint.latents}
             out.append((item["motion"].numpy().astype(np.float64),
                         streamed.motion.astype(np.float64), item["user_head"].numpy(),
-                        reconstruct(item, i).astype(np.float64), latents))
+                        reconstruct(item, i).astype(np.float64), latents,
+                        joint.motion.astype(np.float64)))
     return out
 
 
@@ -228,6 +238,51 @@ def latent_spectrum(clips, token_rate: float) -> None:
               + " | ".join(f"{e:.2f}" for e in power[kind] / power["encoder"]) + " |")
 
 
+def shell_parts(motion: np.ndarray, layout: MotionLayout) -> dict[str, np.ndarray]:
+    """The shell points of each of PARTS (those nearest one of its body joints in ``motion``'s
+    first frame; parts without a body joint, the fingers, get none), and "whole shell"."""
+    icosahedra, shell = layout.split(motion)
+    joints = icosahedra[0].mean(axis=-2)[:BODY]
+    nearest = np.argmin(np.sum((shell[0][:, None] - joints[None]) ** 2, -1), axis=1)
+    by_joint = part_joints(JOINT_NAMES[:BODY])
+    parts = {part: np.flatnonzero(np.isin(nearest, js)) for part, js in by_joint.items()}
+    parts = {part: points for part, points in parts.items() if len(points)}
+    return {**parts, "whole shell": np.arange(shell.shape[1])}
+
+
+def part_fgd_acc(generated, ground_truth, points: np.ndarray, layout: MotionLayout,
+                 config: MetricsConfig = MetricsConfig()) -> tuple[float, float, float, float]:
+    """FGD_acc (÷1e5, cm) of the shell ``points`` only, as sarah-eval computes FGD_acc (the mean
+    of per-batch Fréchet distances; a 95 % bootstrap interval over batches), and the generated
+    clips' acceleration energy there against the ground truth's: (avg, low, high, energy ratio)."""
+    batches, energy = [], np.zeros(2)
+    for start in range(0, len(generated), config.batch_clips):
+        moments = (Moments(full=True), Moments(full=True))
+        for clips in zip(generated[start:start + config.batch_clips],
+                         ground_truth[start:start + config.batch_clips]):
+            for i, motion in enumerate(clips):
+                a = accelerations(layout.split(motion)[1][:, points] * 100.0)  # cm/s²
+                moments[i].add(a.reshape(len(a), -1))
+                energy[i] += np.sum(a ** 2) / len(a)
+        batches.append(moments_distance(*moments, config.fd_ridge) / 1e5)
+    low, high = bootstrap_interval(batches)
+    return float(np.mean(batches)), low, high, energy[0] / energy[1]
+
+
+def acceleration_by_part(clips, layout: MotionLayout) -> None:
+    gt = [c[0] for c in clips]
+    parts = shell_parts(gt[0], layout)
+    print("| shell points nearest | points | streamed FGD_acc (÷1e5) | streamed energy / GT | "
+          "offline FGD_acc | offline energy / GT | VAE FGD_acc | VAE energy / GT |"
+          "\n|---|---|---|---|---|---|---|---|")
+    for part, points in parts.items():
+        cells = []
+        for index in (1, 5, 3):
+            avg, low, high, ratio = part_fgd_acc([c[index] for c in clips], gt, points, layout)
+            cells += [f"{avg:,.0f} ({low:,.0f}-{high:,.0f})", f"{ratio:.2f}"]
+        print(f"| {part} | {len(points)} | " + " | ".join(cells) + " |")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -260,6 +315,8 @@ def main(argv: list[str] | None = None) -> int:
     spectrum(clips, layout)
     print()
     latent_spectrum(clips, FPS / (clips[0][0].shape[0] // len(clips[0][4]["encoder"])))
+    print()
+    acceleration_by_part(clips, layout)
     return 0
 
 
