@@ -114,13 +114,11 @@ def energy(clips, layout: MotionLayout) -> None:
         total, by_joint = [], np.zeros(BODY)
         for clip in clips:
             motion = clip[index]
-            icosahedra, shell = layout.split(motion)
-            a = (shell[2:] - 2 * shell[1:-1] + shell[:-2]) * FPS ** 2
+            a = accelerations(layout.split(motion)[1])
             e = np.sum(a ** 2, axis=-1)  # (T-2, P)
             total.append(e.sum(axis=1).mean())
-            joints = icosahedra[0].mean(axis=-2)[:BODY]
-            nearest = np.argmin(np.sum((shell[0][:, None] - joints[None]) ** 2, -1), axis=1)
-            by_joint += np.bincount(nearest, weights=e.mean(axis=0), minlength=BODY)
+            by_joint += np.bincount(nearest_body_joint(motion, layout), weights=e.mean(axis=0),
+                                    minlength=BODY)
         top = np.argsort(by_joint)[::-1][:4]
         shares = ", ".join(f"{JOINT_NAMES[j]} {by_joint[j] / by_joint.sum():.2f}" for j in top)
         print(f"| {label} | {np.mean(total):,.0f} | {shares} |")
@@ -170,7 +168,7 @@ def band_power(signals: np.ndarray, rate: float, bands) -> np.ndarray:
 def band_energy(points: np.ndarray, bands=BANDS) -> np.ndarray:
     """The acceleration power of ``points`` (T, ...) in metres, in each band [low, high) Hz."""
     x = points.reshape(len(points), -1)
-    return band_power((x[2:] - 2 * x[1:-1] + x[:-2]) * FPS ** 2, FPS, bands)
+    return band_power(accelerations(x), FPS, bands)
 
 
 def part_joints(names) -> dict[str, list[int]]:
@@ -238,30 +236,44 @@ def latent_spectrum(clips, token_rate: float) -> None:
               + " | ".join(f"{e:.2f}" for e in power[kind] / power["encoder"]) + " |")
 
 
+def nearest_body_joint(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
+    """Per shell point, the index of the body joint (of the first BODY) nearest it in
+    ``motion``'s first frame."""
+    icosahedra, shell = layout.split(motion[:1])
+    joints = icosahedra[0].mean(axis=-2)[:BODY]
+    return np.argmin(np.sum((shell[0][:, None] - joints[None]) ** 2, -1), axis=1)
+
+
 def shell_parts(motion: np.ndarray, layout: MotionLayout) -> dict[str, np.ndarray]:
     """The shell points of each of PARTS (those nearest one of its body joints in ``motion``'s
     first frame; parts without a body joint, the fingers, get none), and "whole shell"."""
-    icosahedra, shell = layout.split(motion)
-    joints = icosahedra[0].mean(axis=-2)[:BODY]
-    nearest = np.argmin(np.sum((shell[0][:, None] - joints[None]) ** 2, -1), axis=1)
+    nearest = nearest_body_joint(motion, layout)
     by_joint = part_joints(JOINT_NAMES[:BODY])
     parts = {part: np.flatnonzero(np.isin(nearest, js)) for part, js in by_joint.items()}
     parts = {part: points for part, points in parts.items() if len(points)}
-    return {**parts, "whole shell": np.arange(shell.shape[1])}
+    return {**parts, "whole shell": np.arange(len(nearest))}
 
 
-def part_fgd_acc(generated, ground_truth, points: np.ndarray, layout: MotionLayout,
+def shell_accelerations(clips, layout: MotionLayout,
+                        config: MetricsConfig = MetricsConfig()) -> list[np.ndarray]:
+    """Each clip's shell accelerations (T-2, P, 3) in the reported unit per s², as FGD_acc reads
+    them; computed once and sliced per part by ``part_fgd_acc``."""
+    return [accelerations(layout.split(motion)[1] / config.report_unit) for motion in clips]
+
+
+def part_fgd_acc(generated, ground_truth, points: np.ndarray,
                  config: MetricsConfig = MetricsConfig()) -> tuple[float, float, float, float]:
-    """FGD_acc (÷1e5, cm) of the shell ``points`` only, as sarah-eval computes FGD_acc (the mean
-    of per-batch Fréchet distances; a 95 % bootstrap interval over batches), and the generated
-    clips' acceleration energy there against the ground truth's: (avg, low, high, energy ratio)."""
+    """FGD_acc (÷1e5) of the shell ``points`` only, from ``shell_accelerations`` of the generated
+    and ground-truth clips, as sarah-eval computes FGD_acc (the mean of per-batch Fréchet
+    distances; a 95 % bootstrap interval over batches), and the generated clips' acceleration
+    energy there against the ground truth's: (avg, low, high, energy ratio)."""
     batches, energy = [], np.zeros(2)
     for start in range(0, len(generated), config.batch_clips):
         moments = (Moments(full=True), Moments(full=True))
-        for clips in zip(generated[start:start + config.batch_clips],
-                         ground_truth[start:start + config.batch_clips]):
-            for i, motion in enumerate(clips):
-                a = accelerations(layout.split(motion)[1][:, points] * 100.0)  # cm/s²
+        for pair in zip(generated[start:start + config.batch_clips],
+                        ground_truth[start:start + config.batch_clips]):
+            for i, acceleration in enumerate(pair):
+                a = acceleration[:, points]
                 moments[i].add(a.reshape(len(a), -1))
                 energy[i] += np.sum(a ** 2) / len(a)
         batches.append(moments_distance(*moments, config.fd_ridge) / 1e5)
@@ -270,15 +282,16 @@ def part_fgd_acc(generated, ground_truth, points: np.ndarray, layout: MotionLayo
 
 
 def acceleration_by_part(clips, layout: MotionLayout) -> None:
-    gt = [c[0] for c in clips]
-    parts = shell_parts(gt[0], layout)
+    gt = shell_accelerations([c[0] for c in clips], layout)
+    methods = [shell_accelerations([c[index] for c in clips], layout) for index in (1, 5, 3)]
+    parts = shell_parts(clips[0][0], layout)
     print("| shell points nearest | points | streamed FGD_acc (÷1e5) | streamed energy / GT | "
           "offline FGD_acc | offline energy / GT | VAE FGD_acc | VAE energy / GT |"
           "\n|---|---|---|---|---|---|---|---|")
     for part, points in parts.items():
         cells = []
-        for index in (1, 5, 3):
-            avg, low, high, ratio = part_fgd_acc([c[index] for c in clips], gt, points, layout)
+        for generated in methods:
+            avg, low, high, ratio = part_fgd_acc(generated, gt, points)
             cells += [f"{avg:,.0f} ({low:,.0f}-{high:,.0f})", f"{ratio:.2f}"]
         print(f"| {part} | {len(points)} | " + " | ".join(cells) + " |")
 

@@ -97,10 +97,11 @@ def test_part_fgd_acc_finds_jitter_in_the_part_that_has_it():
         shell[:, :2] += rng.normal(size=(60, 2, 3)) * 0.002  # 2 mm of jitter on the knees' points
         generated.append(motion)
     parts = anatomy.shell_parts(truth[0], layout)
-    legs = anatomy.part_fgd_acc(generated, truth, parts["legs"], layout)
-    head = anatomy.part_fgd_acc(generated, truth, parts["trunk and head"], layout)
-    whole = anatomy.part_fgd_acc(generated, truth, parts["whole shell"], layout)
+    truth, generated = (anatomy.shell_accelerations(c, layout) for c in (truth, generated))
+    legs = anatomy.part_fgd_acc(generated, truth, parts["legs"])
+    head = anatomy.part_fgd_acc(generated, truth, parts["trunk and head"])
+    whole = anatomy.part_fgd_acc(generated, truth, parts["whole shell"])
     assert head[0] < 1e-9 and head[3] == 1.0
     assert legs[0] > 1.0 and legs[1] <= legs[0] <= legs[2] and legs[3] > 3.0
     assert whole[0] >= legs[0] * 0.999
-    assert anatomy.part_fgd_acc(truth, truth, parts["whole shell"], layout)[0] < 1e-9
+    assert anatomy.part_fgd_acc(truth, truth, parts["whole shell"])[0] < 1e-9
