@@ -1,7 +1,7 @@
 """Where a model's motion differs from the ground truth's: root against pose, which joints carry
 the acceleration, how far the body travels, whether the feet step (docs/results.md, seventeenth
 run). Streams the model (as sarah-eval's model row, g = none) on every 400-frame window of a
-split and prints six tables:
+split and prints seven tables:
 
     python scripts/motion_anatomy.py --pretrained fixture-tiny --shards test_shards --split train
 
