@@ -29,6 +29,7 @@ JOINT_NAMES = (
     "right_ring2", "right_ring3", "right_thumb1", "right_thumb2", "right_thumb3",
 )
 NUM_JOINTS = len(JOINT_NAMES)
+BODY_JOINTS = 22  # pelvis .. right_wrist: the SMPL-X body, before the jaw, eyes and fingers
 
 # Parent of each joint (-1 for the root), the SMPL-X kintree_table's first row.
 JOINT_PARENTS = (

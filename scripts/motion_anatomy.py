@@ -9,7 +9,8 @@ split and prints seven tables:
    trajectory, and the model's pose on the ground truth's root; what each part costs;
 2. the shell's acceleration energy per frame and its share by nearest body joint;
 3. the root's path per window and its speed;
-4. the feet: height percentiles, steps per window and foot, frames per step;
+4. the feet: height percentiles, steps per window and foot, frames per step, how far a
+   step carries the foot;
 5. where the acceleration energy lies in frequency (the shell's, by band; the joints', by body
    part), for the model and for its VAE reconstructing the ground truth, each against the
    ground truth's (docs/results.md, nineteenth run): what FGD_acc weighs, and which of the
@@ -32,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sarah_data.constants import FPS, JOINT_NAMES
+from sarah_data.constants import BODY_JOINTS, FPS, JOINT_NAMES
 from sarah_data.moments import Moments
 from sarah_data.skeleton import FEET, ROOT, MotionLayout
 from sarah_models.evaluation.metrics import evaluate, foot_slide, foot_steps
@@ -43,7 +44,6 @@ from sarah_models.evaluation.metrics.table import bootstrap_interval
 from sarah_models.evaluation.tables import MethodResult
 from sarah_models.evaluation.windows import motion_clip
 
-BODY = 22  # SMPL-X body joints: shell points are put on the nearest of these
 BANDS = ((0, 2), (2, 4), (4, 6), (6, 8), (8, 10), (10, FPS / 2 + 1))  # Hz; the last holds Nyquist
 BEATS = (2, 7)  # Hz: the fixtures' syllable-rate gestures (~4.5 Hz) and what blurs them
 PARTS = {"fingers": ("index", "middle", "ring", "pinky", "thumb"), "wrists": ("wrist",),
@@ -111,14 +111,14 @@ def energy(clips, layout: MotionLayout) -> None:
     print("\n| motion | shell acceleration energy per frame, (m/s²)² | largest shares by nearest joint |"
           "\n|---|---|---|")
     for label, index in (("ground truth", 0), ("model", 1)):
-        total, by_joint = [], np.zeros(BODY)
+        total, by_joint = [], np.zeros(BODY_JOINTS)
         for clip in clips:
             motion = clip[index]
             a = accelerations(layout.split(motion)[1])
             e = np.sum(a ** 2, axis=-1)  # (T-2, P)
             total.append(e.sum(axis=1).mean())
             by_joint += np.bincount(nearest_body_joint(motion, layout), weights=e.mean(axis=0),
-                                    minlength=BODY)
+                                    minlength=BODY_JOINTS)
         top = np.argsort(by_joint)[::-1][:4]
         shares = ", ".join(f"{JOINT_NAMES[j]} {by_joint[j] / by_joint.sum():.2f}" for j in top)
         print(f"| {label} | {np.mean(total):,.0f} | {shares} |")
@@ -137,21 +137,31 @@ def travel(clips, layout: MotionLayout) -> None:
         print(f"| {label} | {np.mean(paths):.2f} | {p[0]:.3f} / {p[1]:.3f} / {p[2]:.3f} |")
 
 
+def step_reaches(feet: np.ndarray) -> list[float]:
+    """Each step's horizontal distance from where the foot lifts to where it lands, metres, over
+    the steps ``foot_steps`` finds in (T, F, 3) foot positions."""
+    return [float(np.hypot(*(feet[end, foot] - feet[start, foot])[[0, 2]]))
+            for foot, steps in enumerate(foot_steps(feet)) for start, end in steps]
+
+
 def feet(clips, layout: MotionLayout) -> None:
     print("\n| motion | foot height p5 / p50 / p95, cm | steps per window and foot | frames per step "
-          "(median) | foot slide |\n|---|---|---|---|---|")
+          "(median) | step length p10 / p50 / p90, cm | foot slide |\n|---|---|---|---|---|---|")
     for label, index in (("ground truth", 0), ("model", 1)):
-        heights, steps, lengths, slides = [], [], [], []
+        heights, steps, durations, reaches, slides = [], [], [], [], []
         for clip in clips:
             p = layout.joint_positions(clip[index], list(FEET))
             heights.append(p[..., 1].ravel())
             for foot in foot_steps(p):
                 steps.append(len(foot))
-                lengths += [end - start for start, end in foot]
+                durations += [end - start for start, end in foot]
+            reaches += step_reaches(p)
             slides.append(foot_slide(layout.joint_positions(clip[index])))
         h = np.percentile(np.concatenate(heights), [5, 50, 95]) * 100
+        r = np.percentile(reaches, [10, 50, 90]) * 100 if reaches else np.zeros(3)
         print(f"| {label} | {h[0]:.1f} / {h[1]:.1f} / {h[2]:.1f} | {np.mean(steps):.1f} | "
-              f"{np.median(lengths) if lengths else 0:.0f} | {np.mean(slides):.2f} |")
+              f"{np.median(durations) if durations else 0:.0f} | {r[0]:.0f} / {r[1]:.0f} / {r[2]:.0f} | "
+              f"{np.mean(slides):.2f} |")
     print(f"\n(a foot steps while it moves faster than {FOOT_MIN_SPEED * 100:g} cm/s; it slides "
           f"when it does so below {FOOT_MAX_HEIGHT * 100:g} cm)")
 
@@ -237,10 +247,10 @@ def latent_spectrum(clips, token_rate: float) -> None:
 
 
 def nearest_body_joint(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
-    """Per shell point, the index of the body joint (of the first BODY) nearest it in
+    """Per shell point, the index of the body joint (of the first BODY_JOINTS) nearest it in
     ``motion``'s first frame."""
     icosahedra, shell = layout.split(motion[:1])
-    joints = icosahedra[0].mean(axis=-2)[:BODY]
+    joints = icosahedra[0].mean(axis=-2)[:BODY_JOINTS]
     return np.argmin(np.sum((shell[0][:, None] - joints[None]) ** 2, -1), axis=1)
 
 
@@ -248,7 +258,7 @@ def shell_parts(motion: np.ndarray, layout: MotionLayout) -> dict[str, np.ndarra
     """The shell points of each of PARTS (those nearest one of its body joints in ``motion``'s
     first frame; parts without a body joint, the fingers, get none), and "whole shell"."""
     nearest = nearest_body_joint(motion, layout)
-    by_joint = part_joints(JOINT_NAMES[:BODY])
+    by_joint = part_joints(JOINT_NAMES[:BODY_JOINTS])
     parts = {part: np.flatnonzero(np.isin(nearest, js)) for part, js in by_joint.items()}
     parts = {part: points for part, points in parts.items() if len(points)}
     return {**parts, "whole shell": np.arange(len(nearest))}

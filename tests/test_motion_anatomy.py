@@ -105,3 +105,17 @@ def test_part_fgd_acc_finds_jitter_in_the_part_that_has_it():
     assert legs[0] > 1.0 and legs[1] <= legs[0] <= legs[2] and legs[3] > 3.0
     assert whole[0] >= legs[0] * 0.999
     assert anatomy.part_fgd_acc(truth, truth, parts["whole shell"])[0] < 1e-9
+
+
+def test_a_step_reaches_from_where_the_foot_lifts_to_where_it_lands():
+    # left foot: stands, walks 40 cm forward in 5 frames, stands, walks 30 cm sideways in 6;
+    # right foot stands throughout (a lifted heel without travel is no step)
+    feet = np.zeros((40, 2, 3))
+    feet[:, 1, 0] = 0.3
+    feet[10:15, 0, 2] = np.linspace(0, 0.4, 6)[1:]
+    feet[15:, 0, 2] = 0.4
+    feet[25:31, 0, 0] = np.linspace(0, 0.3, 7)[1:]
+    feet[31:, 0, 0] = 0.3
+    feet[5:8, 1, 1] = 0.05
+    reaches = anatomy.step_reaches(feet)
+    assert np.allclose(reaches, [0.4, 0.3])

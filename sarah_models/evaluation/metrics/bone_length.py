@@ -10,12 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from sarah_data.constants import JOINT_PARENTS
+from sarah_data.constants import BODY_JOINTS, JOINT_PARENTS
 from sarah_data.skeleton import bone_lengths
 
 from .spec import Metric
 
-BODY_JOINTS = 22  # pelvis .. right wrist: the SMPL-X body; fingers and eyes are too short to judge
 
 
 def bone_length_error(joint_positions, percentile: float = 95.0) -> float:
