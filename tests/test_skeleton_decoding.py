@@ -14,7 +14,7 @@ from sarah_data.skeleton import MotionLayout, bone_lengths
 from sarah_data.stats import load_stats
 from sarah_models.evaluation.metrics import foot_slide
 from sarah_models.sampling.foot_lock import FREE_HEIGHT, LIFT, SWING_FRAMES, FootLock
-from sarah_models.sampling.rigid_skeleton import RigidSkeleton
+from sarah_models.sampling.rigid_skeleton import RigidSkeleton, ShellFollow
 
 FEET = [JOINT["left_foot"], JOINT["right_foot"]]
 
@@ -132,6 +132,39 @@ def test_shell_points_follow_the_joints_near_them(windows, skeleton):
     assert near_hand.any() and far.any()
     assert moved[near_hand].min() > 0.5 * 0.2 * lengths[forearm] / 1.2
     assert moved[far].max() < 1e-6
+
+
+def test_shell_points_turn_with_a_bent_shin_as_a_skinned_mesh_does(windows):
+    # The foot lock bends knees: the ankle and foot swing 40 degrees about the knee. The shin's
+    # and foot's points turn with them (each keeps its distances to knee and ankle), the thigh's
+    # and the other leg's stay; a blend of joint translations moved the mid-shin points along the
+    # chord, nearer the knee.
+    layout = MotionLayout.from_width(windows.motion_dim)
+    motion = windows[1]["motion"].numpy().astype(np.float64)[:3]
+    icosahedra, shell = layout.split(motion)
+    joints = icosahedra.mean(axis=-2)
+    knee, ankle = joints[:, JOINT["left_knee"]], joints[:, JOINT["left_ankle"]]
+    angle = np.deg2rad(40.0)
+    turn = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(angle), -np.sin(angle)],
+                     [0.0, np.sin(angle), np.cos(angle)]])  # about x: the shin swings back
+    correction = np.zeros_like(joints)
+    for name in ("left_ankle", "left_foot"):
+        j = JOINT[name]
+        correction[:, j] = (joints[:, j] - knee) @ turn.T + knee - joints[:, j]
+    follow = ShellFollow(layout)
+    moved = shell + follow(shell, joints, correction)
+    segment = follow.bones[follow.segment]
+    shin = (segment[:, 0] == JOINT["left_ankle"]) & (segment[:, 1] == JOINT["left_knee"])
+    thigh = (segment[:, 0] == JOINT["left_knee"]) & (segment[:, 1] == JOINT["left_hip"])
+    right = np.isin(segment[:, 1], [JOINT[n] for n in ("right_hip", "right_knee", "right_ankle")])
+    assert shin.sum() >= 3 and thigh.sum() >= 3 and right.sum() >= 3
+    new_ankle = ankle + correction[:, JOINT["left_ankle"]]
+    for old_end, new_end in ((knee, knee), (ankle, new_ankle)):
+        before = np.linalg.norm(shell[:, shin] - old_end[:, None], axis=-1)
+        after = np.linalg.norm(moved[:, shin] - new_end[:, None], axis=-1)
+        np.testing.assert_allclose(after, before, atol=1e-9)
+    assert np.linalg.norm(moved[:, shin] - shell[:, shin], axis=-1).min() > 0.01  # they did turn
+    np.testing.assert_allclose(moved[:, thigh | right], shell[:, thigh | right], atol=1e-12)
 
 
 def test_a_planted_foot_stays_put_while_the_decoder_jitters_and_the_leg_keeps_its_bones(windows, skeleton):

@@ -29,7 +29,7 @@ guarantee (docs/results.md, twenty-second run).
 
 The leg follows the foot: the ankle moves with it and the knee is placed by two-bone inverse
 kinematics on the hip (thigh and shin at the skeleton's lengths, bending the way the decoded
-knee bends); shell points follow the joints near them (``rigid_skeleton.ShellFollow``). Run after
+knee bends); shell points ride their bones (``rigid_skeleton.ShellFollow``). Run after
 ``RigidSkeleton``, whose lengths it shares.
 """
 
@@ -68,7 +68,7 @@ class FootLock:
         self.reset()
 
     def reset(self) -> None:
-        self.shell = ShellFollow()
+        self.shell = ShellFollow(self.layout)
         self._planted: list[np.ndarray | None] = [None] * len(self.legs)
         # (start, frame, (velocity, beyond), placed): where the swing left, its frame, the
         # decoded foot's velocity then, how far beyond it lands and where it is
