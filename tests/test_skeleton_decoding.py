@@ -167,6 +167,32 @@ def test_shell_points_turn_with_a_bent_shin_as_a_skinned_mesh_does(windows):
     np.testing.assert_allclose(moved[:, thigh | right], shell[:, thigh | right], atol=1e-12)
 
 
+def test_a_forearm_put_back_at_its_length_carries_the_hand_no_further_than_the_wrist(windows):
+    # The decoder can shrink a forearm to a few centimetres while the hand's shell points stay
+    # where the hand is; the skeleton puts the wrist back. Points past the wrist move with it;
+    # stretched with the 3 cm bone, a hand point once flew 8 m.
+    layout = MotionLayout.from_width(windows.motion_dim)
+    motion = windows[1]["motion"].numpy().astype(np.float64)[:2]
+    icosahedra, shell = layout.split(motion)
+    joints = icosahedra.mean(axis=-2)
+    elbow, wrist = JOINT["left_elbow"], JOINT["left_wrist"]
+    shrunk = joints.copy()
+    shrunk[:, wrist] = joints[:, elbow] + 0.03 * (joints[:, wrist] - joints[:, elbow]) / np.linalg.norm(
+        joints[:, wrist] - joints[:, elbow], axis=-1, keepdims=True)
+    correction = joints - shrunk  # the skeleton's: the wrist back where it belongs
+    follow = ShellFollow(layout)
+    moved = follow(shell, shrunk, correction)
+    on_forearm = np.all(follow.bones[follow.segment] == (wrist, elbow), axis=-1)
+    assert on_forearm.sum() >= 3
+    reach = np.linalg.norm(correction[:, wrist], axis=-1).max()
+    assert np.linalg.norm(moved, axis=-1).max() <= reach + 1e-9
+    bone = shrunk[0, wrist] - shrunk[0, elbow]
+    past_wrist = on_forearm & ((shell[0] - shrunk[0, elbow]) @ bone > bone @ bone)
+    assert past_wrist.sum() >= 3
+    np.testing.assert_allclose(moved[:, past_wrist], np.repeat(correction[:, wrist, None], past_wrist.sum(), 1),
+                               atol=1e-9)
+
+
 def test_a_planted_foot_stays_put_while_the_decoder_jitters_and_the_leg_keeps_its_bones(windows, skeleton):
     layout = MotionLayout.from_width(windows.motion_dim)
     body = standing(windows[3], layout)
