@@ -195,7 +195,7 @@ class ShellFollow:
         # Where along the segment the point lies, 0 at the parent, 1 at the child: that share
         # stretches with the bone; the rest turns rigidly about it. Unclipped, a hand point
         # 20 cm past a forearm the decoder had shrunk to 3 cm stretched with it sevenfold when
-        # the skeleton put the forearm back at 25 cm, and flew 8 m (an offline window).
+        # the skeleton put the forearm back at 24 cm, and flew 8 m (an offline window).
         offset = shell - joints[:, parent]
         along = np.clip(np.sum(offset * before, axis=-1, keepdims=True) / np.maximum(
             np.sum(before ** 2, axis=-1, keepdims=True), 1e-12), 0.0, 1.0)
