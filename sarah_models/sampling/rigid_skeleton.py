@@ -188,10 +188,13 @@ class ShellFollow:
             return np.zeros_like(shell)
         if self.segment is None:
             self.segment = self._nearest_segments(shell[0], joints[0])
-        child, parent = self.bones[self.segment, 0], self.bones[self.segment, 1]
+        child, parent = self.bones[:, 0], self.bones[:, 1]
         corrected = joints + correction
-        before = joints[:, child] - joints[:, parent]  # (T, P, 3)
-        after = corrected[:, child] - corrected[:, parent]
+        bone_before = joints[:, child] - joints[:, parent]  # (T, B, 3)
+        bone_after = corrected[:, child] - corrected[:, parent]
+        turn = shortest_rotation(bone_before, bone_after)[:, self.segment]  # (T, P, 3, 3)
+        before, after = bone_before[:, self.segment], bone_after[:, self.segment]
+        parent = parent[self.segment]
         # Where along the segment the point lies, 0 at the parent, 1 at the child: that share
         # stretches with the bone; the rest turns rigidly about it. Unclipped, a hand point
         # 20 cm past a forearm the decoder had shrunk to 3 cm stretched with it sevenfold when
@@ -200,7 +203,7 @@ class ShellFollow:
         along = np.clip(np.sum(offset * before, axis=-1, keepdims=True) / np.maximum(
             np.sum(before ** 2, axis=-1, keepdims=True), 1e-12), 0.0, 1.0)
         moved = corrected[:, parent] + along * after + np.einsum(
-            "tpij,tpj->tpi", shortest_rotation(before, after), offset - along * before)
+            "tpij,tpj->tpi", turn, offset - along * before)
         return moved - shell
 
 
