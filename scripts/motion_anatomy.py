@@ -137,11 +137,11 @@ def travel(clips, layout: MotionLayout) -> None:
         print(f"| {label} | {np.mean(paths):.2f} | {p[0]:.3f} / {p[1]:.3f} / {p[2]:.3f} |")
 
 
-def step_reaches(feet: np.ndarray) -> list[float]:
-    """Each step's horizontal distance from where the foot lifts to where it lands, metres, over
-    the steps ``foot_steps`` finds in (T, F, 3) foot positions."""
+def step_reaches(feet: np.ndarray, steps) -> list[float]:
+    """Each step's horizontal distance from where the foot lifts to where it lands, metres, for
+    (T, F, 3) foot positions and their ``foot_steps``."""
     return [float(np.hypot(*(feet[end, foot] - feet[start, foot])[[0, 2]]))
-            for foot, steps in enumerate(foot_steps(feet)) for start, end in steps]
+            for foot, runs in enumerate(steps) for start, end in runs]
 
 
 def feet(clips, layout: MotionLayout) -> None:
@@ -152,10 +152,11 @@ def feet(clips, layout: MotionLayout) -> None:
         for clip in clips:
             p = layout.joint_positions(clip[index], list(FEET))
             heights.append(p[..., 1].ravel())
-            for foot in foot_steps(p):
+            found = foot_steps(p)
+            for foot in found:
                 steps.append(len(foot))
                 durations += [end - start for start, end in foot]
-            reaches += step_reaches(p)
+            reaches += step_reaches(p, found)
             slides.append(foot_slide(layout.joint_positions(clip[index])))
         h = np.percentile(np.concatenate(heights), [5, 50, 95]) * 100
         r = np.percentile(reaches, [10, 50, 90]) * 100 if reaches else np.zeros(3)

@@ -117,5 +117,5 @@ def test_a_step_reaches_from_where_the_foot_lifts_to_where_it_lands():
     feet[25:31, 0, 0] = np.linspace(0, 0.3, 7)[1:]
     feet[31:, 0, 0] = 0.3
     feet[5:8, 1, 1] = 0.05
-    reaches = anatomy.step_reaches(feet)
+    reaches = anatomy.step_reaches(feet, anatomy.foot_steps(feet))
     assert np.allclose(reaches, [0.4, 0.3])
