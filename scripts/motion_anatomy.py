@@ -36,13 +36,14 @@ import numpy as np
 from sarah_data.constants import BODY_JOINTS, FPS, JOINT_NAMES
 from sarah_data.moments import Moments
 from sarah_data.skeleton import FEET, ROOT, MotionLayout
-from sarah_models.evaluation.metrics import evaluate, foot_slide, foot_steps
+from sarah_models.evaluation.metrics import evaluate, foot_slide, foot_steps, step_paths
 from sarah_models.evaluation.metrics.clips import accelerations
 from sarah_models.evaluation.metrics.frechet import moments_distance
 from sarah_models.evaluation.metrics.spec import FOOT_MAX_HEIGHT, FOOT_MIN_SPEED, MetricsConfig
 from sarah_models.evaluation.metrics.table import bootstrap_interval
 from sarah_models.evaluation.tables import MethodResult
 from sarah_models.evaluation.windows import motion_clip
+from sarah_models.sampling.foot_lock import SWING_FRAMES
 
 BANDS = ((0, 2), (2, 4), (4, 6), (6, 8), (8, 10), (10, FPS / 2 + 1))  # Hz; the last holds Nyquist
 BEATS = (2, 7)  # Hz: the fixtures' syllable-rate gestures (~4.5 Hz) and what blurs them
@@ -147,8 +148,9 @@ def step_reaches(feet: np.ndarray, steps) -> list[float]:
 def feet(clips, layout: MotionLayout) -> None:
     print("\n| motion | foot height p5 / p50 / p95, cm | steps per window and foot | frames per step "
           "(median) | step length p10 / p50 / p90, cm | foot slide |\n|---|---|---|---|---|---|")
+    shapes = {}
     for label, index in (("ground truth", 0), ("model", 1)):
-        heights, steps, durations, reaches, slides = [], [], [], [], []
+        heights, steps, durations, reaches, slides, paths = [], [], [], [], [], []
         for clip in clips:
             p = layout.joint_positions(clip[index], list(FEET))
             heights.append(p[..., 1].ravel())
@@ -157,14 +159,23 @@ def feet(clips, layout: MotionLayout) -> None:
                 steps.append(len(foot))
                 durations += [end - start for start, end in foot]
             reaches += step_reaches(p, found)
+            paths.append(step_paths(p, found, SWING_FRAMES)[0])
             slides.append(foot_slide(layout.joint_positions(clip[index])))
         h = np.percentile(np.concatenate(heights), [5, 50, 95]) * 100
         r = np.percentile(reaches, [10, 50, 90]) * 100 if reaches else np.zeros(3)
         print(f"| {label} | {h[0]:.1f} / {h[1]:.1f} / {h[2]:.1f} | {np.mean(steps):.1f} | "
               f"{np.median(durations) if durations else 0:.0f} | {r[0]:.0f} / {r[1]:.0f} / {r[2]:.0f} | "
               f"{np.mean(slides):.2f} |")
+        shapes[label] = np.concatenate(paths)
     print(f"\n(a foot steps while it moves faster than {FOOT_MIN_SPEED * 100:g} cm/s; it slides "
           f"when it does so below {FOOT_MAX_HEIGHT * 100:g} cm)")
+    print(f"\nThe median step over the {SWING_FRAMES} frames after the last frame the foot stands "
+          "(the foot lock's swing):\n\n| motion | steps | rise, cm | travel, % |\n|---|---|---|---|")
+    for label, paths in shapes.items():
+        if len(paths):
+            rise, travel = np.median(paths, axis=0).T
+            print(f"| {label} | {len(paths)} | {' '.join(f'{v * 100:.2f}' for v in rise)} | "
+                  f"{' '.join(f'{v * 100:.0f}' for v in travel)} |")
 
 
 def band_power(signals: np.ndarray, rate: float, bands) -> np.ndarray:

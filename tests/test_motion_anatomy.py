@@ -119,3 +119,21 @@ def test_a_step_reaches_from_where_the_foot_lifts_to_where_it_lands():
     feet[5:8, 1, 1] = 0.05
     reaches = anatomy.step_reaches(feet, anatomy.foot_steps(feet))
     assert np.allclose(reaches, [0.4, 0.3])
+
+
+def test_the_feet_table_prints_the_median_step(capsys):
+    from sarah_data.skeleton import FEET, MotionLayout
+
+    layout = MotionLayout.from_width(55 * 36 + 3 * 256)
+    motion = np.zeros((60, layout.width))
+    points = motion.reshape(60, -1, 3)  # icosahedra first: a joint is the mean of its 12 points
+    for foot, x in zip(FEET, (0.1, -0.1)):
+        joint = layout.joint(foot)
+        points[:, joint * 12:(joint + 1) * 12, 0] = x
+    left = layout.joint(FEET[0])
+    points[20:, left * 12:(left + 1) * 12, 2] = 0.4  # one 40 cm step in one frame
+    anatomy.feet([(motion, motion)], layout)
+    shown = capsys.readouterr().out
+    row = next(line for line in shown.splitlines() if line.startswith("| ground truth | 1 |"))
+    # from frame 18, the last it stands: still at 19, there from 20 on
+    assert row.endswith(" | 0 " + " ".join(["100"] * (anatomy.SWING_FRAMES - 1)) + " |")
