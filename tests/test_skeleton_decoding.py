@@ -348,3 +348,23 @@ def test_a_wandering_body_holds_its_place_and_a_walking_one_follows_smoothly(win
     with pytest.raises(ValueError, match="radius"):
         RootHold(layout, radius=0.0)
 
+
+
+def test_a_body_the_decoder_throws_across_the_room_walks_there_no_faster_than_the_data(windows):
+    """The decoded pelvis runs at up to 7 m/s streamed and 15 offline; nobody in the data walks
+    faster than 2 (docs/results.md, twenty-sixth run)."""
+    from sarah_data.constants import FPS
+    from sarah_data.skeleton import ROOT
+    from sarah_models.sampling.root_hold import MAX_SPEED, RootHold
+
+    layout = MotionLayout.from_width(windows.motion_dim)
+    body = standing(windows[0], layout)
+    t = np.arange(len(body))
+    thrown = np.stack([np.where(t >= 5, 1.5, 0.0), np.zeros(len(t))], axis=-1)  # 1.5 m in a frame
+    out = RootHold(layout, radius=0.1)(whole_body_moved(body, thrown))
+    pelvis = layout.joint_positions(out, [ROOT])[:, 0, [0, 2]]
+    speed = np.linalg.norm(np.diff(pelvis, axis=0), axis=-1) * FPS
+    np.testing.assert_allclose(speed.max(), MAX_SPEED)  # it walks, at the data's fastest...
+    assert abs(pelvis[-1, 0] - 1.4) < 1e-3  # ...and arrives where the hold puts it
+    with pytest.raises(ValueError, match="max_speed"):
+        RootHold(layout, radius=0.1, max_speed=0.0)

@@ -13,8 +13,9 @@ decoder's) so that its pelvis holds still while the decoded pelvis stays within 
 it, and follows it beyond that: each frame the held position closes ``FOLLOW`` of the decoded
 pelvis's distance beyond ``radius`` -- a dead zone and a first-order lag, so the body starts and
 stops walking without a jump in velocity and walks ``radius`` plus ``v (1 - FOLLOW) / (fps
-FOLLOW)`` behind the decoded pelvis (33 cm at 1 m/s with the shipped model's 20 cm radius).
-Causal, frame by frame, so a stream decoded in chunks and the same frames decoded at once are
+FOLLOW)`` behind the decoded pelvis (33 cm at 1 m/s with the shipped model's 20 cm radius),
+never faster than ``MAX_SPEED``, the fastest the data's people walk: where the decoded pelvis
+jumps, the body walks after it. Causal, frame by frame, so a stream decoded in chunks and the same frames decoded at once are
 the same.
 
 The held position starts at the origin. Decoding runs in the generation frame, which puts the
@@ -28,21 +29,31 @@ from __future__ import annotations
 
 import numpy as np
 
+from sarah_data.constants import FPS
 from sarah_data.skeleton import ROOT, MotionLayout
 
 FOLLOW = 0.2  # of the distance beyond the radius, per frame: a 1 / 0.2 = 5-frame lag
+# m/s: the fastest the body walks, the fastest pelvis of the seed-0 fixture training corpus
+# (2.01 m/s; 99th percentile 1.67). The decoded pelvis runs at up to 7 (streamed) and 15 m/s
+# (offline), and no step the data takes keeps feet under a body that fast (docs/results.md,
+# twenty-sixth run).
+MAX_SPEED = 2.0
 
 
 class RootHold:
     """Causal filter of one stream's motion, in metres with y up; call it on the stream's
     frames in order."""
 
-    def __init__(self, layout: MotionLayout, radius: float, follow: float = FOLLOW) -> None:
+    def __init__(self, layout: MotionLayout, radius: float, follow: float = FOLLOW,
+                 max_speed: float = MAX_SPEED) -> None:
         if not radius > 0:
             raise ValueError(f"root hold radius must be positive, got {radius}")
         if not 0 < follow <= 1:
             raise ValueError(f"root hold follow must be in (0, 1], got {follow}")
+        if not max_speed > 0:
+            raise ValueError(f"root hold max_speed must be positive, got {max_speed}")
         self.layout, self.radius, self.follow = layout, radius, follow
+        self.max_move = max_speed / FPS
         self.reset()
 
     def reset(self) -> None:
@@ -56,7 +67,8 @@ class RootHold:
             away = decoded[t] - self._held
             distance = float(np.hypot(*away))
             if distance > self.radius:
-                self._held += away * (self.follow * (distance - self.radius) / distance)
+                move = min(self.follow * (distance - self.radius), self.max_move)
+                self._held += away * (move / distance)
             shift[t, [0, 2]] = self._held - decoded[t]
         points = x.reshape(len(x), -1, 3) + shift[:, None]
         return points.reshape(x.shape).astype(motion.dtype)
