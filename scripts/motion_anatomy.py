@@ -10,7 +10,8 @@ split and prints seven tables:
 2. the shell's acceleration energy per frame and its share by nearest body joint;
 3. the root's path per window and its speed;
 4. the feet: height percentiles, steps per window and foot, frames per step, how far a
-   step carries the foot;
+   step carries the foot, and the median step's rise and travel per frame (docs/results.md,
+   twenty-sixth run);
 5. where the acceleration energy lies in frequency (the shell's, by band; the joints', by body
    part), for the model and for its VAE reconstructing the ground truth, each against the
    ground truth's (docs/results.md, nineteenth run): what FGD_acc weighs, and which of the
