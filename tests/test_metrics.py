@@ -129,7 +129,6 @@ def test_foot_steps_are_the_runs_a_foot_moves_in():
     assert foot_steps(np.zeros((5, 2, 3))) == [[], []]
 
 
-
 def test_a_steps_path_is_its_rise_and_share_of_the_way_from_the_last_standing_frame():
     from sarah_models.evaluation.metrics import foot_steps, step_paths
 
@@ -142,6 +141,7 @@ def test_a_steps_path_is_its_rise_and_share_of_the_way_from_the_last_standing_fr
     np.testing.assert_allclose(paths[0, :, 1], [0.0, 0.5, 1.0, 1.0, 1.0])
     np.testing.assert_allclose(lengths, [0.4])
     assert step_paths(feet, steps, 17)[0].shape == (0, 17, 2)  # runs past the clip: left out
+
 
 def test_foot_slide_on_constructed_skating():
     t = np.arange(31) / FPS

@@ -349,7 +349,6 @@ def test_a_wandering_body_holds_its_place_and_a_walking_one_follows_smoothly(win
         RootHold(layout, radius=0.0)
 
 
-
 def test_a_body_the_decoder_throws_across_the_room_walks_there_no_faster_than_the_data(windows):
     """The decoded pelvis runs at up to 7 m/s streamed and 15 offline; nobody in the data walks
     faster than 2 (docs/results.md, twenty-sixth run)."""

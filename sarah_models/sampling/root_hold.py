@@ -15,8 +15,8 @@ pelvis's distance beyond ``radius`` -- a dead zone and a first-order lag, so the
 stops walking without a jump in velocity and walks ``radius`` plus ``v (1 - FOLLOW) / (fps
 FOLLOW)`` behind the decoded pelvis (33 cm at 1 m/s with the shipped model's 20 cm radius),
 never faster than ``MAX_SPEED``, the fastest the data's people walk: where the decoded pelvis
-jumps, the body walks after it. Causal, frame by frame, so a stream decoded in chunks and the same frames decoded at once are
-the same.
+jumps, the body walks after it. Causal, frame by frame, so a stream decoded in chunks and the
+same frames decoded at once are the same.
 
 The held position starts at the origin. Decoding runs in the generation frame, which puts the
 agent's pelvis at the origin at the stream's first frame (``sarah_data.frames``, paper 3.1): where

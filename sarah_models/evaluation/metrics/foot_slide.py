@@ -42,7 +42,6 @@ def foot_steps(feet, fps: float = FPS, min_speed: float = FOOT_MIN_SPEED) -> lis
     return steps
 
 
-
 def step_paths(feet, steps, frames: int) -> tuple[np.ndarray, np.ndarray]:
     """Each step's rise (m above where it lifted off) and travel (share of its way) over the
     ``frames`` frames after the last frame its foot stands (the foot rises before it moves), and
@@ -59,6 +58,7 @@ def step_paths(feet, steps, frames: int) -> tuple[np.ndarray, np.ndarray]:
             paths.append(np.stack([path[1:, 1] - path[0, 1], way[1:] / max(way[-1], 1e-9)], -1))
             lengths.append(way[-1])
     return np.reshape(paths, (-1, frames, 2)), np.asarray(lengths)
+
 
 METRIC = Metric(name="foot_slide", label="Foot Slide", kind="clip", order=30,
                 unit="fraction of frame steps", decimals=2, better="lower", value_range=" ∈ [0, 1]",
