@@ -37,7 +37,8 @@ import numpy as np
 from sarah_data.constants import BODY_JOINTS, FPS, JOINT_NAMES
 from sarah_data.moments import Moments
 from sarah_data.skeleton import FEET, ROOT, MotionLayout
-from sarah_models.evaluation.metrics import evaluate, foot_slide, foot_steps, step_paths
+from sarah_models.evaluation.metrics import (evaluate, foot_slide, foot_steps, step_paths,
+                                             step_reaches)
 from sarah_models.evaluation.metrics.clips import accelerations
 from sarah_models.evaluation.metrics.frechet import moments_distance
 from sarah_models.evaluation.metrics.spec import FOOT_MAX_HEIGHT, FOOT_MIN_SPEED, MetricsConfig
@@ -139,13 +140,6 @@ def travel(clips, layout: MotionLayout) -> None:
         print(f"| {label} | {np.mean(paths):.2f} | {p[0]:.3f} / {p[1]:.3f} / {p[2]:.3f} |")
 
 
-def step_reaches(feet: np.ndarray, steps) -> list[float]:
-    """Each step's horizontal distance from where the foot lifts to where it lands, metres, for
-    (T, F, 3) foot positions and their ``foot_steps``."""
-    return [float(np.hypot(*(feet[end, foot] - feet[start, foot])[[0, 2]]))
-            for foot, runs in enumerate(steps) for start, end in runs]
-
-
 def feet(clips, layout: MotionLayout) -> None:
     print("\n| motion | foot height p5 / p50 / p95, cm | steps per window and foot | frames per step "
           "(median) | step length p10 / p50 / p90, cm | foot slide |\n|---|---|---|---|---|---|")
@@ -160,7 +154,7 @@ def feet(clips, layout: MotionLayout) -> None:
                 steps.append(len(foot))
                 durations += [end - start for start, end in foot]
             reaches += step_reaches(p, found)
-            paths.append(step_paths(p, found, SWING_FRAMES)[0])
+            paths.append(step_paths(p, found, SWING_FRAMES))
             slides.append(foot_slide(layout.joint_positions(clip[index])))
         h = np.percentile(np.concatenate(heights), [5, 50, 95]) * 100
         r = np.percentile(reaches, [10, 50, 90]) * 100 if reaches else np.zeros(3)

@@ -130,17 +130,17 @@ def test_foot_steps_are_the_runs_a_foot_moves_in():
 
 
 def test_a_steps_path_is_its_rise_and_share_of_the_way_from_the_last_standing_frame():
-    from sarah_models.evaluation.metrics import foot_steps, step_paths
+    from sarah_models.evaluation.metrics import foot_steps, step_paths, step_reaches
 
     feet = np.zeros((20, 2, 3))
     feet[4:9, 0, 1] = [0.03, 0.06, 0.06, 0.03, 0.0]  # rises from frame 4 (stands at 3)...
     feet[5:, 0, 2] = 0.4 * np.minimum(np.arange(15) / 2.0 + 0.5, 1.0)[:15]  # ...moves from 4 -> 5
     steps = foot_steps(feet)
-    paths, lengths = step_paths(feet, steps, 5)
+    paths = step_paths(feet, steps, 5)
     np.testing.assert_allclose(paths[0, :, 0], [0.03, 0.06, 0.06, 0.03, 0.0])
     np.testing.assert_allclose(paths[0, :, 1], [0.0, 0.5, 1.0, 1.0, 1.0])
-    np.testing.assert_allclose(lengths, [0.4])
-    assert step_paths(feet, steps, 17)[0].shape == (0, 17, 2)  # runs past the clip: left out
+    np.testing.assert_allclose(step_reaches(feet, steps), [0.4])
+    assert step_paths(feet, steps, 17).shape == (0, 17, 2)  # runs past the clip: left out
 
 
 def test_foot_slide_on_constructed_skating():

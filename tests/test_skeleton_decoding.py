@@ -189,8 +189,8 @@ def test_a_forearm_put_back_at_its_length_carries_the_hand_no_further_than_the_w
     bone = shrunk[0, wrist] - shrunk[0, elbow]
     past_wrist = on_forearm & ((shell[0] - shrunk[0, elbow]) @ bone > bone @ bone)
     assert past_wrist.sum() >= 3
-    np.testing.assert_allclose(moved[:, past_wrist], np.repeat(correction[:, wrist, None], past_wrist.sum(), 1),
-                               atol=1e-9)
+    np.testing.assert_allclose(moved[:, past_wrist],
+                               np.repeat(correction[:, wrist, None], past_wrist.sum(), 1), atol=1e-9)
 
 
 def test_a_planted_foot_stays_put_while_the_decoder_jitters_and_the_leg_keeps_its_bones(windows, skeleton):

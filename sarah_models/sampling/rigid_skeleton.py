@@ -194,15 +194,15 @@ class ShellFollow:
         bone_after = corrected[:, child] - corrected[:, parent]
         turn = shortest_rotation(bone_before, bone_after)[:, self.segment]  # (T, P, 3, 3)
         before, after = bone_before[:, self.segment], bone_after[:, self.segment]
-        parent = parent[self.segment]
+        anchor = parent[self.segment]  # each point's bone's parent joint
         # Where along the segment the point lies, 0 at the parent, 1 at the child: that share
         # stretches with the bone; the rest turns rigidly about it. Unclipped, a hand point
         # 20 cm past a forearm the decoder had shrunk to 3 cm stretched with it sevenfold when
         # the skeleton put the forearm back at 24 cm, and flew 8 m (an offline window).
-        offset = shell - joints[:, parent]
+        offset = shell - joints[:, anchor]
         along = np.clip(np.sum(offset * before, axis=-1, keepdims=True) / np.maximum(
             np.sum(before ** 2, axis=-1, keepdims=True), 1e-12), 0.0, 1.0)
-        moved = corrected[:, parent] + along * after + np.einsum(
+        moved = corrected[:, anchor] + along * after + np.einsum(
             "tpij,tpj->tpi", turn, offset - along * before)
         return moved - shell
 

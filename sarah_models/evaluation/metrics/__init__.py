@@ -8,7 +8,7 @@ Adding a metric is adding one file that sets ``METRIC = Metric(...)`` (``spec.py
 from sarah_data.moments import Moments
 
 from .clips import Clip, DecodedClip, accelerations
-from .foot_slide import foot_slide, foot_steps, step_paths
+from .foot_slide import foot_slide, foot_steps, step_paths, step_reaches
 from .frechet import (
                       FrechetRidgeWarning,
                       frechet_distance,
@@ -33,4 +33,4 @@ __all__ = ["METRICS", "CategoryValues", "Clip", "DecodedClip", "FrechetRidgeWarn
            "MetricsConfig", "MetricsTable", "Moments", "accelerations", "category_means",
            "evaluate", "foot_slide", "foot_steps", "frechet_distance", "frechet_distance_from_moments",
            "head_angle", "metric_units", "moments_distance", "reference_table", "registered",
-           "step_paths", "wrist_speed"]
+           "step_paths", "step_reaches", "wrist_speed"]

@@ -42,13 +42,21 @@ def foot_steps(feet, fps: float = FPS, min_speed: float = FOOT_MIN_SPEED) -> lis
     return steps
 
 
-def step_paths(feet, steps, frames: int) -> tuple[np.ndarray, np.ndarray]:
-    """Each step's rise (m above where it lifted off) and travel (share of its way) over the
-    ``frames`` frames after the last frame its foot stands (the foot rises before it moves), and
-    how far it carried the foot over them (m), for (T, F, 3) foot positions and their
-    ``foot_steps``: ((N, frames, 2), (N,)). Steps too near the clip's ends are left out."""
+def step_reaches(feet, steps) -> list[float]:
+    """Each step's horizontal distance from where the foot lifts to where it lands, metres, for
+    (T, F, 3) foot positions and their ``foot_steps``."""
     p = np.asarray(as_numpy(feet), dtype=np.float64)
-    paths, lengths = [], []
+    return [float(np.hypot(*(p[end, foot] - p[start, foot])[[0, 2]]))
+            for foot, runs in enumerate(steps) for start, end in runs]
+
+
+def step_paths(feet, steps, frames: int) -> np.ndarray:
+    """(N, frames, 2): each step's rise (m above where it lifted off) and travel (share of its
+    way) over the ``frames`` frames after the last frame its foot stands (the foot rises before
+    it moves), for (T, F, 3) foot positions and their ``foot_steps``. Steps too near the clip's
+    ends are left out."""
+    p = np.asarray(as_numpy(feet), dtype=np.float64)
+    paths = []
     for foot, runs in enumerate(steps):
         for start, _ in runs:
             if start < 1 or start + frames > len(p):
@@ -56,8 +64,7 @@ def step_paths(feet, steps, frames: int) -> tuple[np.ndarray, np.ndarray]:
             path = p[start - 1:start + frames, foot]
             way = np.linalg.norm((path - path[0])[:, [0, 2]], axis=-1)
             paths.append(np.stack([path[1:, 1] - path[0, 1], way[1:] / max(way[-1], 1e-9)], -1))
-            lengths.append(way[-1])
-    return np.reshape(paths, (-1, frames, 2)), np.asarray(lengths)
+    return np.reshape(paths, (-1, frames, 2))
 
 
 METRIC = Metric(name="foot_slide", label="Foot Slide", kind="clip", order=30,
