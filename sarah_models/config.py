@@ -123,8 +123,8 @@ class VAEConfig:
     # this many metres away (``sampling.foot_lock``); decoded feet glide and jitter.
     foot_lock: float = 0.0
     # Not in the paper (0 = off): the body holds its place on the floor until the decoded pelvis
-    # has moved this many metres away, then follows (``sampling.root_hold``); the decoded
-    # pelvis wanders where people stand.
+    # has moved this many metres away, then follows, no faster than the data's people walk
+    # (``sampling.root_hold``); the decoded pelvis wanders where people stand.
     root_hold: float = 0.0
 
     def __post_init__(self) -> None:
