@@ -16,6 +16,16 @@ def non_negative_int(text: str) -> int:
     return value
 
 
+def history_tokens(text: str) -> int | None:
+    """--history: latents of history a stream keeps, or 'all' (None: never drop any)."""
+    if text.strip().lower() in ("all", "none"):
+        return None
+    try:
+        return non_negative_int(text)
+    except argparse.ArgumentTypeError as error:
+        raise argparse.ArgumentTypeError(f"--history: {error} (or 'all')") from None
+
+
 def positive_int(text: str) -> int:
     value = non_negative_int(text)
     if value == 0:

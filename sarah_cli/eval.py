@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import HelpFormatter, add_model_arguments
+from sarah_cli.arguments import HelpFormatter, add_model_arguments, history_tokens
 
 EXIT_ERROR = 2
 
@@ -77,6 +77,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     parser.add_argument("--steps", type=int, default=d.steps, help="midpoint solver steps")
     parser.add_argument("--cfg", type=float, default=d.cfg_scale, help="guidance scale w")
+    parser.add_argument("--history", type=history_tokens, default=d.history_tokens,
+                        help="latents of history a stream keeps beside the new one (or 'all'; "
+                             "the paper keeps 2; the offline protocol ignores it)")
     parser.add_argument("--protocol", choices=("offline", "stream"), default=d.protocol,
                         help="stream: 4 frames per step, as users run it; offline: all T frames "
                              "at once (causal mask), as the paper times FPS")
@@ -106,7 +109,8 @@ def main(argv: list[str] | None = None) -> int:
         config = EvalConfig(split=args.split, windows=args.windows, window=args.window,
                             gaze=args.gaze, table1_gaze=args.table1_gaze, methods=args.methods,
                             batch_clips=args.batch_clips, seed=args.seed, steps=args.steps,
-                            cfg_scale=args.cfg, protocol=args.protocol,
+                            cfg_scale=args.cfg, history_tokens=args.history,
+                            protocol=args.protocol,
                             library_size=args.library_size, features=args.features,
                             library_shards=(None if args.library_shards is None
                                             else str(args.library_shards)),

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import HelpFormatter, add_model_arguments, non_negative_int, positive_int
+from sarah_cli.arguments import HelpFormatter, add_model_arguments, history_tokens, positive_int
 from sarah_models.accel import MODE_HELP, MODES
 
 EXIT_ERROR = 2
@@ -23,15 +23,6 @@ def _gaze(text: str) -> float | None:
     if not -1.0 <= value <= 1.0:
         raise argparse.ArgumentTypeError(f"--gaze must be in [-1, 1] or 'none', got {value:g}")
     return value
-
-
-def _history(text: str) -> int | None:
-    if text.strip().lower() in ("all", "none"):
-        return None
-    try:
-        return non_negative_int(text)
-    except argparse.ArgumentTypeError as error:
-        raise argparse.ArgumentTypeError(f"--history: {error} (or 'all')") from None
 
 
 def _agent_start(text: str) -> tuple[float, float, float]:
@@ -78,7 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--solver", choices=("midpoint", "euler"), default=d.solver,
                         help="ODE solver (midpoint: 2 network evaluations per step)")
     parser.add_argument("--cfg", type=float, default=d.cfg_scale, help="guidance scale w")
-    parser.add_argument("--history", type=_history, default=d.history_tokens,
+    parser.add_argument("--history", type=history_tokens, default=d.history_tokens,
                         help="history tokens kept (or 'all')")
     parser.add_argument("--seed", type=int, default=d.seed,
                         help="noise seed: the same seed and inputs give the same motion (bit "

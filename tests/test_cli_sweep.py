@@ -71,6 +71,7 @@ def cases(w):
         ("eval", ["--shards", w["shards"], "--out", o, "--device", "gpu"]),
         ("eval", ["--shards", w["shards"], "--out", o, "--methods", "gt,model"]),
         ("eval", ["--shards", w["shards"], "--out", o, "--run", w["run"], "--steps", "0"]),
+        ("eval", ["--shards", w["shards"], "--out", o, "--run", w["run"], "--history", "-1"]),
         ("eval", ["--shards", w["shards"], "--out", w["file"], "--run", w["run"]]),
         ("export", []), ("export", [w["file"], "--out", o]), ("export", [w["a"], "--out", o, "--format", "fbx"]),
         ("export", ["--shards", w["shards"], "--out", o]), ("export", [w["a"], "--out", o, "--frames", "0"]),

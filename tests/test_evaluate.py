@@ -164,6 +164,24 @@ def test_streaming_protocol_and_subset_of_methods(tiny, tmp_path):
     assert t1["rows"][1]["gaze"] == 0.8 and "stream" in t1["rows"][1]["method"]
 
 
+def test_history_sets_what_a_stream_keeps(tiny, tmp_path):
+    """--history: the streamed model row keeps that many latents of history (the paper's 2 by
+    default, not named in the caption); another number, or 'all', changes the motion and is named."""
+    rows, captions = {}, {}
+    for history in ("2", "0", "all"):
+        out = tmp_path / history
+        assert main(eval_args(tiny, out, "--methods", "gt,model", "--gaze", "none",
+                              "--protocol", "stream", "--history", history)) == 0
+        t1 = json.loads((out / "table1.json").read_text())
+        rows[history], captions[history] = t1["rows"][1]["shown"], t1["caption"]
+        assert t1["settings"]["history_tokens"] == (None if history == "all" else int(history))
+    assert "history" not in captions["2"]
+    assert "stream protocol (history: 0 tokens)" in captions["0"]
+    assert "stream protocol (history: all tokens)" in captions["all"]
+    assert rows["0"]["fgd_local/avg"] != rows["2"]["fgd_local/avg"]
+    assert rows["all"]["fgd_local/avg"] != rows["0"]["fgd_local/avg"]
+
+
 def test_baselines_can_draw_from_another_corpus(tiny, tmp_path, capsys):
     """--library-shards: Random and NN retrieve from a training corpus other than the evaluated
     one (for test fixtures the model never saw); the evaluated windows stay the same."""

@@ -431,7 +431,8 @@ def test_a_flow_fine_tune_takes_its_vae_from_the_model_file(tmp_path):
     shared = write_model_file(base / "flow.pt", tmp_path / "shared.safetensors",
                               ["vae.boundary_inertia=0.5"])
     config = tiny_config(2)
-    config = replace(config, flow=replace(config.flow, difference_weight=5.0))
+    # Loss weights and the attention window change no weight: a fine-tune may change them.
+    config = replace(config, flow=replace(config.flow, difference_weight=5.0, attention_window=None))
     common = dict(device="cpu", dataset=SyntheticWindows(), stats=STATS, progress=False,
                   echo=lambda _: None)
     with pytest.raises(FileNotFoundError, match="run the vae stage first"):
@@ -448,6 +449,7 @@ def test_a_flow_fine_tune_takes_its_vae_from_the_model_file(tmp_path):
         assert torch.equal(value, tuned["vae"][key]), key
     assert tuned["config"]["vae"]["boundary_inertia"] == 0.5
     assert tuned["config"]["flow"]["difference_weight"] == 5.0
+    assert tuned["config"]["flow"]["attention_window"] is None
     assert tuned["init_from"] == {"path": str(shared), "step": 2}
     assert not torch.equal(source["flow"]["out.proj.weight"], tuned["flow"]["out.proj.weight"])
     # Resuming finds the copied VAE and goes on.

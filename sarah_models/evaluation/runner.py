@@ -43,7 +43,7 @@ from sarah_data.atomic import atomic_write_text
 from sarah_data.constants import FPS
 from sarah_data.skeleton import MotionLayout
 
-from ..config import CFG_SCALE, SOLVER_STEPS, STRIDE, WINDOW, check_gaze
+from ..config import CFG_SCALE, HISTORY_TOKENS, SOLVER_STEPS, STRIDE, WINDOW, check_gaze
 from .metrics import (
     FrechetRidgeWarning,
     MetricsConfig,
@@ -88,6 +88,8 @@ class EvalConfig:
     seed: int = 0
     steps: int = SOLVER_STEPS  # solver steps (midpoint)
     cfg_scale: float = CFG_SCALE
+    # Streamed latents kept as history (None: all). The offline protocol has none to drop.
+    history_tokens: int | None = HISTORY_TOKENS
     protocol: str = "stream"  # what users run; "offline" is the paper's fps protocol
     library_size: int = 2048  # NN library and Random pool of training windows
     train_split: str = "train"
@@ -108,6 +110,8 @@ class EvalConfig:
             if getattr(self, name) < 1:
                 raise EvalError(f"--{name.replace('_', '-')} must be positive, got "
                                 f"{getattr(self, name)}")
+        if self.history_tokens is not None and self.history_tokens < 0:
+            raise EvalError(f"--history must be >= 0 or 'all', got {self.history_tokens}")
         for g in (*self.gaze, self.table1_gaze):
             try:
                 check_gaze(g)
@@ -199,6 +203,7 @@ def window_generator(models, config: EvalConfig, gaze: float | None):
                         agent_audio=item["agent_audio"].numpy(),
                         user_audio=item["user_audio"].numpy())
         stream = StreamConfig(steps=config.steps, cfg_scale=config.cfg_scale, gaze=gaze,
+                              history_tokens=config.history_tokens,
                               seed=_window_seed(config.seed, index))
         return generate(models, inputs, stream, offline=config.protocol == "offline")
 
@@ -393,8 +398,15 @@ def _caption1(ev: Evaluation, config: EvalConfig, shards: Path) -> str:
             f"({ev.num_windows - ev.num_speaking} seq.). FGD in cm² shown ÷{scale['fgd']:g}, "
             f"FGD_acc in (cm/s²)² shown ÷{scale['fgd_acc']:g}, Wrist Var = mean wrist speed in "
             f"cm/s. FGD Avg = mean over batches of {config.batch_clips} clips; NS/S pooled. "
-            f"Model: {config.protocol} protocol, {config.steps} midpoint steps, cfg "
-            f"{config.cfg_scale:g}, seed {config.seed}.")
+            f"Model: {config.protocol} protocol{_history_note(config)}, {config.steps} midpoint "
+            f"steps, cfg {config.cfg_scale:g}, seed {config.seed}.")
+
+
+def _history_note(config: EvalConfig) -> str:
+    if config.protocol != "stream" or config.history_tokens == HISTORY_TOKENS:
+        return ""
+    return " (history: all tokens)" if config.history_tokens is None else (
+        f" (history: {config.history_tokens} tokens)")
 
 
 def write_outputs(out: Path, ev: Evaluation, config: EvalConfig, shards: Path, run: Path | None,
