@@ -173,7 +173,10 @@ class FlowConfig:
     # while full-context training showed it up to T / s. A window of HISTORY_TOKENS + 1 per
     # layer brings training close to what streaming sees (the receptive field of stacked
     # windows is layers * 2 + 1 tokens). On the fixture benchmark (docs/results.md, ninth run)
-    # it cut the streamed FGD_acc 4x at equal budget, so the tiny preset uses it.
+    # it cut the streamed FGD_acc 4x at equal budget, so the tiny preset uses it. Its price is
+    # offline: tokens further apart than the receptive field cannot agree on where the body
+    # stands, and the joint solve wanders (twenty-seventh run; a longer window, streamed with
+    # the matching history, damps the streamed motion instead).
     attention_window: int | None = None
     # Not in the paper (0 = the paper): weight of the MSE between the predicted and the true
     # latents' token-to-token differences, beside eq. 5's MSE of the latents. Its minimum is the
