@@ -159,7 +159,7 @@ def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
 
 # Fields a fine-tune may change: they shape the loss, the decoding or which tokens attend to
 # which (flow.attention_window: a mask, no weight), not the weights.
-LOSS_FIELDS = {"vae": ("beta", "velocity_weight", "acceleration_weight", "contact_weight",
+FINE_TUNE_FIELDS = {"vae": ("beta", "velocity_weight", "acceleration_weight", "contact_weight",
                        "head_weight", "latent_noise", "recon_units", *DECODING_FIELDS["vae"]),
                "flow": ("drop_prob", "min_denominator", "difference_weight", "attention_window")}
 
@@ -181,7 +181,7 @@ def _check_compatible(source: Mapping[str, Any], stage: str, config: RunConfig,
     """Refuse an --init-from source whose weights cannot be this stage's, naming the difference."""
     file = source["path"]
     wanted, stored = config.to_dict()[stage], source["config"][stage]
-    differ = sorted(k for k in wanted if k not in LOSS_FIELDS[stage] and wanted[k] != stored.get(k))
+    differ = sorted(k for k in wanted if k not in FINE_TUNE_FIELDS[stage] and wanted[k] != stored.get(k))
     if differ:
         pairs = ", ".join(f"{k}: {stored.get(k)} there, {wanted[k]} here" for k in differ)
         raise ValueError(f"{file}: the {stage} architecture differs ({pairs}); --init-from needs "
