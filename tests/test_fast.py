@@ -32,6 +32,7 @@ from sarah_models.accel.linears import (BF16Linear, Int8Linear, PackedLinear, de
 from sarah_models.accel.memo import InputMemo
 from sarah_models.config import RunConfig, StreamConfig
 from sarah_models.nn.layers import KVCache, RopeAngles
+from sarah_models.nn.streams import independent_streams, stream_groups
 from sarah_models.sampling.solver import time_grid
 from sarah_models.sampling.stream import StreamingGenerator
 from sarah_models.testing import random_models, stream_deviation, stream_inputs, without_foot_lock
@@ -247,6 +248,52 @@ def test_trained_model_int8_stays_within_millimetres(shipped):
     assert deviation.head_angle_delta <= METRIC_TOLERANCE
 
 
+def test_a_stream_served_with_others_gets_what_it_gets_alone(shipped):
+    """Four streams of the shipped model through the int8 path, stepped together: each gets
+    its own ``step``'s joints. One activation scale for all the rows of a call moved them by up
+    to 8 mm (docs/performance.md); the int8 Linears quantize each stream's rows on their own."""
+    from sarah_data.skeleton import MotionLayout
+    from sarah_models.sampling.stream import step_together
+
+    fast = optimize_for_inference(shipped, "int8")
+    rng = np.random.default_rng(0)
+    streams = 4
+    inputs = [(rng.normal(0.0, 1.0, (16, 2)).astype(np.float32),
+               rng.normal(-8.0, 4.0, (16, fast.flow.audio_dim)).astype(np.float32),
+               rng.normal(-8.0, 4.0, (16, fast.flow.audio_dim)).astype(np.float32))
+              for _ in range(streams)]
+    alone = [StreamingGenerator(fast.vae, fast.flow, fast.normalizer, StreamConfig(seed=i))
+             for i in range(streams)]
+    together = [StreamingGenerator(fast.vae, fast.flow, fast.normalizer, StreamConfig(seed=i))
+                for i in range(streams)]
+    layout = MotionLayout.from_width(fast.vae.motion_dim)
+    worst = 0.0
+    for k in range(0, 16, 4):
+        block = [tuple(x[k:k + 4] for x in stream) for stream in inputs]
+        expected = [g.step(*b) for g, b in zip(alone, block)]
+        for e, g in zip(expected, step_together(together, block)):
+            joints = [layout.split(m)[0].mean(axis=-2) for m in (e, g)]
+            worst = max(worst, float(np.linalg.norm(joints[0] - joints[1], axis=-1).max()))
+    assert 1000.0 * worst < 0.01
+
+
+def test_stream_groups_split_int8_batches_and_nothing_else():
+    linear = torch.nn.Linear(16, 8)
+    int8 = Int8Linear(linear)
+    x = torch.randn(6, 3, 16)
+    x[4:] *= 50.0  # the third stream's activations are far larger than the others'
+    with independent_streams(3):
+        grouped = int8(x)
+        with pytest.raises(ValueError, match="does not split into 3 streams"):
+            int8(x[:4])
+    torch.testing.assert_close(grouped[:4], torch.cat([int8(x[:2]), int8(x[2:4])]), atol=0, rtol=0)
+    assert not torch.equal(grouped[:2], int8(x)[:2])  # one scale for all: coarser for stream 1
+    assert stream_groups() == 1
+    with pytest.raises(ValueError, match="at least one stream"):
+        with independent_streams(0):
+            pass
+
+
 def test_time_grid_is_the_midpoint_grid():
     assert time_grid(4, "midpoint") == [0.0, 0.125, 0.25, 0.375, 0.5, 0.625, 0.75, 0.875]
     assert time_grid(2, "euler") == [0.0, 0.5]
@@ -387,7 +434,9 @@ def test_bench_background_load_reports_both_sides(tmp_path, capsys):
     assert loaded["fixed_threads"]["threads"] == len(os.sched_getaffinity(0))
     assert results["loaded"]["offline"]["tiny"]["fps"] > 0
     for side in (results["concurrent"]["tiny"], results["loaded"]["concurrent"]["tiny"]):
-        assert side["rows"][0]["streams"] == 1 and side["fit"] in (0, 1, 2)
+        for schedule in (side, side["round_robin"]):
+            assert schedule["rows"][0]["streams"] == 1 and schedule["fit"] in (0, 1, 2)
+        assert (side["schedule"], side["round_robin"]["schedule"]) == ("together", "round robin")
     for side in ("idle", "loaded"):  # --rounds: each figure per round, and its median and range
         for figure in results["rounds"]["tiny"][side].values():
             assert len(figure["rounds"]) == 2 and all(v > 0 for v in figure["rounds"])
@@ -396,6 +445,7 @@ def test_bench_background_load_reports_both_sides(tmp_path, capsys):
     assert goals["rounds.paper.loaded.fps.median"]["met"] is None  # no paper size in --quick
     report = capsys.readouterr().out
     assert "under background load (1 busy processes" in report and "loaded / idle" in report
+    assert "round robin (one solve per stream): idle" in report
     assert "2 more rounds, each idle then beside 1 busy processes" in report
     assert "tiny stream fps" in report.split("2 more rounds")[1]
     spinning = []

@@ -20,7 +20,9 @@ from sarah_models.sampling.stream import (
     StreamingGenerator,
     StreamingSession,
     generate_offline,
+    push_together,
     solve,
+    step_together,
 )
 from sarah_models.testing import random_models
 
@@ -333,3 +335,64 @@ def test_session_streams_raw_audio_in_any_chunking():
     np.testing.assert_allclose(got, reference, atol=1e-5)
     np.testing.assert_allclose(session.features("agent"), extractor.extract(agent, frames),
                                atol=1e-5)
+
+
+def test_streams_stepped_together_get_what_each_gets_alone(models):
+    """``step_together`` over streams that differ in seed, gaze (one guidance branch or two),
+    steps and history length gives each stream the frames and latents of its own ``step``
+    (to summation order), round after round."""
+    configs = [StreamConfig(seed=0), StreamConfig(seed=1, gaze=0.8), StreamConfig(seed=2),
+               StreamConfig(seed=3, steps=2), StreamConfig(seed=4)]
+    inputs = [make_inputs(24, seed=i) for i in range(len(configs))]
+    alone = [StreamingGenerator(*models, c) for c in configs]
+    together = [StreamingGenerator(*models, c) for c in configs]
+    for generators in (alone, together):  # the last stream starts a block ahead: a shorter window
+        generators[-1].step(*(x[:S] for x in inputs[-1]))
+    for k in range(4, 24, S):
+        block = [tuple(x[k:k + S] for x in stream_inputs) for stream_inputs in inputs]
+        expected = [g.step(*b) for g, b in zip(alone, block)]
+        got = step_together(together, block)
+        for e, g in zip(expected, got):
+            np.testing.assert_allclose(g, e, atol=1e-5)
+        for a, t in zip(alone, together):
+            torch.testing.assert_close(t.last_latent, a.last_latent, atol=1e-5, rtol=0)
+    with pytest.raises(ValueError, match="twice"):
+        step_together([together[0], together[0]], block[:2])
+    with pytest.raises(ValueError, match="inputs"):
+        step_together(together, block[:2])
+
+
+def test_sessions_pushed_together_get_what_each_gets_alone():
+    """``push_together`` with pushes of different lengths (one session completes two blocks in
+    a round, another none) gives each session the frames and features of its own ``push``."""
+    from sarah_data.features import get_extractor
+
+    extractor = get_extractor("logmel")
+    vae, flow, normalizer = tiny_models(audio_dim=extractor.dim, audio_mean=-8.0, audio_std=4.0)[2:]
+    rng = np.random.default_rng(2)
+    frames = 16
+    audio = [(0.1 * rng.normal(size=frames * SAMPLES_PER_FRAME)).astype(np.float32)
+             for _ in range(6)]
+    head = make_inputs(frames)[0]
+    cuts = [(0, 4, 8, 16), (0, 8, 10, 16), (0, 3, 9, 16)]  # frames pushed per round, per session
+
+    def sessions():
+        return [StreamingSession(StreamingGenerator(vae, flow, normalizer, StreamConfig(seed=i)),
+                                 extractor) for i in range(3)]
+
+    def piece(i, r):
+        lo, hi = cuts[i][r], cuts[i][r + 1]
+        span = slice(lo * SAMPLES_PER_FRAME, hi * SAMPLES_PER_FRAME)
+        return head[lo:hi], audio[2 * i][span], audio[2 * i + 1][span]
+
+    alone, together = sessions(), sessions()
+    for r in range(3):
+        expected = [s.push(*piece(i, r)) for i, s in enumerate(alone)]
+        got = push_together(together, [piece(i, r) for i in range(3)])
+        for i in range(3):
+            assert got[i].shape == expected[i].shape
+            np.testing.assert_allclose(got[i], expected[i], atol=1e-5)
+            for person in ("agent", "user"):
+                np.testing.assert_array_equal(together[i].last_features[person],
+                                              alone[i].last_features[person])
+    assert [len(s.features("agent")) for s in together] == [16, 16, 16]

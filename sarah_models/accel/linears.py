@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..nn.streams import stream_groups
 from .cpu import int8_full_range, onednn_bf16_available, onednn_linear_ops
 
 
@@ -54,12 +55,24 @@ class Int8Linear(nn.Module):
         self.packed = torch.ops.quantized.linear_prepack(qweight, bias)
 
     def forward(self, x: Tensor) -> Tensor:
-        return torch.ops.quantized.linear_dynamic.default(x, self.packed, self.reduce_range)
+        return self.function()(x)
 
     def function(self) -> Callable[[Tensor], Tensor]:
-        """This layer's computation as a plain callable (see ``linear_function``)."""
+        """This layer's computation as a plain callable (see ``linear_function``). The kernel
+        takes one activation scale per call, so a batch of several streams
+        (``nn.streams.independent_streams``) is computed one stream's rows at a time: a
+        stream's output must not depend on the other streams' activations."""
         op, packed, reduce_range = torch.ops.quantized.linear_dynamic.default, self.packed, self.reduce_range
-        return lambda x: op(x, packed, reduce_range)
+
+        def compute(x: Tensor) -> Tensor:
+            groups = stream_groups()
+            if groups == 1:
+                return op(x, packed, reduce_range)
+            if x.shape[0] % groups:
+                raise ValueError(f"a batch of {x.shape[0]} rows does not split into "
+                                 f"{groups} streams")
+            return torch.cat([op(rows, packed, reduce_range) for rows in x.chunk(groups)])
+        return compute
 
     def extra_repr(self) -> str:
         bits = 7 if self.reduce_range else 8

@@ -139,17 +139,16 @@ def swap_decoder_linears(vae: CausalVAE, precision: str, packed: bool) -> None:
 
 
 @torch.inference_mode()
-def warm_up(flow: FlowModel, config: StreamConfig, branches: tuple[int, ...] = (1, 2)) -> int:
-    """Evaluate the flow once at every flow time of ``config``'s solver grid for batches of 1
-    and 2 (guidance) so that every memo holds its entries before the first chunk; returns the
-    number of evaluations."""
+def warm_up(flow: FlowModel, config: StreamConfig) -> int:
+    """Evaluate the flow once at every flow time of ``config``'s solver grid so that every memo
+    holds its entries before the first chunk (a scalar flow time's terms are computed for one
+    row and broadcast, so one evaluation serves any batch); returns the number of evaluations."""
     device = next(flow.parameters()).device
     count = 0
     for tau in time_grid(config.steps, config.solver):
-        for b in branches:
-            z = torch.zeros(b, 1, flow.latent_dim, device=device)
-            flow(z, tau, cond_tokens=torch.zeros(b, 1, flow.config.hidden, device=device))
-            count += 1
+        z = torch.zeros(1, 1, flow.latent_dim, device=device)
+        flow(z, tau, cond_tokens=torch.zeros(1, 1, flow.config.hidden, device=device))
+        count += 1
     return count
 
 

@@ -164,8 +164,8 @@ class FlowModel(nn.Module):
             cond_tokens = self.encode_condition(cond, drop_mask, num_blocks=k,
                                                 positions=positions if positions.dim() == 1 else None)
         tau = torch.as_tensor(tau, device=z_tau.device, dtype=torch.float32)
-        if tau.dim() == 0:
-            tau = tau.expand(b)
+        if tau.dim() == 0:  # one flow time for all rows: its terms are computed once, broadcast
+            tau = tau.reshape(1)
         t = self.time_mlp(self.time_embedding(tau)).to(cond_tokens.dtype)
         x = self.latent_in(z_tau.to(cond_tokens.dtype)) + cond_tokens
         for i, block in enumerate(self.blocks):

@@ -47,5 +47,8 @@ def guided(cond: Tensor, uncond: Tensor, cfg_scale: float) -> Tensor:
 
 
 def combine(x1: Tensor, cfg_scale: float) -> Tensor:
-    """The guided prediction from a batch of branches in ``drop_masks`` order (1 or 2 rows)."""
-    return guided(x1[0], x1[1], cfg_scale) if x1.shape[0] == 2 else x1[0]
+    """The guided prediction from branches in ``drop_masks`` order (1 or 2) on axis -3:
+    x1 (B, L, Dz) -> (L, Dz), or per stream (G, B, L, Dz) -> (G, L, Dz)."""
+    if x1.shape[-3] == 2:
+        return guided(x1[..., 0, :, :], x1[..., 1, :, :], cfg_scale)
+    return x1[..., 0, :, :]

@@ -48,12 +48,12 @@ def token_noise(generator: torch.Generator, latent_dim: int) -> Tensor:
 
 def imputer(noise: Tensor, known: Tensor | None) -> Impute:
     """Eq. 4 imputation: the first m tokens set to tau * known + (1 - tau) * eps."""
-    m = 0 if known is None else known.shape[0]
+    m = 0 if known is None else known.shape[-2]
 
-    def impute(z: Tensor, tau: float) -> Tensor:
+    def impute(z: Tensor, tau: float) -> Tensor:  # tokens on axis -2 (a stream axis may lead)
         if m == 0:
             return z
-        return torch.cat((interpolate(noise[:m], known, tau), z[m:]), dim=0)
+        return torch.cat((interpolate(noise[..., :m, :], known, tau), z[..., m:, :]), dim=-2)
     return impute
 
 

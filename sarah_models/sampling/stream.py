@@ -25,7 +25,8 @@ stay near their start); streams that wander far from the anchor leave the traini
 from __future__ import annotations
 
 from collections import deque
-from typing import Mapping
+from dataclasses import dataclass
+from typing import Mapping, Sequence
 
 import numpy as np
 import torch
@@ -37,6 +38,7 @@ from sarah_data.skeleton import MotionLayout
 from ..config import StreamConfig, check_gaze
 from ..nn.flow import FlowModel
 from ..nn.normalizer import Normalizer
+from ..nn.streams import independent_streams
 from ..nn.vae import CausalVAE
 from .decoding import StreamDecoding, stream_decoding
 from .guidance import combine, drop_masks
@@ -48,19 +50,26 @@ IDENTITY = WindowTransform(0.0, 0.0, 0.0)
 
 def solve(flow: FlowModel, cond_tokens: Tensor, noise: Tensor, known: Tensor | None,
           config: StreamConfig) -> Tensor:
-    """Integrate tau 0 -> 1 for L tokens; returns z (L, Dz).
+    """Integrate tau 0 -> 1 for L tokens of one stream, or of G streams at once.
 
-    cond_tokens (B, L, hidden): B = 1, or 2 for (conditional, unconditional) with guidance, run
-    as one batch. noise (L, Dz): each token's eps. known (m, Dz) or None: final latents of the
-    first m tokens, imputed as tau * known + (1 - tau) * eps before every evaluation."""
-    branches = cond_tokens.shape[0]
+    One stream: cond_tokens (B, L, hidden) with B = 1, or 2 for (conditional, unconditional)
+    with guidance, run as one batch; noise (L, Dz) each token's eps; known (m, Dz) or None, the
+    final latents of the first m tokens, imputed as tau * known + (1 - tau) * eps before every
+    evaluation; returns z (L, Dz). G streams: a leading stream axis on all three, cond_tokens
+    (G, B, L, hidden); one network call per evaluation serves every stream's branches."""
+    if noise.dim() == 2:
+        return solve(flow, cond_tokens[None], noise[None],
+                     None if known is None else known[None], config)[0]
+    streams, branches = cond_tokens.shape[:2]
+    rows = cond_tokens.flatten(0, 1)
 
     def velocity(z: Tensor, tau: float) -> Tensor:
-        x1 = combine(flow(z[None].expand(branches, -1, -1), tau, cond_tokens=cond_tokens),
-                     config.cfg_scale)
-        return velocity_from_x1(x1, z, tau, flow.config.min_denominator)
+        x = z[:, None].expand(-1, branches, -1, -1).flatten(0, 1)
+        x1 = flow(x, tau, cond_tokens=rows).unflatten(0, (streams, branches))
+        return velocity_from_x1(combine(x1, config.cfg_scale), z, tau, flow.config.min_denominator)
 
-    return integrate(velocity, noise, imputer(noise, known), config)
+    with independent_streams(streams):
+        return integrate(velocity, noise, imputer(noise, known), config)
 
 
 def _as_tensor(x, shape_tail: tuple[int, ...], name: str, frames: int | None) -> Tensor:
@@ -184,6 +193,14 @@ class StreamingGenerator:
     def step(self, user_head, agent_audio, user_audio) -> np.ndarray:
         """user_head (s, 2) world floor (x, z); agent_audio, user_audio (s, Da) raw features ->
         the agent's next s frames (s, Dx) as a world-frame motion vector (icosahedra, shell)."""
+        block = self.begin_step(user_head, agent_audio, user_audio)
+        z = solve(block.flow, block.cond_tokens, block.noise, block.known, block.config)
+        return self.end_step(block, z[-1])
+
+    def begin_step(self, user_head, agent_audio, user_audio) -> PendingBlock:
+        """``step`` up to the flow's solve (the block's conditioning enters the window); the
+        caller solves it, alone or batched with other streams' (``step_together``), and hands
+        the new token's latent to ``end_step``."""
         m = self._m
         cond = m.condition(user_head, agent_audio, user_audio, self.gaze, m.stride)
         tokens = m.cond_tokens(cond, self.gaze, first_token=self.frames_generated // m.stride)
@@ -191,18 +208,66 @@ class StreamingGenerator:
         window = list(self._cond)
         if any(t.shape[0] == 2 for t in window):  # guidance active somewhere in the window
             window = [t if t.shape[0] == 2 else t.expand(2, -1, -1) for t in window]
-        cond_tokens = torch.cat(window, dim=1)
-
         eps = token_noise(self._generator, m.flow.latent_dim).to(m.device)
-        noise = torch.stack([*self._noise, eps])
-        known = torch.stack(list(self._latents)) if self._latents else None
-        z = solve(m.flow, cond_tokens, noise, known, self.config)[-1]
+        return PendingBlock(m.flow, self.config, torch.cat(window, dim=1),
+                            torch.stack([*self._noise, eps]),
+                            torch.stack(list(self._latents)) if self._latents else None, eps)
+
+    def end_step(self, block: PendingBlock, z: Tensor) -> np.ndarray:
+        """``step`` after the solve: the new token's latent z (Dz,) joins the history and is
+        decoded; returns its s frames."""
+        m = self._m
         self.last_latent = z
         self._latents.append(z)  # a deque of maxlen 0 keeps nothing: no history
-        self._noise.append(eps)
+        self._noise.append(block.eps)
         frames = m.vae.decoder_step(m.latent_for_decoder(z)[None], self._decoder)[0]
         self.frames_generated += m.stride
         return m.to_world(frames, self._decoding)
+
+
+@dataclass
+class PendingBlock:
+    """One stream's next block as the solver takes it (``solve``'s single-stream shapes)."""
+
+    flow: FlowModel
+    config: StreamConfig
+    cond_tokens: Tensor  # (B, L, hidden)
+    noise: Tensor  # (L, Dz): the history tokens' eps, then the new one's
+    known: Tensor | None  # (m, Dz): the history tokens' final latents
+    eps: Tensor  # (Dz,): the new token's noise
+
+    def batch_key(self) -> tuple:
+        """Blocks with equal keys can be solved as one batch: the same flow, solver and
+        guidance weight, and the same window shape (branches, tokens, history)."""
+        c = self.config
+        return (id(self.flow), tuple(self.cond_tokens.shape),
+                0 if self.known is None else self.known.shape[0], c.steps, c.solver, c.cfg_scale)
+
+
+@torch.inference_mode()
+def step_together(generators: Sequence[StreamingGenerator],
+                  inputs: Sequence[tuple]) -> list[np.ndarray]:
+    """``generators[i].step(*inputs[i])`` for every i, with one flow solve for all the streams
+    whose blocks share a ``batch_key``: what a server with many sessions runs per round. Each
+    network call then serves every stream's rows, so its fixed cost (weight reads, some 30
+    small operations per block) is paid once per round instead of once per stream."""
+    if len(generators) != len(inputs):
+        raise ValueError(f"{len(generators)} generators but {len(inputs)} inputs")
+    if len({id(g) for g in generators}) != len(generators):
+        raise ValueError("a generator appears twice: a stream takes one block per round")
+    blocks = [g.begin_step(*x) for g, x in zip(generators, inputs)]
+    groups: dict[tuple, list[PendingBlock]] = {}
+    for block in blocks:
+        groups.setdefault(block.batch_key(), []).append(block)
+    latents: dict[int, Tensor] = {}
+    for members in groups.values():
+        lead = members[0]
+        z = solve(lead.flow, torch.stack([b.cond_tokens for b in members]),
+                  torch.stack([b.noise for b in members]),
+                  None if lead.known is None else torch.stack([b.known for b in members]),
+                  lead.config)
+        latents.update((id(b), z[row, -1]) for row, b in enumerate(members))
+    return [g.end_step(b, latents[id(b)]) for g, b in zip(generators, blocks)]
 
 
 @torch.inference_mode()
@@ -251,6 +316,7 @@ class StreamingSession:
         self._user = extractor.stream()
         self._buffers: dict[str, list[np.ndarray]] = {"head": [], "agent": [], "user": []}
         self._used: dict[str, list[np.ndarray]] = {"agent": [], "user": []}
+        self._pushed: dict[str, list[np.ndarray]] = {"agent": [], "user": []}  # this push's
         self.keep_features = keep_features
         self._no_features = np.zeros((0, generator.audio_dim), np.float32)
         self.last_features: dict[str, np.ndarray] = {"agent": self._no_features,
@@ -272,20 +338,65 @@ class StreamingSession:
 
     def push(self, user_head, agent_samples, user_samples) -> np.ndarray:
         """Feed new inputs (any lengths); returns the frames generated now, (k*s, Dx)."""
+        self.feed(user_head, agent_samples, user_samples)
+        out = []
+        while (block := self.next_block()) is not None:
+            out.append(self.generator.step(*block))
+        self.end_push()
+        return self.frames_of(out)
+
+    def feed(self, user_head, agent_samples, user_samples) -> None:
+        """``push``'s first part: buffer the inputs and their audio features. Then take every
+        block that is complete (``next_block``), generate it, and call ``end_push``."""
+        self._pushed = {"agent": [], "user": []}
         head = np.asarray(user_head, dtype=np.float32).reshape(-1, 2)
         self._buffers["head"].append(head)
         for key, stream, samples in (("agent", self._agent, agent_samples),
                                      ("user", self._user, user_samples)):
             feats = np.asarray(stream.push(np.asarray(samples, dtype=np.float32)), np.float32)
             self._buffers[key].append(feats.reshape(-1, self.generator.audio_dim))
-        s, out, used = self.generator.stride, [], {"agent": [], "user": []}
-        while min(self._available(k) for k in self._buffers) >= s:
-            head, a, b = (self._take(k, s) for k in ("head", "agent", "user"))
-            used["agent"].append(a)
-            used["user"].append(b)
-            out.append(self.generator.step(head, a, b))
-        for person, blocks in used.items():
+
+    def next_block(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The next s frames of user head, agent and user features for ``generator.step``, or
+        None until all three have them."""
+        if min(self._available(k) for k in self._buffers) < self.generator.stride:
+            return None
+        head, a, b = (self._take(k, self.generator.stride) for k in ("head", "agent", "user"))
+        self._pushed["agent"].append(a)
+        self._pushed["user"].append(b)
+        return head, a, b
+
+    def end_push(self) -> None:
+        """``push``'s last part: the features its blocks used become ``last_features``."""
+        for person, blocks in self._pushed.items():
             self.last_features[person] = np.concatenate(blocks) if blocks else self._no_features
             if self.keep_features:
                 self._used[person] += blocks
-        return np.concatenate(out) if out else np.zeros((0, self.generator.motion_dim), np.float32)
+        self._pushed = {"agent": [], "user": []}
+
+    def frames_of(self, blocks: list[np.ndarray]) -> np.ndarray:
+        """Blocks of frames from ``step`` as one (k*s, Dx) array (none: (0, Dx))."""
+        if blocks:
+            return np.concatenate(blocks)
+        return np.zeros((0, self.generator.motion_dim), np.float32)
+
+
+def push_together(sessions: Sequence[StreamingSession], pushes: Sequence[tuple]) -> list[np.ndarray]:
+    """``sessions[i].push(*pushes[i])`` for every i, the blocks of a round generated together
+    (``step_together``): a server's round over its sessions. Returns each session's frames."""
+    if len(sessions) != len(pushes):
+        raise ValueError(f"{len(sessions)} sessions but {len(pushes)} pushes")
+    for session, inputs in zip(sessions, pushes):
+        session.feed(*inputs)
+    frames: list[list[np.ndarray]] = [[] for _ in sessions]
+    while True:
+        ready = [(i, block) for i, session in enumerate(sessions)
+                 if (block := session.next_block()) is not None]
+        if not ready:
+            break
+        blocks = step_together([sessions[i].generator for i, _ in ready], [b for _, b in ready])
+        for (i, _), out in zip(ready, blocks):
+            frames[i].append(out)
+    for session in sessions:
+        session.end_push()
+    return [session.frames_of(out) for session, out in zip(sessions, frames)]
