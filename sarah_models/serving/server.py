@@ -2,7 +2,10 @@
 
 One ``LiveSession`` (a ``StreamingSession`` and its own generator state) per connection; the
 models are loaded once and shared read-only. Compute runs in a small thread pool so the event
-loop keeps serving other connections. Each connection is handled in order (receive a chunk,
+loop keeps serving other connections, in rounds: the chunks that arrived while a round ran are
+generated together in the next one (``push_together``: one flow solve per round, each network
+call serving every session's rows, so its fixed cost is paid once per round rather than once per
+session; a session's motion is the same as alone). Each connection is handled in order (receive a chunk,
 generate, send its frames), so nothing queues without bound: websockets stops reading a socket
 whose ``max_queue`` messages are waiting, and a send to a client that stops reading waits at most
 ``send_timeout`` seconds before the connection is closed with a reason.
@@ -29,7 +32,7 @@ from ..accel.threads import ThreadPolicy, stream_probe
 from ..config import StreamConfig
 from ..generation.inputs import agent_anchor, make_extractor
 from ..generation.outputs import head_gaze
-from ..sampling.stream import StreamingGenerator, StreamingSession
+from ..sampling.stream import StreamingGenerator, StreamingSession, push_together
 from .protocol import (AUDIO_FORMATS, MAX_CHUNK_FRAMES, VERSION, Chunk, OpenRequest, ProtocolError,
                        pack, parse_chunk, parse_gaze, parse_open, parse_text)
 
@@ -83,7 +86,15 @@ class LiveSession:
 
     def push(self, chunk: Chunk) -> tuple[dict, list[np.ndarray]]:
         """Generate for one chunk; the frames message's header and arrays."""
-        motion = self.stream.push(chunk.head, chunk.agent_audio, chunk.user_audio)
+        return self.frames_message(chunk, self.stream.push(*self.inputs(chunk)))
+
+    @staticmethod
+    def inputs(chunk: Chunk) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What ``StreamingSession.push`` takes from a chunk."""
+        return chunk.head, chunk.agent_audio, chunk.user_audio
+
+    def frames_message(self, chunk: Chunk, motion: np.ndarray) -> tuple[dict, list[np.ndarray]]:
+        """The frames message (header and arrays) for the motion generated from ``chunk``."""
         positions, rotations = icosahedron.decode(self.layout.split(motion)[0])
         pending = np.concatenate([self._heads, chunk.head])
         heads, self._heads = pending[:len(motion)], pending[len(motion):]
@@ -123,6 +134,10 @@ class LiveServer:
             self.executor.submit(self.threads.calibrate, stream_probe(models, defaults)).result()
         self.sessions = 0
         self.stride = models.vae.stride
+        # Chunks waiting for the next round, and rounds running (at most one per worker).
+        self.waiting: list[tuple[LiveSession, Chunk, asyncio.Future]] = []
+        self.rounds_running = 0
+        self.round_tasks: set[asyncio.Task] = set()  # referenced, so none is collected mid-round
         make_extractor(models.features)  # fail at start, not at the first connection
 
     def ready_message(self) -> str:
@@ -152,7 +167,6 @@ class LiveServer:
             await ws.close(1013, f"server full ({self.config.max_sessions} sessions); try again later")
             return
         self.sessions += 1
-        loop = asyncio.get_running_loop()
         session: LiveSession | None = None
         try:
             async for message in ws:
@@ -191,8 +205,7 @@ class LiveServer:
                             raise ProtocolError("bad_seq", f"chunk seq {chunk.seq}, expected "
                                                            f"{session.expected_seq}", chunk.seq)
                         tick = time.perf_counter()
-                        header, arrays = await loop.run_in_executor(self.executor, self._compute,
-                                                                    session, chunk)
+                        header, arrays = await self._generate(session, chunk)
                         session.expected_seq += 1
                         header["latency_ms"] = 1000.0 * (time.perf_counter() - tick)
                         await self._send(ws, pack(header, *arrays))
@@ -203,12 +216,56 @@ class LiveServer:
         finally:
             self.sessions -= 1
 
-    def _compute(self, session: LiveSession, chunk: Chunk):
-        """One chunk on a compute thread, with the intra-op threads that the other processes
-        leave free (set per compute thread: torch keeps the count per thread)."""
+    async def _generate(self, session: LiveSession, chunk: Chunk) -> tuple[dict, list[np.ndarray]]:
+        """The frames message for ``chunk``, generated in the next round with every other
+        session's waiting chunk (a connection sends its next chunk only after this answer, so
+        a round holds at most one chunk per session)."""
+        future = asyncio.get_running_loop().create_future()
+        self.waiting.append((session, chunk, future))
+        self._start_rounds()
+        return await future
+
+    def _start_rounds(self) -> None:
+        while self.waiting and self.rounds_running < self.config.workers:
+            batch, self.waiting = self.waiting, []
+            self.rounds_running += 1
+            task = asyncio.get_running_loop().create_task(self._round(batch))
+            self.round_tasks.add(task)
+            task.add_done_callback(self.round_tasks.discard)
+
+    async def _round(self, batch: list[tuple[LiveSession, Chunk, asyncio.Future]]) -> None:
+        try:
+            results = await asyncio.get_running_loop().run_in_executor(
+                self.executor, self._compute, [(session, chunk) for session, chunk, _ in batch])
+        except Exception as error:  # a bug in the models: every session of the round hears it
+            results = [error] * len(batch)
+        finally:
+            self.rounds_running -= 1
+        for (_, _, future), result in zip(batch, results):
+            if future.done():  # its connection went away meanwhile
+                continue
+            if isinstance(result, Exception):
+                future.set_exception(result)
+            else:
+                future.set_result(result)
+        self._start_rounds()
+
+    def _compute(self, batch: list[tuple[LiveSession, Chunk]]) -> list:
+        """One round on a compute thread, with the intra-op threads that the other processes
+        leave free (set per compute thread: torch keeps the count per thread): every session's
+        chunk generated together (``push_together``: one flow solve for the round), then each
+        session's message, or the error that one session's message raised."""
         if self.threads is not None:
             self.threads.apply()
-        return session.push(chunk)
+        motions = push_together([session.stream for session, _ in batch],
+                                [LiveSession.inputs(chunk) for _, chunk in batch])
+        results: list = []
+        for (session, chunk), motion in zip(batch, motions):
+            try:
+                results.append(session.frames_message(chunk, motion))
+            except Exception as error:
+                results.append(error)
+        return results
 
     def process_request(self, connection, request):
         """Plain HTTP GETs get the browser page; WebSocket upgrades go on to ``handler``."""
