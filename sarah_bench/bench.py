@@ -26,7 +26,7 @@ import platform
 import shutil
 import tempfile
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -42,7 +42,8 @@ from sarah_models.accel import (
 )
 from sarah_models.accel.threads import ThreadPolicy, stream_probe
 from sarah_models.config import STRIDE, StreamConfig
-from sarah_models.sampling.stream import StreamingGenerator, StreamingSession, generate_offline
+from sarah_models.sampling.stream import (StreamingGenerator, StreamingSession, generate_offline,
+                                          push_together)
 from sarah_models.testing import random_models, stream_deviation, synthetic_inputs, without_foot_lock
 
 from .config import CHUNK_FRAMES, BenchConfig
@@ -164,21 +165,22 @@ def bench_memory_floor(models, thread_counts: tuple[int, ...],
 
 def bench_concurrent(models, counts: tuple[int, ...], inputs: dict[str, np.ndarray], extractor,
                      seconds: float, policy: ThreadPolicy | None = None,
-                     config: StreamConfig = StreamConfig()) -> dict[str, Any]:
-    """K streams in one process, served round robin by one compute thread (what one
-    ``sarah-serve`` worker does with K sessions): each round pushes every stream's next chunk
-    (raw audio and the user's positions) into its ``StreamingSession``. A stream holds
-    real time when it gets >= 30 fps and the p99 round (the longest a chunk can wait) is at most
-    one chunk period (133 ms). Counts are tried in order until one fails; ``fit`` is the most
-    streams that held."""
+                     config: StreamConfig = StreamConfig(), together: bool = True) -> dict[str, Any]:
+    """K streams in one process on one compute thread, as one ``sarah-serve`` worker serves K
+    sessions: each round pushes every stream's next chunk (raw audio and the user's positions)
+    into its ``StreamingSession``, all of them at once (``push_together``: one flow solve for
+    the round, the server's way) or with ``together=False`` one after another (round robin, the
+    server's way until 2026-11-27). A stream holds real time when it gets >= 30 fps and the p99
+    round (the longest a chunk can wait) is at most one chunk period (133 ms). Counts are tried
+    in order until one fails; ``fit`` is the most streams that held."""
     s = STRIDE
     n = s * SAMPLES_PER_FRAME
     period_ms = 1000.0 * s / FPS
     total_frames = inputs["user_head"].shape[0]
     rows = []
     for count in counts:
-        sessions = [StreamingSession(StreamingGenerator(*models, config), extractor,
-                                     keep_features=False) for _ in range(count)]
+        sessions = [StreamingSession(StreamingGenerator(*models, replace(config, seed=i)),
+                                     extractor, keep_features=False) for i in range(count)]
         rounds: list[float] = []
         started = time.perf_counter()
         i = 0
@@ -188,9 +190,13 @@ def bench_concurrent(models, counts: tuple[int, ...], inputs: dict[str, np.ndarr
                 policy.apply()
             j = i % (total_frames - total_frames % s)  # the inputs again from the start
             k = j * SAMPLES_PER_FRAME
-            for session in sessions:
-                session.push(inputs["user_head"][j:j + s], inputs["agent_wave"][k:k + n],
-                             inputs["user_wave"][k:k + n])
+            chunk = (inputs["user_head"][j:j + s], inputs["agent_wave"][k:k + n],
+                     inputs["user_wave"][k:k + n])
+            if together:
+                push_together(sessions, [chunk] * count)
+            else:
+                for session in sessions:
+                    session.push(*chunk)
             rounds.append(time.perf_counter() - tick)
             i += s
         elapsed = time.perf_counter() - started
@@ -202,7 +208,8 @@ def bench_concurrent(models, counts: tuple[int, ...], inputs: dict[str, np.ndarr
         if not held:
             break
     fit = max((row["streams"] for row in rows if row["real_time"]), default=0)
-    return {"rows": rows, "fit": fit, "seconds_per_count": seconds}
+    return {"rows": rows, "fit": fit, "seconds_per_count": seconds,
+            "schedule": "together" if together else "round robin"}
 
 
 def bench_naive_streaming(models, frames: int, inputs: dict[str, np.ndarray], extractor,
@@ -275,6 +282,10 @@ class SizeBench:
             out["concurrent"] = bench_concurrent(self.fast, self.cfg.concurrent_streams,
                                                  self.inputs, self.extractor,
                                                  self.cfg.concurrent_seconds, self.policy)
+            log(f"[{label}] the same, round robin (one solve per stream), for the ratio")
+            out["concurrent"]["round_robin"] = bench_concurrent(
+                self.fast, self.cfg.concurrent_streams, self.inputs, self.extractor,
+                self.cfg.concurrent_seconds, self.policy, together=False)
         if self.size == "paper":
             out["kernel"] = bench_kernel(tuple(range(1, len(self.policy.cpus) + 1)))
         log(f"[{label}] memory floor: the time to read one streamed chunk's weights")

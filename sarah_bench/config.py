@@ -81,7 +81,8 @@ class BenchConfig:
     # Streams again this many times, idle then beside the background load, one pair per round,
     # and reports each figure's median and range (0: none; needs background_load).
     rounds: int = 0
-    # Tiny streams served round robin in one process (the server's figure), tried in order.
+    # Tiny streams served in one process (the server's figure: one solve per round for all, and
+    # round robin beside it for the ratio), tried in order.
     concurrent_streams: tuple[int, ...] = (1, 2, 4, 6, 8, 12)
     concurrent_seconds: float = 8.0
     seed: int = 0
