@@ -43,6 +43,10 @@ def build_parser() -> argparse.ArgumentParser:
                              "every core other processes leave free, re-measured as it serves)")
     parser.add_argument("--send-timeout", type=float, default=s.send_timeout,
                         help="seconds a send may wait on a client that does not read before it is closed")
+    parser.add_argument("--gather-ms", type=float, default=s.gather_ms,
+                        help="chunks are generated in rounds, all waiting sessions' at once: how long "
+                             "a round on an idle server waits for the other open sessions' chunks "
+                             "(0: start at once)")
     parser.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     parser.add_argument("--speed", choices=MODES, default="fp32",
                         help="inference fast path: " + "; ".join(f"{k}: {v}" for k, v in MODE_HELP.items()))
@@ -115,6 +119,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(problem)
     if args.send_timeout <= 0:
         parser.error(f"--send-timeout must be positive, got {args.send_timeout}")
+    if not 0 <= args.gather_ms <= 1000:
+        parser.error(f"--gather-ms must be between 0 and 1000, got {args.gather_ms}")
     import torch
 
     # This thread runs the event loop; chunks are computed on the executor's threads. Once this
@@ -139,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
             return EXIT_ERROR
     config = ServeConfig(host=args.host, port=args.port, max_sessions=args.max_sessions,
                          workers=args.workers, send_timeout=args.send_timeout,
-                         threads=args.threads)
+                         threads=args.threads, gather_ms=args.gather_ms)
     server = LiveServer(models, config, defaults, body=body)
     if not is_loopback(args.host):
         print(f"sarah-serve: warning: serving on {args.host}, reachable from other machines",

@@ -128,6 +128,42 @@ def error_of(ws):
     return message
 
 
+def test_sessions_in_one_round_get_what_each_gets_alone(run_dir):
+    """Three clients sending on one clock are generated in shared rounds (one flow solve per
+    round), and each gets the motion it gets with the server to itself."""
+    running = RunningServer(run_dir, threads=1, gather_ms=1000.0)  # rounds wait for all three
+
+    def session(seed, out, barrier):
+        with open_session(running.url, seed=seed, gaze=0.8 if seed else None) as (ws, _):
+            frames = []
+            for seq in range(5):
+                barrier.wait()
+                ws.send(chunk(seq, head=[[0.5 + 0.2 * seed, 1.5 - 0.1 * seq]] * 4))
+                header, arrays = read_frames(ws.recv(timeout=30))
+                assert header["seq"] == seq
+                frames.append(arrays["motion"])
+            out[seed] = np.concatenate(frames)
+
+    try:
+        together, barrier = {}, threading.Barrier(3)
+        clients = [threading.Thread(target=session, args=(seed, together, barrier))
+                   for seed in range(3)]
+        for client in clients:
+            client.start()
+        for client in clients:
+            client.join(120)
+        assert (running.server.rounds_run, running.server.chunks_run) == (5, 15)
+        alone = {}
+        for seed in range(3):
+            session(seed, alone, threading.Barrier(1))
+        assert running.server.rounds_run == 5 + 15
+    finally:
+        running.stop()
+    for seed in range(3):
+        np.testing.assert_allclose(together[seed], alone[seed], atol=1e-5)
+    assert not np.allclose(together[0], together[1])
+
+
 def test_bad_messages_get_an_error_and_the_session_goes_on(server):
     with open_session(server.url) as (ws, ready):
         ws.send(chunk(0, samples=1000))

@@ -52,6 +52,9 @@ class ServeConfig:
     max_message_bytes: int = 4 * 1024 * 1024  # a chunk of MAX_CHUNK_FRAMES f32 frames fits
     max_queue: int = 4  # messages read ahead per connection before its socket is left unread
     threads: int | None = None  # intra-op threads per compute thread (None: accel.ThreadPolicy)
+    # How long a round waits for the other open sessions' chunks before it starts without them
+    # (clients on one clock send together; the first to arrive must not leave alone).
+    gather_ms: float = 5.0
 
 
 def is_loopback(host: str) -> bool:
@@ -137,6 +140,9 @@ class LiveServer:
         # Chunks waiting for the next round, and rounds running (at most one per worker).
         self.waiting: list[tuple[LiveSession, Chunk, asyncio.Future]] = []
         self.rounds_running = 0
+        self.open_streams = 0  # connections with an open session
+        self.gathering: asyncio.TimerHandle | None = None  # a round waiting for more chunks
+        self.rounds_run = self.chunks_run = 0  # how well rounds batch: chunks per round
         self.round_tasks: set[asyncio.Task] = set()  # referenced, so none is collected mid-round
         make_extractor(models.features)  # fail at start, not at the first connection
 
@@ -183,6 +189,7 @@ class LiveServer:
                                                                 "with --body-model (a SMPL-X .npz)")
                             extractor = make_extractor(self.models.features)
                             session = LiveSession(self.models, opened, self.defaults, extractor, self.body)
+                            self.open_streams += 1
                             await self._send(ws, self.ready_message())
                         elif kind == "gaze":
                             if session is None:
@@ -215,6 +222,9 @@ class LiveServer:
             pass
         finally:
             self.sessions -= 1
+            if session is not None:
+                self.open_streams -= 1
+                self._start_rounds(wait_for_others=True)  # a round waiting for it need not
 
     async def _generate(self, session: LiveSession, chunk: Chunk) -> tuple[dict, list[np.ndarray]]:
         """The frames message for ``chunk``, generated in the next round with every other
@@ -222,16 +232,36 @@ class LiveServer:
         a round holds at most one chunk per session)."""
         future = asyncio.get_running_loop().create_future()
         self.waiting.append((session, chunk, future))
-        self._start_rounds()
+        self._start_rounds(wait_for_others=True)
         return await future
 
-    def _start_rounds(self) -> None:
+    def _start_rounds(self, wait_for_others: bool = False) -> None:
+        """Start a round with the waiting chunks when a worker is free. A round that would
+        start on an idle server (``wait_for_others``) waits until every open session has a
+        chunk waiting, or ``gather_ms`` at most; one after a round starts at once (the
+        sessions of the round that ended send again only on their next tick)."""
+        if not self.waiting or self.rounds_running >= self.config.workers:
+            return
+        if wait_for_others and len(self.waiting) < self.open_streams and self.config.gather_ms > 0:
+            if self.gathering is None:
+                self.gathering = asyncio.get_running_loop().call_later(
+                    self.config.gather_ms / 1000.0, self._gathered)
+            return
+        if self.gathering is not None:
+            self.gathering.cancel()
+            self.gathering = None
         while self.waiting and self.rounds_running < self.config.workers:
             batch, self.waiting = self.waiting, []
             self.rounds_running += 1
+            self.rounds_run += 1
+            self.chunks_run += len(batch)
             task = asyncio.get_running_loop().create_task(self._round(batch))
             self.round_tasks.add(task)
             task.add_done_callback(self.round_tasks.discard)
+
+    def _gathered(self) -> None:
+        self.gathering = None
+        self._start_rounds()
 
     async def _round(self, batch: list[tuple[LiveSession, Chunk, asyncio.Future]]) -> None:
         try:
