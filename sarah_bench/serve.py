@@ -28,13 +28,15 @@ import numpy as np
 
 from sarah_data.constants import FPS, SAMPLES_PER_FRAME
 
+from .load import BackgroundLoad
+
 CHUNK = 4
 
 
 @dataclass
 class ServeBenchConfig:
     sizes: tuple[str, ...] = ("tiny", "paper")
-    session_counts: tuple[int, ...] = (1, 2, 4, 8, 16, 32)
+    session_counts: tuple[int, ...] = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32)
     level_seconds: float = 15.0
     soak_seconds: float = 600.0  # at least; longer when needed for soak_min_chunks
     soak_min_chunks: int = 10_000
@@ -42,6 +44,7 @@ class ServeBenchConfig:
     mode: str = "int8"
     steps: int = 4  # solver steps per chunk (the paper's)
     threads: int | None = None  # the server's --threads (None: its automatic policy)
+    background_load: int = 0  # busy processes of the bench's own beside every level and the soak
     seed: int = 0
 
 
@@ -236,7 +239,8 @@ def run_serve_bench(cfg: ServeBenchConfig = ServeBenchConfig(),
             try:
                 held = 0
                 for count in cfg.session_counts:
-                    level = run_level(server.url, size, count, cfg)
+                    with BackgroundLoad(cfg.background_load):
+                        level = run_level(server.url, size, count, cfg)
                     result.levels.append(level)
                     log(f"{size}: {count} sessions: p50 {level.p50_ms:.1f} ms, worst p99 "
                         f"{level.p99_ms:.1f} ms, slowest {level.min_fps:.1f} fps, {level.lost} lost, "
@@ -246,7 +250,8 @@ def run_serve_bench(cfg: ServeBenchConfig = ServeBenchConfig(),
                     held = count
                 result.capacity[size] = held
                 if size == "tiny" and cfg.soak_seconds > 0 and held:
-                    result.soak = run_soak(server, held, cfg, log)
+                    with BackgroundLoad(cfg.background_load, max_seconds=2 * cfg.soak_seconds + 900):
+                        result.soak = run_soak(server, held, cfg, log)
             finally:
                 server.stop()
     return result
@@ -254,9 +259,11 @@ def run_serve_bench(cfg: ServeBenchConfig = ServeBenchConfig(),
 
 def format_serve_report(result: ServeBenchResult) -> str:
     env = result.environment
+    busy = result.config.get("background_load", 0)
     lines = [f"sarah-serve under load, {env.get('date', '')}, {env.get('cpu', '')}, "
              f"{result.config['threads'] or 'automatic'} threads, {result.config['mode']}, "
-             f"{result.config['steps']} midpoint steps, chunks of {CHUNK} frames",
+             f"{result.config['steps']} midpoint steps, chunks of {CHUNK} frames"
+             + (f", beside {busy} busy processes" if busy else ""),
              "", "| size | sessions | chunks | lost | reordered | p50 ms | worst p99 ms | slowest fps | real time |",
              "|---|---:|---:|---:|---:|---:|---:|---:|:---:|"]
     for level in result.levels:

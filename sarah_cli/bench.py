@@ -27,7 +27,8 @@ def build_parser() -> argparse.ArgumentParser:
                         default=defaults.background_load, metavar="N",
                         help="also measure every timed generation figure with N busy processes "
                              "of the bench's own beside it (ended by the bench), side by side "
-                             "with the idle figures")
+                             "with the idle figures; with --serve, every level and the soak run "
+                             "beside them")
     parser.add_argument("--rounds", type=non_negative_int, default=defaults.rounds, metavar="N",
                         help="with --background-load: stream N more times, idle then loaded in "
                              "each round, and report every streaming figure's median and range "
@@ -73,7 +74,8 @@ def serve_main(args) -> int:
               "sizes from tiny, paper", file=sys.stderr)
         return 2
     config = ServeBenchConfig(sizes=sizes, level_seconds=args.serve_seconds,
-                              soak_seconds=args.soak_seconds, mode=args.mode, threads=args.threads)
+                              soak_seconds=args.soak_seconds, mode=args.mode, threads=args.threads,
+                              background_load=args.background_load)
     result = run_serve_bench(config, log=lambda line: print(f"sarah-bench: {line}", file=sys.stderr, flush=True))
     print(format_serve_report(result))
     if args.json is not None:

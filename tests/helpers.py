@@ -1,5 +1,6 @@
 """Shared test builders (owner: evaluation). Small shards with several splits, reusing the
-person builder of test_generate so every test writes shards the same way."""
+person builder of test_generate so every test writes shards the same way; and what the
+benchmarks' tests look for after a run (busy processes left behind)."""
 
 from __future__ import annotations
 
@@ -66,3 +67,15 @@ def write_split_shards(root: Path, sequences: dict[str, int], frames: int = 40,
     write_manifest(root / MANIFEST_NAME, Manifest(toolkit_version="0.1.0", config={},
                                                   splits=splits, shards=infos, sequences=entries))
     return written
+
+
+def spinning_processes() -> list[str]:
+    """Process ids of ``sarah_bench.load.BackgroundLoad`` busy loops still running."""
+    spinning = []
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            if b"while time.monotonic() < end" in cmdline.read_bytes():
+                spinning.append(cmdline.parent.name)
+        except OSError:  # a process that ended while we looked
+            pass
+    return spinning

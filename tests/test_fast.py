@@ -24,6 +24,7 @@ from hypothesis import given, settings, strategies as st
 
 import sarah_models.accel.cpu as cpu_module
 import sarah_models.accel.optimize as optimize_module
+from helpers import spinning_processes
 from sarah_bench.naive import NaiveStreamer
 from sarah_models.accel import optimize_for_inference, resolve_decoder
 from sarah_models.accel.linears import (BF16Linear, Int8Linear, PackedLinear, decoder_linears,
@@ -448,14 +449,7 @@ def test_bench_background_load_reports_both_sides(tmp_path, capsys):
     assert "round robin (one solve per stream): idle" in report
     assert "2 more rounds, each idle then beside 1 busy processes" in report
     assert "tiny stream fps" in report.split("2 more rounds")[1]
-    spinning = []
-    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
-        try:
-            if b"while time.monotonic() < end" in cmdline.read_bytes():
-                spinning.append(cmdline.parent.name)
-        except OSError:  # a process that ended while we looked
-            pass
-    assert spinning == []
+    assert spinning_processes() == []
 
 
 def test_bench_config_rejects_bad_values():

@@ -27,6 +27,7 @@ from sarah_data.constants import SAMPLES_PER_FRAME
 from sarah_models.serving.client import read_frames
 from sarah_models.serving.protocol import encode_pcm, pack
 from sarah_models.serving.server import LiveServer, ServeConfig, load_server_models
+from helpers import spinning_processes
 from test_generate import save_run, write_wav
 
 FRAMES = 60
@@ -162,6 +163,25 @@ def test_sessions_in_one_round_get_what_each_gets_alone(run_dir):
     for seed in range(3):
         np.testing.assert_allclose(together[seed], alone[seed], atol=1e-5)
     assert not np.allclose(together[0], together[1])
+
+
+def test_serve_bench_beside_a_busy_process(tmp_path, capsys):
+    """``sarah-bench --serve --background-load 1``: levels of real client sessions against a
+    sarah-serve process while a busy process of the bench's own runs, the capacity stated, and
+    no busy process left behind."""
+    from sarah_cli.bench import main as bench_main
+
+    out = tmp_path / "serve.json"
+    assert bench_main(["--serve", "--sizes", "tiny", "--serve-seconds", "1", "--soak-seconds", "0",
+                       "--background-load", "1", "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["config"]["background_load"] == 1
+    levels = result["levels"]
+    assert [level["sessions"] for level in levels] == list(result["config"]["session_counts"][:len(levels)])
+    assert all(level["chunks"] > 0 and level["lost"] == 0 for level in levels)
+    assert result["capacity"]["tiny"] == max([0] + [level["sessions"] for level in levels if level["holds"]])
+    assert "beside 1 busy processes" in capsys.readouterr().out
+    assert spinning_processes() == []
 
 
 def test_bad_messages_get_an_error_and_the_session_goes_on(server):
