@@ -4,7 +4,8 @@ At inference on a CPU the flow's Linears are bound by reading their weights (a c
 evaluations over 3 tokens x 2 guidance branches), so weight bytes are the first cost to cut.
 
 * ``Int8Linear``: dynamic int8 quantization -- int8 weights with one symmetric scale per output
-  channel, activations quantized per call (to the full 8 bits where the CPU has VNNI, else 7)
+  channel, activations quantized per call, or per stream when a batch holds several
+  (``nn.streams``) (to the full 8 bits where the CPU has VNNI, else 7)
   -- computed by torch's ``quantized::linear_dynamic`` kernel (fbgemm). With 7-bit rows
   bit-identical to ``torch.ao.quantization.quantize_dynamic`` with
   ``per_channel_dynamic_qconfig``, built from public calls only (observer,

@@ -11,6 +11,11 @@ exactly when those trajectories are straight, which holds (a) for a single token
 Euler step (the only evaluation is at tau = 0, where both are the noise eps) and (c) whenever
 the network's x1 prediction is constant along the path. In general they differ.
 
+Many streams. ``step_together`` (and ``push_together`` for sessions) takes one block of each
+of several streams and solves all of them in one network call per evaluation, as a server does
+per round; each stream gets what its own ``step`` gives it (see ``nn/streams.py`` for the one
+layer that has to know).
+
 Frames and anchor. The model was trained on windows normalized to the agent's pelvis at the
 window's first frame (origin, facing +z). Latents encode motion in that frame, so a history latent
 is only valid under the anchor it was generated in; re-anchoring while streaming would mean
