@@ -178,6 +178,12 @@ class FlowConfig:
     # stands, and the joint solve wanders (twenty-seventh run; a longer window, streamed with
     # the matching history, damps the streamed motion instead).
     attention_window: int | None = None
+    # Not in the paper (0 = the paper): the share of training batches whose attention is limited
+    # to what a streamed token sees, HISTORY_TOKENS + 1 tokens per layer, the rest trained with
+    # ``attention_window``. With attention_window None, one model then learns both contexts:
+    # the offline solve attends to every earlier token (no wander) and streaming keeps the
+    # paper's 2 history tokens, which it was trained to continue from.
+    streamed_context: float = 0.0
     # Not in the paper (0 = the paper): weight of the MSE between the predicted and the true
     # latents' token-to-token differences, beside eq. 5's MSE of the latents. Its minimum is the
     # same conditional mean, so it changes no target, only which errors cost most: sampled
@@ -189,6 +195,9 @@ class FlowConfig:
         if self.difference_weight < 0:
             raise ValueError(f"FlowConfig.difference_weight must be >= 0, got "
                              f"{self.difference_weight}")
+        if not 0.0 <= self.streamed_context <= 1.0:
+            raise ValueError(f"FlowConfig.streamed_context must be in [0, 1], got "
+                             f"{self.streamed_context}")
         if self.attention_window is not None and self.attention_window < 1:
             raise ValueError(f"FlowConfig.attention_window must be >= 1 or None, got "
                              f"{self.attention_window}")

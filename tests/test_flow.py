@@ -191,3 +191,23 @@ def test_attention_window_limits_each_layer_to_the_streaming_context():
     with pytest.raises(ValueError, match="attention_window"):
         FlowConfig(attention_window=0)
 
+
+
+def test_streamed_context_trains_a_share_of_batches_with_the_streaming_window():
+    """flow.streamed_context = 1 trains every batch as a window of history + 1 tokens (the loss of
+    a model whose attention_window is 3, same draws); 0 as the model's own context."""
+    from dataclasses import replace
+
+    g = torch.Generator().manual_seed(0)
+    cond, z = make_cond(2, g), torch.randn(2, K, DZ, generator=g)
+    full = trained_weights(FlowModel(replace(FlowConfig.tiny(), attention_window=None), DZ, S, DA))
+    windowed, streamed = (FlowModel(replace(FlowConfig.tiny(), **fields), DZ, S, DA) for fields in
+                          ({"attention_window": 3}, {"attention_window": None, "streamed_context": 1.0}))
+    for model in (windowed, streamed):
+        model.load_state_dict(full.state_dict())
+    with torch.no_grad():
+        losses = [flow_matching_loss(m, z, cond, torch.Generator().manual_seed(1))["loss"]
+                  for m in (full, windowed, streamed)]
+    assert torch.equal(losses[1], losses[2]) and not torch.allclose(losses[0], losses[1])
+    with pytest.raises(ValueError, match="streamed_context"):
+        FlowConfig(streamed_context=1.5)

@@ -19,7 +19,8 @@ from sarah_data.constants import FPS
 from sarah_data.gaze import FACING_AXIS
 from sarah_data.skeleton import FEET, HEAD, ICOSAHEDRON_POINTS, MotionLayout
 
-from ..nn.flow import FlowModel
+from ..config import HISTORY_TOKENS
+from ..nn.flow import FlowModel, build_block_mask
 from ..nn.normalizer import Normalizer
 from ..nn.vae import CausalVAE
 from ..sampling.guidance import sample_drop_mask
@@ -158,12 +159,16 @@ def flow_matching_loss(flow: FlowModel, z: Tensor, cond: Mapping[str, Tensor],
                        generator: torch.Generator | None = None) -> dict[str, Tensor]:
     """x1-prediction flow-matching loss (eq. 4-5) with tau ~ U[0, 1] and CFG dropout, plus
     ``flow.config.difference_weight`` times the MSE of the tokens' differences ("difference")."""
-    b = z.shape[0]
+    b, k = z.shape[:2]
     tau = torch.rand(b, generator=generator, device=z.device)
     eps = torch.randn(z.shape, generator=generator, device=z.device, dtype=z.dtype)
     z_tau = interpolate(eps, z, tau[:, None, None].to(z.dtype))
     drop = sample_drop_mask(b, flow.config.drop_prob, generator, z.device)
-    z1_pred = flow(z_tau, tau, cond, drop)
+    mask = None  # the model's own (``attention_window``)
+    if flow.config.streamed_context > 0 and (
+            torch.rand((), generator=generator, device=z.device) < flow.config.streamed_context):
+        mask = build_block_mask(k, k, window=HISTORY_TOKENS + 1, device=z.device)
+    z1_pred = flow(z_tau, tau, cond, drop, attn_mask=mask)
     error = z1_pred.float() - z.float()
     recon = error.square().mean()
     difference = error.diff(dim=1).square().mean() if z.shape[1] > 1 else error.new_zeros(())

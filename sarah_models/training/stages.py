@@ -162,7 +162,8 @@ def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
 FINE_TUNE_FIELDS = {
     "vae": ("beta", "velocity_weight", "acceleration_weight", "contact_weight", "head_weight",
             "latent_noise", "recon_units", *DECODING_FIELDS["vae"]),
-    "flow": ("drop_prob", "min_denominator", "difference_weight", "attention_window")}
+    "flow": ("drop_prob", "min_denominator", "difference_weight", "attention_window",
+             "streamed_context")}
 
 
 def load_init_source(path: str | Path, stage: str) -> dict[str, Any]:
