@@ -81,6 +81,9 @@ def cases(w):
         ("serve", ["--run", w["run"], "--port", "70000"]), ("serve", ["--client", "ws://127.0.0.1:9/"]),
         ("serve", ["--run", w["run"], "--max-sessions", "0"]), ("serve", ["--run", w["run"], "--device", "gpu"]),
         ("serve", ["--client", "ws://127.0.0.1:9/", *raw, "--out", o]),
+        ("serve", ["--run", w["run"], "--gather-ms", "-1"]),
+        ("train", ["--shards", w["shards"], "--out", o, "--config", "tiny", "--set",
+                   "flow.streamed_context=2"]),
         ("bench", ["--threads", "0"]), ("bench", ["--mode", "x"]), ("bench", ["--sizes", "huge"]),
         ("bench", ["--serve", "--serve-seconds", "0"]), ("bench", ["--background-load", "-1"]),
     ]
