@@ -360,6 +360,13 @@ def test_streams_stepped_together_get_what_each_gets_alone(models):
         step_together([together[0], together[0]], block[:2])
     with pytest.raises(ValueError, match="inputs"):
         step_together(together, block[:2])
+    # one stream's bad input stops the round before any stream moves on
+    bad = [block[0], (block[1][0][:2], *block[1][1:])] + block[2:]
+    with pytest.raises(ValueError, match="user_head"):
+        step_together(together, bad)
+    expected = [g.step(*b) for g, b in zip(alone, block)]
+    for e, g in zip(expected, step_together(together, block)):
+        np.testing.assert_allclose(g, e, atol=1e-5)
 
 
 def test_sessions_pushed_together_get_what_each_gets_alone():

@@ -198,17 +198,22 @@ class StreamingGenerator:
     def step(self, user_head, agent_audio, user_audio) -> np.ndarray:
         """user_head (s, 2) world floor (x, z); agent_audio, user_audio (s, Da) raw features ->
         the agent's next s frames (s, Dx) as a world-frame motion vector (icosahedra, shell)."""
-        block = self.begin_step(user_head, agent_audio, user_audio)
+        block = self.begin_step(self.block_condition(user_head, agent_audio, user_audio))
         z = solve(block.flow, block.cond_tokens, block.noise, block.known, block.config)
         return self.end_step(block, z[-1])
 
-    def begin_step(self, user_head, agent_audio, user_audio) -> PendingBlock:
-        """``step`` up to the flow's solve (the block's conditioning enters the window); the
-        caller solves it, alone or batched with other streams' (``step_together``), and hands
-        the new token's latent to ``end_step``."""
+    def block_condition(self, user_head, agent_audio, user_audio) -> Tensor:
+        """The next block's conditioning tokens (B, 1, hidden) from its inputs, which it checks
+        (ValueError naming the input); the stream's state is left as it was."""
         m = self._m
         cond = m.condition(user_head, agent_audio, user_audio, self.gaze, m.stride)
-        tokens = m.cond_tokens(cond, self.gaze, first_token=self.frames_generated // m.stride)
+        return m.cond_tokens(cond, self.gaze, first_token=self.frames_generated // m.stride)
+
+    def begin_step(self, tokens: Tensor) -> PendingBlock:
+        """``step`` up to the flow's solve: the block's conditioning (``block_condition``)
+        enters the window and its noise is drawn. The caller solves the block, alone or batched
+        with other streams' (``step_together``), and hands the new latent to ``end_step``."""
+        m = self._m
         self._cond.append(tokens)
         window = list(self._cond)
         if any(t.shape[0] == 2 for t in window):  # guidance active somewhere in the window
@@ -260,7 +265,9 @@ def step_together(generators: Sequence[StreamingGenerator],
         raise ValueError(f"{len(generators)} generators but {len(inputs)} inputs")
     if len({id(g) for g in generators}) != len(generators):
         raise ValueError("a generator appears twice: a stream takes one block per round")
-    blocks = [g.begin_step(*x) for g, x in zip(generators, inputs)]
+    # Every stream's inputs are checked before any stream's state changes.
+    conditions = [g.block_condition(*x) for g, x in zip(generators, inputs)]
+    blocks = [g.begin_step(c) for g, c in zip(generators, conditions)]
     groups: dict[tuple, list[PendingBlock]] = {}
     for block in blocks:
         groups.setdefault(block.batch_key(), []).append(block)
