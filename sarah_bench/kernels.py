@@ -42,7 +42,7 @@ from sarah_models.accel.linears import (
     flow_outer_linears,
     packed_linears_available,
 )
-from sarah_models.config import HISTORY_TOKENS, STRIDE, FlowConfig, StreamConfig, VAEConfig
+from sarah_models.config import STREAMED_TOKENS, STRIDE, FlowConfig, StreamConfig, VAEConfig
 from sarah_models.nn.flow import FlowModel
 from sarah_models.nn.vae import CausalVAE
 from sarah_models.sampling.solver import time_grid
@@ -51,7 +51,7 @@ from sarah_models.training.checkpoint import unpack_models
 
 from .timing import percentiles, torch_threads
 
-ROWS = 2 * (HISTORY_TOKENS + 1)  # guidance branches x tokens a streamed evaluation sees
+ROWS = 2 * STREAMED_TOKENS  # guidance branches x tokens a streamed evaluation sees
 DECODER_ROWS = STRIDE + 1  # a streamed decoder step: the latent token and the block's frames
 
 

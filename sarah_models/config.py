@@ -27,6 +27,7 @@ SOLVERS = ("midpoint", "euler")
 SOLVER_STEPS = 4
 GAZE_RANGE = (-1.0, 1.0)  # the gaze score is a cosine: targets outside cannot be reached
 HISTORY_TOKENS = 2  # latents of history the streaming flow sees beside the new one (A.3)
+STREAMED_TOKENS = HISTORY_TOKENS + 1  # what a streamed evaluation holds: the history and the new token
 TINY_WINDOW = 64  # the CPU preset's training window
 
 
@@ -170,7 +171,7 @@ class FlowConfig:
     position_tokens: int = WINDOW // STRIDE  # T / s: the tokens of one training window
     # Not in the paper (None = the paper: every token attends to all earlier ones). Streaming
     # keeps HISTORY_TOKENS latents beside the new one (A.3), so a streamed token sees 3 tokens
-    # while full-context training showed it up to T / s. A window of HISTORY_TOKENS + 1 per
+    # while full-context training showed it up to T / s. A window of STREAMED_TOKENS per
     # layer brings training close to what streaming sees (the receptive field of stacked
     # windows is layers * 2 + 1 tokens). On the fixture benchmark (docs/results.md, ninth run)
     # it cut the streamed FGD_acc 4x at equal budget, so the tiny preset uses it. Its price is
@@ -179,10 +180,10 @@ class FlowConfig:
     # the matching history, damps the streamed motion instead).
     attention_window: int | None = None
     # Not in the paper (0 = the paper): the share of training batches whose attention is limited
-    # to what a streamed token sees, HISTORY_TOKENS + 1 tokens per layer, the rest trained with
-    # ``attention_window``. With attention_window None, one model then learns both contexts:
-    # the offline solve attends to every earlier token (no wander) and streaming keeps the
-    # paper's 2 history tokens, which it was trained to continue from.
+    # to what a streamed token sees, STREAMED_TOKENS per layer, the rest trained with
+    # ``attention_window`` (None: full context), so that one model sees both contexts. Measured
+    # as fine-tunes of the shipped model (shares 0.5, 0.9; docs/results.md, twenty-eighth run):
+    # the offline solve stops wandering, but the 2-token stream starts; not used by any preset.
     streamed_context: float = 0.0
     # Not in the paper (0 = the paper): weight of the MSE between the predicted and the true
     # latents' token-to-token differences, beside eq. 5's MSE of the latents. Its minimum is the
@@ -209,7 +210,7 @@ class FlowConfig:
     @classmethod
     def tiny(cls) -> "FlowConfig":
         return cls(hidden=128, heads=4, layers=2, cond_dim=64, time_dim=64,
-                   position_tokens=TINY_WINDOW // STRIDE, attention_window=HISTORY_TOKENS + 1)
+                   position_tokens=TINY_WINDOW // STRIDE, attention_window=STREAMED_TOKENS)
 
 
 # Config fields that change how a model decodes, not its weights: a model file may be written

@@ -54,13 +54,17 @@ class Int8Linear(nn.Module):
             qweight = torch.quantize_per_channel(weight, scale.double(), zero_point.long(), 0,
                                                  torch.qint8)
         self.packed = torch.ops.quantized.linear_prepack(qweight, bias)
+        self._compute = self._computation()
 
     def forward(self, x: Tensor) -> Tensor:
-        return self.function()(x)
+        return self._compute(x)
 
     def function(self) -> Callable[[Tensor], Tensor]:
-        """This layer's computation as a plain callable (see ``linear_function``). The kernel
-        takes one activation scale per call, so a batch of several streams
+        """This layer's computation as a plain callable (see ``linear_function``)."""
+        return self._compute
+
+    def _computation(self) -> Callable[[Tensor], Tensor]:
+        """The kernel takes one activation scale per call, so a batch of several streams
         (``nn.streams.independent_streams``) is computed one stream's rows at a time: a
         stream's output must not depend on the other streams' activations."""
         op, packed, reduce_range = torch.ops.quantized.linear_dynamic.default, self.packed, self.reduce_range

@@ -350,12 +350,7 @@ class StreamingSession:
 
     def push(self, user_head, agent_samples, user_samples) -> np.ndarray:
         """Feed new inputs (any lengths); returns the frames generated now, (k*s, Dx)."""
-        self.feed(user_head, agent_samples, user_samples)
-        out = []
-        while (block := self.next_block()) is not None:
-            out.append(self.generator.step(*block))
-        self.end_push()
-        return self.frames_of(out)
+        return push_together([self], [(user_head, agent_samples, user_samples)])[0]
 
     def feed(self, user_head, agent_samples, user_samples) -> None:
         """``push``'s first part: buffer the inputs and their audio features. Then take every

@@ -19,7 +19,7 @@ from sarah_data.constants import FPS
 from sarah_data.gaze import FACING_AXIS
 from sarah_data.skeleton import FEET, HEAD, ICOSAHEDRON_POINTS, MotionLayout
 
-from ..config import HISTORY_TOKENS
+from ..config import STREAMED_TOKENS
 from ..nn.flow import FlowModel, build_block_mask
 from ..nn.normalizer import Normalizer
 from ..nn.vae import CausalVAE
@@ -167,7 +167,7 @@ def flow_matching_loss(flow: FlowModel, z: Tensor, cond: Mapping[str, Tensor],
     mask = None  # the model's own (``attention_window``)
     if flow.config.streamed_context > 0 and (
             torch.rand((), generator=generator, device=z.device) < flow.config.streamed_context):
-        mask = build_block_mask(k, k, window=HISTORY_TOKENS + 1, device=z.device)
+        mask = build_block_mask(k, k, window=STREAMED_TOKENS, device=z.device)
     z1_pred = flow(z_tau, tau, cond, drop, attn_mask=mask)
     error = z1_pred.float() - z.float()
     recon = error.square().mean()

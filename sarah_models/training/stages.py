@@ -158,7 +158,7 @@ def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
 
 
 # Fields a fine-tune may change: they shape the loss, the decoding or which tokens attend to
-# which (flow.attention_window: a mask, no weight), not the weights.
+# which (flow.attention_window and flow.streamed_context: masks, no weight), not the weights.
 FINE_TUNE_FIELDS = {
     "vae": ("beta", "velocity_weight", "acceleration_weight", "contact_weight", "head_weight",
             "latent_noise", "recon_units", *DECODING_FIELDS["vae"]),
