@@ -344,6 +344,82 @@ def test_time_memo_computes_afresh_with_autograd():
     assert torch.equal(fresh.detach(), stored)
 
 
+def _hammer(work, threads: int = 4) -> list[str]:
+    """Run ``work(i)`` in ``threads`` threads that switch as often as the interpreter lets
+    them; returns the errors they raised."""
+    import sys
+    import threading
+
+    errors: list[str] = []
+
+    def run(i: int) -> None:
+        try:
+            work(i)
+        except Exception as error:  # noqa: BLE001 (collected, the test asserts there are none)
+            errors.append(repr(error))
+
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    try:
+        pool = [threading.Thread(target=run, args=(i,)) for i in range(threads)]
+        for t in pool:
+            t.start()
+        for t in pool:
+            t.join()
+    finally:
+        sys.setswitchinterval(interval)
+    return errors
+
+
+def test_memos_serve_many_threads_at_once():
+    """``sarah-serve --workers N`` runs N rounds at once on one optimized model: its memos'
+    entries must not vanish between a lookup and its bookkeeping (a KeyError mid-round
+    before the memos held a lock)."""
+    from sarah_models.accel.memo import RopeTable, TensorMemo
+
+    memo = TensorMemo(max_entries=2)
+    keys = [torch.tensor([float(i)]) for i in range(4)]
+
+    def look_up(i: int) -> None:
+        for n in range(5_000):
+            key = keys[(n * (i + 1)) % 4].clone()  # a new tensor: found by its bytes
+            assert torch.equal(memo.get(key, lambda x: 2.0 * x), 2.0 * key)
+
+    assert _hammer(look_up) == []
+    table = RopeTable(RopeAngles(8), block=4, max_blocks=2)
+    plain = RopeAngles(8)
+
+    def rotate(i: int) -> None:
+        for n in range(2_000):
+            positions = torch.arange(4 * ((n * (i + 1)) % 5), 4 * ((n * (i + 1)) % 5) + 3)
+            for got, want in zip(table(positions), plain(positions)):
+                assert torch.equal(got, want)
+
+    with torch.inference_mode():
+        assert _hammer(rotate) == []
+
+
+def test_streams_in_two_compute_threads_get_what_they_get_alone(tiny):
+    """Two streams of one optimized model stepped in two threads at once (two ``sarah-serve``
+    workers) give the frames each gives alone."""
+    vae, flow, normalizer = optimize_for_inference(tiny, "int8")
+    inputs = [stream_inputs(24, AUDIO_DIM, seed=i) for i in range(2)]
+
+    def stream(i: int) -> list[np.ndarray]:
+        torch.set_num_threads(1)  # per thread; a thread's outputs depend on its own count only
+        g = StreamingGenerator(vae, flow, normalizer, StreamConfig(seed=i))
+        head, a, b = inputs[i]
+        return [g.step(head[k:k + 4], a[k:k + 4], b[k:k + 4]) for k in range(0, 24, 4)]
+
+    alone = [stream(i) for i in range(2)]
+    together: dict[int, list[np.ndarray]] = {}
+    for _ in range(3):
+        assert _hammer(lambda i: together.__setitem__(i, stream(i)), threads=2) == []
+        for i in range(2):
+            for want, got in zip(alone[i], together[i]):
+                np.testing.assert_array_equal(got, want)
+
+
 @settings(max_examples=40, deadline=None)
 @given(max_tokens=st.one_of(st.none(), st.integers(1, 7)),
        calls=st.lists(st.tuples(st.integers(1, 5), st.booleans()), min_size=1, max_size=12))

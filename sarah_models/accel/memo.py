@@ -9,10 +9,17 @@ output of an upstream memo, say) is found by identity without reading its bytes;
 its keys alive, so an id cannot be reused by another tensor while its entry exists. Stored
 outputs are returned as they are: callers must modify neither inputs nor outputs in place (no
 caller does). With autograd enabled nothing is stored or returned from the memo.
+
+One optimized model serves every compute thread of ``sarah-serve --workers N``, so the memos'
+bookkeeping holds a lock: without it, one thread's lookup could find an entry that another
+thread evicts before the lookup moves it to the front (a KeyError mid-round). The values are
+computed outside the lock (a memo's compute may consult another memo); two threads that miss
+the same key at once both compute it, and the first one stored is the one both return.
 """
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 from typing import Any, Callable
 
@@ -31,30 +38,41 @@ class TensorMemo:
         self._by_id: OrderedDict[int, tuple[Tensor, Any]] = OrderedDict()
         self.hits = 0
         self.misses = 0
+        self._lock = threading.Lock()
 
     def get(self, x: Tensor, compute: Callable[[Tensor], Any]) -> Any:
-        same = self._by_id.get(id(x))
-        if same is not None and same[0] is x:
-            self.hits += 1
-            return same[1]
+        with self._lock:
+            same = self._by_id.get(id(x))
+            if same is not None and same[0] is x:
+                self.hits += 1
+                return same[1]
         key = (x.dtype, tuple(x.shape), str(x.device), x.detach().cpu().numpy().tobytes())
-        value = self._by_bytes.get(key)
-        if value is None:
+        with self._lock:
+            value = self._by_bytes.get(key)
+            if value is not None:
+                self.hits += 1
+                self._by_bytes.move_to_end(key)
+                return self._remember(x, value)
+        value = compute(x)
+        with self._lock:
             self.misses += 1
-            value = self._by_bytes[key] = compute(x)
+            value = self._by_bytes.setdefault(key, value)
+            self._by_bytes.move_to_end(key)
             if len(self._by_bytes) > self.max_entries:
                 self._by_bytes.popitem(last=False)
-        else:
-            self.hits += 1
-            self._by_bytes.move_to_end(key)
+            return self._remember(x, value)
+
+    def _remember(self, x: Tensor, value: Any) -> Any:
+        """Record ``x`` by identity (the caller holds the lock)."""
         self._by_id[id(x)] = (x, value)
         if len(self._by_id) > self.max_entries:
             self._by_id.popitem(last=False)
         return value
 
     def clear(self) -> None:
-        self._by_bytes.clear()
-        self._by_id.clear()
+        with self._lock:
+            self._by_bytes.clear()
+            self._by_id.clear()
 
 
 class InputMemo(nn.Module):
@@ -90,19 +108,23 @@ class RopeTable(RopeAngles):
         super().__init__(2 * angles.half, angles.base)
         self.block, self.max_blocks = block, max_blocks
         self._tables: OrderedDict[tuple[int, str], Tensor] = OrderedDict()
+        self._lock = threading.Lock()  # shared by sarah-serve's compute threads (module docstring)
 
     def _table(self, index: int, device: torch.device) -> Tensor:
         key = (index, str(device))
-        table = self._tables.get(key)
-        if table is None:
-            start = index * self.block
-            table = super().forward(torch.arange(start, start + self.block, device=device))
-            self._tables[key] = table
+        with self._lock:
+            table = self._tables.get(key)
+            if table is not None:
+                self._tables.move_to_end(key)
+                return table
+        start = index * self.block
+        table = super().forward(torch.arange(start, start + self.block, device=device))
+        with self._lock:
+            table = self._tables.setdefault(key, table)
+            self._tables.move_to_end(key)
             if len(self._tables) > self.max_blocks:
                 self._tables.popitem(last=False)
-        else:
-            self._tables.move_to_end(key)
-        return table
+            return table
 
     def forward(self, positions: Tensor) -> Tensor:
         if positions.dim() != 1 or positions.numel() == 0 or torch.is_grad_enabled():
