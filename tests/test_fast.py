@@ -27,9 +27,10 @@ import sarah_models.accel.optimize as optimize_module
 from helpers import spinning_processes
 from sarah_bench.naive import NaiveStreamer
 from sarah_models.accel import optimize_for_inference, resolve_decoder
+import sarah_models.accel.linears as linears_module
 from sarah_models.accel.linears import (BF16Linear, Int8Linear, PackedLinear, decoder_linears,
                                         flow_block_linears, flow_outer_linears,
-                                        packed_linears_available)
+                                        packed_linears_available, worth_packing)
 from sarah_models.accel.memo import InputMemo
 from sarah_models.config import RunConfig, StreamConfig
 from sarah_models.nn.layers import KVCache, RopeAngles
@@ -194,13 +195,26 @@ def test_bf16_mode_runs_where_the_cpu_cannot_pack_bf16(tiny, monkeypatch):
 
 
 @pytest.mark.skipif(not packed_linears_available(), reason="this torch has no oneDNN linear")
-def test_fused_modes_pack_the_linears_the_exact_mode_does_not(tiny, monkeypatch):
-    vae, flow = optimize_for_inference(tiny, "int8", decoder="fp32")[:2]
-    outer = flow_outer_linears(tiny[1])
+def test_fused_modes_pack_the_linears_worth_packing_the_exact_mode_none(tiny, monkeypatch):
+    """oneDNN-packed where the weight is large enough to gain from it, the plain Linear (with
+    its ``F.linear``) where oneDNN's per-call cost would be the larger."""
+    outer, decoder = flow_outer_linears(tiny[1]), decoder_linears(tiny[0])
     assert {"latent_in", "out.proj", "cond_in", "encoders.gaze.0"} <= set(outer)
-    assert all(isinstance(flow.get_submodule(name), PackedLinear) for name in outer)
-    assert all(isinstance(vae.get_submodule(name), PackedLinear) for name in decoder_linears(vae))
+    sizes = sorted(tiny[0].get_submodule(n).weight.numel() for n in decoder)
+    # a limit inside the tiny model's range, so that both sides of it are checked
+    monkeypatch.setattr(linears_module, "PACK_MIN_WEIGHTS", sizes[len(sizes) // 2])
+    vae, flow = optimize_for_inference(tiny, "int8", decoder="fp32")[:2]
+    packed = {}
+    for root, plain, names in ((flow, tiny[1], outer), (vae, tiny[0], decoder)):
+        for name in names:
+            layer = root.get_submodule(name)
+            packed[name] = isinstance(layer, PackedLinear)
+            always = root is flow and name in linears_module.BATCHED_OUTER_LINEARS
+            assert packed[name] == (always or worth_packing(plain.get_submodule(name))), name
+            assert packed[name] or type(layer) is torch.nn.Linear, name
+    assert any(packed.values()) and not all(packed.values())
     assert not any(isinstance(m, PackedLinear) for m in optimize_for_inference(tiny, "fp32")[1].modules())
+    monkeypatch.undo()
     # without oneDNN: the plain Linears and BF16Linear, as before
     monkeypatch.setattr(optimize_module, "packed_linears_available", lambda dtype=None: False)
     vae, flow = optimize_for_inference(tiny, "int8", decoder="bf16")[:2]

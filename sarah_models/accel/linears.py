@@ -17,7 +17,8 @@ evaluations over 3 tokens x 2 guidance branches), so weight bytes are the first 
   of a streamed step that repacking, not the arithmetic, is the call (36 Linears of the paper
   decoder, 5 rows, 1 thread on the AMD EPYC of 2026-11-25: 6.5 ms in fp32 through MKL, 3.1 ms
   in bf16, 2.4 ms packed fp32, 1.7 ms packed bf16). Packed fp32 differs from ``F.linear`` by
-  summation order only (~1e-6).
+  summation order only (~1e-6). A oneDNN call has a fixed cost of its own, though, and below
+  ``PACK_MIN_WEIGHTS`` weights it is larger than the repacking it saves (``worth_packing``).
 """
 
 from __future__ import annotations
@@ -141,6 +142,20 @@ class PackedLinear(nn.Module):
                 f"{str(self.dtype).removeprefix('torch.')}, oneDNN-packed")
 
 
+# The smallest weight (in x out entries) worth a ``PackedLinear``. Timed on the AMD EPYC of
+# 2026-11-27 (1 thread, 4-5 rows, us per call, F.linear / packed): 128 x 128 27 / 69,
+# 128 x 512 32 / 53, 512 x 128 51 / 69, 256 x 256 35 / 53 -- oneDNN's per-call cost is larger
+# than the repacking it saves -- while 256 x 768 89 / 78, 256 x 1024 112 / 88 and 128 x 2748
+# 133 / 123. The tiny preset's Linears are all small but its frame output; the paper size's
+# are large but its decoder's 256 x 256 ones and the condition encoders.
+PACK_MIN_WEIGHTS = 2 ** 17
+
+
+def worth_packing(linear: nn.Linear) -> bool:
+    """Whether a ``PackedLinear`` computes ``linear`` faster than ``F.linear`` (a few rows)."""
+    return linear.in_features * linear.out_features >= PACK_MIN_WEIGHTS
+
+
 # A Linear as it stands before or after ``optimize_for_inference`` swapped it.
 LINEAR_KINDS = (nn.Linear, Int8Linear, BF16Linear, PackedLinear)
 
@@ -196,6 +211,14 @@ def flow_outer_linears(flow: nn.Module) -> list[str]:
     path or the AdaLN modulations, which the time cache memoizes)."""
     return [name for name, m in flow.named_modules() if isinstance(m, LINEAR_KINDS)
             and (name in ("latent_in", "out.proj", "cond_in") or name.startswith("encoders."))]
+
+
+# The flow's Linears outside its blocks that ``step_together`` calls on many streams' rows at
+# once. They stay oneDNN-packed whatever their size: MKL's ``F.linear`` rounds a row
+# differently with the number of rows beside it, and a stream served with three others then
+# came out up to 3.2 mm from itself alone (the shipped model through its decoding chain), where
+# the packed kernel gives it the same frames.
+BATCHED_OUTER_LINEARS = ("latent_in", "out.proj")
 
 
 def decoder_linears(vae: nn.Module) -> list[str]:

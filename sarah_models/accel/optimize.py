@@ -24,11 +24,13 @@ Once those are int8, the many small operations around them are the other half of
   "fp32") or, asked for, bfloat16 ("bf16"). Not bf16 by default: on the shipped fixture model a
   bf16 decoder moved joints by up to 45 mm over 64 streamed frames (the fp32 one by 0.00 mm),
   and once packed it saves only 0.1-0.7 ms per step (docs/performance.md).
-* packed (int8 and bf16 modes, CPU with oneDNN): every Linear that stays fp32 or bf16 and runs
+* packed (int8 and bf16 modes, CPU with oneDNN): every Linear that stays fp32 or bf16, runs
   per evaluation or step -- the flow's latent input, output projection and condition encoders,
-  the VAE decoder's -- becomes ``PackedLinear`` (weights reordered once; ``F.linear`` repacks
-  them at every call, which for a few rows is most of the call). fp32 ones change only the
-  summation order.
+  the VAE decoder's -- and is large enough (``linears.worth_packing``) becomes ``PackedLinear``
+  (weights reordered once; ``F.linear`` repacks them at every call, which for a few rows is
+  most of the call; for a small weight oneDNN's own per-call cost is more). fp32 ones change
+  only the summation order. The flow's latent input and output projection are packed at any
+  size (``linears.BATCHED_OUTER_LINEARS``: a stream gets the same rows whatever shares the call).
 * fused (int8 and bf16 modes): the flow's blocks and output layer become
   ``FusedAdaLNZeroBlock`` / ``FusedAdaLNZeroOutput`` and the decoder's attention
   ``FusedAttention`` (fewer operations; rounding differs at the 1e-6 level, so the exact "fp32"
@@ -60,6 +62,7 @@ from ..sampling.solver import time_grid
 from ..training.checkpoint import unpack_models
 from .fused import FusedAdaLNZeroBlock, FusedAdaLNZeroOutput, FusedTransformerBlock
 from .linears import (
+    BATCHED_OUTER_LINEARS,
     BF16Linear,
     Int8Linear,
     PackedLinear,
@@ -68,6 +71,7 @@ from .linears import (
     flow_outer_linears,
     packed_linears_available,
     swap_linears,
+    worth_packing,
 )
 from .memo import InputMemo, RopeTable, RopeTables
 
@@ -128,14 +132,25 @@ def resolve_decoder(decoder: str, mode: str) -> str:
     return "fp32" if decoder == "auto" else decoder
 
 
+def packed_where_worth_it(root: nn.Module, names: list[str], dtype: torch.dtype = torch.float32
+                          ) -> list[str]:
+    """``names`` of ``root`` that ``worth_packing`` become ``PackedLinear`` in ``dtype``;
+    returns the others."""
+    big = [name for name in names if worth_packing(root.get_submodule(name))]
+    swap_linears(root, big, partial(PackedLinear, dtype=dtype))
+    return [name for name in names if name not in big]
+
+
 def swap_decoder_linears(vae: CausalVAE, precision: str, packed: bool) -> None:
     """The VAE decoder's Linears in ``precision`` ("fp32" or "bf16"), oneDNN-packed when
-    ``packed`` (never int8: 2.7 mm from fp32 at paper size, over the 1 mm limit)."""
+    ``packed`` and large enough (never int8: 2.7 mm from fp32 at paper size, over the 1 mm
+    limit)."""
     dtype = torch.bfloat16 if precision == "bf16" else torch.float32
+    rest = decoder_linears(vae)
     if packed and packed_linears_available(dtype):
-        swap_linears(vae, decoder_linears(vae), partial(PackedLinear, dtype=dtype))
-    elif precision == "bf16":
-        swap_linears(vae, decoder_linears(vae), BF16Linear)
+        rest = packed_where_worth_it(vae, rest, dtype)
+    if precision == "bf16":
+        swap_linears(vae, rest, BF16Linear)
 
 
 @torch.inference_mode()
@@ -193,13 +208,16 @@ def optimize_for_inference(models, mode: str = "int8", *, stream_config: StreamC
         packed = fused and device.type == "cpu" and packed_linears_available()
         swap_decoder_linears(vae, precision, packed)
         if packed:  # fp32 kept (see the module docstring), packed: summation order only
-            swap_linears(flow, flow_outer_linears(flow), PackedLinear)
+            batched = [n for n in flow_outer_linears(flow) if n in BATCHED_OUTER_LINEARS]
+            swap_linears(flow, batched, PackedLinear)
+            packed_where_worth_it(flow, [n for n in flow_outer_linears(flow) if n not in batched])
         if mode == "int8":
             swap_linears(flow, flow_block_linears(flow), Int8Linear)
         elif mode == "bf16":
-            bf16_packed = packed and packed_linears_available(torch.bfloat16)
-            swap_linears(flow, flow_block_linears(flow),
-                         partial(PackedLinear, dtype=torch.bfloat16) if bf16_packed else BF16Linear)
+            rest = flow_block_linears(flow)
+            if packed and packed_linears_available(torch.bfloat16):
+                rest = packed_where_worth_it(flow, rest, torch.bfloat16)
+            swap_linears(flow, rest, BF16Linear)
         table_decoder_rope(vae, fused)
         memoize_time_path(flow, fused)
         if fused:
