@@ -80,6 +80,7 @@ class FootLock:
         icosahedra, shell = self.layout.split(x)
         joints = icosahedra.mean(axis=-2)
         correction = np.zeros_like(joints)
+        targets: list[list[tuple[int, np.ndarray]]] = [[] for _ in self.legs]
         for t in range(len(x)):
             for side, leg in enumerate(self.legs):
                 foot = joints[t, leg[3]]
@@ -90,7 +91,12 @@ class FootLock:
                 if target is None and on_floor is not foot:
                     target = on_floor
                 if target is not None:
-                    correction[t] += self._reach(joints[t], leg, target)
+                    targets[side].append((t, target))
+        # The state advances frame by frame; the legs then reach for a block's targets at once.
+        for leg, reached in zip(self.legs, targets):
+            if reached:
+                frames = np.array([t for t, _ in reached])
+                correction[frames] += self._reach(joints[frames], leg, np.stack([g for _, g in reached]))
         return finish(motion, icosahedra, shell, correction, self.shell(shell, joints, correction))
 
     def _target(self, side: int, foot: np.ndarray) -> np.ndarray | None:
@@ -136,12 +142,13 @@ class FootLock:
         return target
 
     def _reach(self, joints: np.ndarray, leg: tuple, foot_target: np.ndarray) -> np.ndarray:
-        """The corrections (J, 3) that put the leg's foot at ``foot_target``: ankle moved with
-        the foot, knee by two-bone IK on the hip; a target out of reach is reached for."""
+        """The corrections (n, J, 3) that put the leg's foot at ``foot_target`` (n, 3) in each of
+        ``joints``' n frames: the ankle moved with the foot, the knee by two-bone IK on the hip;
+        a target out of reach is reached for."""
         hip, knee, ankle, foot, thigh, shin, _ = leg
         correction = np.zeros_like(joints)
-        knee_at, ankle_at = two_bone_ik(joints[hip], joints[knee],
-                                        joints[ankle] + foot_target - joints[foot], thigh, shin)
-        correction[knee] = knee_at - joints[knee]
-        correction[ankle] = correction[foot] = ankle_at - joints[ankle]
+        knee_at, ankle_at = two_bone_ik(joints[:, hip], joints[:, knee],
+                                        joints[:, ankle] + foot_target - joints[:, foot], thigh, shin)
+        correction[:, knee] = knee_at - joints[:, knee]
+        correction[:, ankle] = correction[:, foot] = ankle_at - joints[:, ankle]
         return correction
