@@ -252,8 +252,22 @@ class SizeBench:
         self.features = self.extractor.extract(self.inputs["agent_wave"], frames)
         # Each size its own policy: a small model's kernels are too short to share threads.
         self.policy = ThreadPolicy(cfg.threads)
+        self._shipped = None
         self.calibration = {str(k): 1000.0 * v for k, v in
                             self.policy.calibrate(stream_probe(self.fast)).items()}
+
+    def shipped_fast(self):
+        """The shipped trained model, optimized as the random one: what ``sarah-serve
+        --pretrained fixture-tiny`` serves, with the decoding chain (seams, root hold, rigid
+        skeleton, foot lock) that random weights' configs leave off; built once."""
+        if self._shipped is None:
+            from sarah_models.pretrained import model_path
+            from sarah_models.training.model_file import load_model_file
+
+            shipped = load_model_file(model_path("fixture-tiny"))
+            fast = optimize_for_inference(shipped, self.cfg.mode, decoder=self.cfg.decoder)
+            self._shipped = (fast.vae, fast.flow, fast.normalizer)
+        return self._shipped
 
     def offline(self, naive: bool) -> dict[str, Any]:
         cfg = self.cfg
@@ -286,6 +300,10 @@ class SizeBench:
             out["concurrent"]["round_robin"] = bench_concurrent(
                 self.fast, self.cfg.concurrent_streams, self.inputs, self.extractor,
                 self.cfg.concurrent_seconds, self.policy, together=False)
+            log(f"[{label}] the same with the shipped fixture-tiny (its decoding chain on)")
+            out["concurrent"]["shipped"] = bench_concurrent(
+                self.shipped_fast(), self.cfg.concurrent_streams, self.inputs, self.extractor,
+                self.cfg.concurrent_seconds, self.policy)
         if self.size == "paper":
             out["kernel"] = bench_kernel(tuple(range(1, len(self.policy.cpus) + 1)))
         log(f"[{label}] memory floor: the time to read one streamed chunk's weights")

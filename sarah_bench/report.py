@@ -134,6 +134,14 @@ def format_report(results: dict[str, Any]) -> str:
             if "round_robin" in loaded_row:
                 fit += f", under load {loaded_row['round_robin']['fit']}"
         lines.append(fit)
+        if "shipped" in row:
+            text = (f"  the shipped fixture-tiny (trained, its decoding chain on), one solve per "
+                    f"round: idle {row['shipped']['fit']}")
+            if "shipped" in loaded_row:
+                text += f", under load {loaded_row['shipped']['fit']}"
+            rows_text = "; ".join(f"{r['streams']}: {_f(r['fps_each'])} fps each, p99 round "
+                                  f"{_f(r['round_ms']['p99'])} ms" for r in row["shipped"]["rows"])
+            lines += [text, f"    idle {rows_text}"]
     if loaded:
         lines += ["", f"under background load ({loaded['processes']} busy processes of the bench's "
                       "own), side by side with idle",

@@ -525,9 +525,10 @@ def test_bench_background_load_reports_both_sides(tmp_path, capsys):
     assert loaded["fixed_threads"]["threads"] == len(os.sched_getaffinity(0))
     assert results["loaded"]["offline"]["tiny"]["fps"] > 0
     for side in (results["concurrent"]["tiny"], results["loaded"]["concurrent"]["tiny"]):
-        for schedule in (side, side["round_robin"]):
+        for schedule in (side, side["round_robin"], side["shipped"]):
             assert schedule["rows"][0]["streams"] == 1 and schedule["fit"] in (0, 1, 2)
-        assert (side["schedule"], side["round_robin"]["schedule"]) == ("together", "round robin")
+        assert (side["schedule"], side["round_robin"]["schedule"], side["shipped"]["schedule"]) == (
+            "together", "round robin", "together")
     for side in ("idle", "loaded"):  # --rounds: each figure per round, and its median and range
         for figure in results["rounds"]["tiny"][side].values():
             assert len(figure["rounds"]) == 2 and all(v > 0 for v in figure["rounds"])
@@ -537,6 +538,7 @@ def test_bench_background_load_reports_both_sides(tmp_path, capsys):
     report = capsys.readouterr().out
     assert "under background load (1 busy processes" in report and "loaded / idle" in report
     assert "round robin (one solve per stream): idle" in report
+    assert "the shipped fixture-tiny (trained, its decoding chain on), one solve per round" in report
     assert "2 more rounds, each idle then beside 1 busy processes" in report
     assert "tiny stream fps" in report.split("2 more rounds")[1]
     assert spinning_processes() == []
