@@ -63,7 +63,7 @@ def test_table1_markdown_columns_scales_and_dashes():
     # metrics the rows hold, in registry order; the Fréchet ones add a Pooled column
     assert cells[:4] == ["Method", "C", "R", "FPS"] and len(cells) == 4 + 2 * len(RAW) + 2
     assert cells[4] == "FGD ↓ (×10^1) Avg (95 %)" and cells[7] == "FGD_acc ↓ (×10^5) Avg (95 %)"
-    assert cells[6] == cells[9] == "Pooled"
+    assert cells[6] == cells[9] == "Pooled (95 %)"
     assert cells[10] == "Foot Slide ↓ ∈ [0, 1] Avg (95 %)" and cells[14] == "Head Ang. ↑ ∈ [-1, 1] Avg (95 %)"
     assert all(cells[i] == "NS/S" for i in (5, 8, 11, 13, 15))
     assert rule.count("|") == len(cells) + 1

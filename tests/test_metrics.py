@@ -265,6 +265,35 @@ def test_evaluate_pools_speaking_categories_and_averages_batches():
     assert (table.window_frames, table.batch_clips, table.num_batches) == (12, 4, 2)
 
 
+def test_pooled_frechet_interval_is_the_jackknife_over_groups_of_consecutive_clips():
+    """Each group of consecutive clips left out in turn (generated and ground truth together),
+    the distances recomputed here from the raw samples: pooled +- 1.96 jackknife errors."""
+    rng = np.random.default_rng(1)
+    ground_truth = [_random_clip(rng, offset=0.02 * i) for i in range(7)]
+    generated = [_random_clip(rng, offset=0.02 * i + 0.04, scale=0.08) for i in range(7)]
+    speaking = np.zeros(7, bool)
+    table = evaluate(generated, ground_truth, speaking, config=MetricsConfig(pooled_groups=3))
+    groups = [[0, 1, 2], [3, 4], [5, 6]]  # i * 3 // 7
+
+    def flat(clips, idx):
+        return np.concatenate([clips[i].shell.reshape(len(clips[i].shell), -1) for i in idx])
+
+    cm2 = 1e4
+    pooled = frechet_distance(flat(generated, range(7)), flat(ground_truth, range(7))) * cm2
+    left_out = np.array([frechet_distance(flat(generated, rest), flat(ground_truth, rest)) * cm2
+                         for rest in ([i for i in range(7) if i not in g] for g in groups)])
+    error = 1.96 * np.sqrt(2 / 3 * np.sum((left_out - left_out.mean()) ** 2))
+    values = table.values["fgd"]
+    assert values.pooled == pytest.approx(pooled, rel=1e-8)
+    assert (values.pooled_low, values.pooled_high) == (
+        pytest.approx(pooled - error, rel=1e-6), pytest.approx(pooled + error, rel=1e-6))
+    assert error > 0
+    # two groups are too few for an interval; none asked for, none given
+    for count in (2, 0):
+        few = evaluate(generated, ground_truth, speaking, config=MetricsConfig(pooled_groups=count))
+        assert math.isnan(few.values["fgd"].pooled_low) and few.values["fgd"].pooled == pytest.approx(pooled)
+
+
 def test_evaluate_per_clip_metrics_are_category_means_and_weighted_average():
     rng = np.random.default_rng(1)
     facings = [0.0, np.pi, np.pi / 2, 0.0, 0.0]

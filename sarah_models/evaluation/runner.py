@@ -324,7 +324,8 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
         if not pooled:  # a row whose clips are the ground truth's own, permuted
             for metric in registered():
                 if metric.kind == "frechet":
-                    table.values[metric.name].pooled = math.nan
+                    values = table.values[metric.name]
+                    values.pooled = values.pooled_low = values.pooled_high = math.nan
         fps = fps_of(clips.seconds, config.window) if timed and not reference else None
         result = MethodResult(key, label, causal, fps, table, gaze, reference)
         shown = result.shown()

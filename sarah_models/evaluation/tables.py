@@ -90,23 +90,25 @@ def scored(rows: Sequence[MethodResult]) -> list:
     return [m for m in registered() if m.name in rows[0].table.values]
 
 
-def interval(shown: dict, name: str, decimals: int) -> str:
-    """Avg with its 95 % bootstrap interval, "0.58 (0.55-0.61)"; "-" where there is none."""
-    avg, low, high = (shown.get(f"{name}/{k}") for k in ("avg", "low", "high"))
-    if low is None or high is None:
+def interval(shown: dict, name: str, decimals: int,
+             columns: tuple[str, str, str] = ("avg", "low", "high")) -> str:
+    """A value with its 95 % interval, "0.58 (0.55-0.61)" (Avg by default; ``columns`` names
+    another, e.g. pooled); the value alone where there is no interval."""
+    avg, low, high = (shown.get(f"{name}/{k}") for k in columns)
+    if any(v is None or (isinstance(v, float) and math.isnan(v)) for v in (low, high)):
         return number(avg, decimals)
     return f"{number(avg, decimals)} ({number(low, decimals)}-{number(high, decimals)})"
 
 
 def table1_markdown(rows: Sequence[MethodResult], caption: str) -> str:
     """Table 1 as markdown: Method, C, R, FPS, then every metric as Avg (95 % interval) and
-    NS/S, and for the Fréchet metrics the distance over all clips pooled."""
+    NS/S, and for the Fréchet metrics the distance over all clips pooled (95 % interval)."""
     scale, metrics = rows[0].table.display_scale, scored(rows)
     head = ["Method", "C", "R", "FPS"]
     for metric in metrics:
         head += [f"{metric_header(metric.name, scale[metric.name])} Avg (95 %)", "NS/S"]
         if metric.kind == "frechet":
-            head.append("Pooled")
+            head.append("Pooled (95 %)")
     lines = [f"**{caption}**", "", "| " + " | ".join(head) + " |",
              "|" + "|".join([":---"] + [":---:"] * (len(head) - 1)) + "|"]
     for row in rows:
@@ -118,7 +120,7 @@ def table1_markdown(rows: Sequence[MethodResult], caption: str) -> str:
             cells += [interval(shown, name, d),
                       f"{number(shown[f'{name}/ns'], d)}/{number(shown[f'{name}/s'], d)}"]
             if metric.kind == "frechet":
-                cells.append(number(shown[f"{name}/pooled"], d))
+                cells.append(interval(shown, name, d, ("pooled", "pooled_low", "pooled_high")))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

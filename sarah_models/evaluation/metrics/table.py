@@ -5,7 +5,9 @@
   Fréchet distances over consecutive batches of ``batch_clips`` clips (all categories mixed),
   the paper's protocol. Small batches bias the covariance, so Avg is not a combination of S and
   NS and usually exceeds both; ``pooled`` is one distance over every clip, the figure that can
-  tell methods apart. Avg's 95 % interval bootstraps the batch values.
+  tell methods apart. Avg's 95 % interval bootstraps the batch values; pooled's is a
+  delete-one-group jackknife (``pooled_interval``), generated and ground-truth clips left out
+  together.
 * Per-clip metrics (foot slide, wrist speed, head angle): one value per generated clip; S and
   NS are the means over the clips of each category; Avg is their clip-count-weighted mean, with
   a 95 % bootstrap interval over clips.
@@ -33,7 +35,8 @@ from .spec import MetricsConfig, registered, unit_name
 @dataclass
 class CategoryValues:
     """One metric's Avg, NS and S values (NaN where a category has no clips), the 95 %
-    bootstrap interval of Avg (``low``, ``high``) and the value over all clips pooled."""
+    bootstrap interval of Avg (``low``, ``high``), the value over all clips pooled and, for a
+    Fréchet metric, its 95 % jackknife interval (``pooled_low``, ``pooled_high``)."""
 
     avg: float
     ns: float
@@ -41,6 +44,8 @@ class CategoryValues:
     low: float = math.nan
     high: float = math.nan
     pooled: float = math.nan
+    pooled_low: float = math.nan
+    pooled_high: float = math.nan
 
 
 BOOTSTRAP_DRAWS = 1000
@@ -56,6 +61,30 @@ def bootstrap_interval(values, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> t
     means = values[rng.integers(len(values), size=(draws, len(values)))].mean(axis=1)
     low, high = np.percentile(means, [2.5, 97.5])
     return float(low), float(high)
+
+
+def pooled_interval(groups: Sequence[tuple[Moments, Moments]], ridge: float,
+                    pooled: float) -> tuple[float, float]:
+    """95 % interval of the Fréchet distance over all clips from a delete-one-group jackknife:
+    ``groups`` holds each group's (generated, ground-truth) moments; each group is left out in
+    turn, both sides together, and the spread of those G distances gives the standard error,
+    sqrt((G - 1) / G * sum (d_g - mean d)^2); the interval is ``pooled`` +- 1.96 of it. NaN
+    with fewer than 3 groups (or of two samples each)."""
+    if len(groups) < 3:
+        return math.nan, math.nan
+    left_out = []
+    for skip in range(len(groups)):
+        rest = [Moments(full=True), Moments(full=True)]
+        for g, pair in enumerate(groups):
+            if g != skip:
+                for side, moments in zip(rest, pair):
+                    side.merge(moments)
+        left_out.append(moments_distance(rest[0], rest[1], ridge))
+    values = np.asarray(left_out)
+    if not np.all(np.isfinite(values)):
+        return math.nan, math.nan
+    spread = 1.96 * math.sqrt((len(values) - 1) / len(values) * np.sum((values - values.mean()) ** 2))
+    return pooled - spread, pooled + spread
 
 
 @dataclass
@@ -147,6 +176,9 @@ def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
     pooled = {(m.name, role, cat): Moments(full=True) for m in frechet
               for role in ("gen", "gt") for cat in (False, True)}
     batch_values: dict[str, list[float]] = {m.name: [] for m in frechet}
+    group_count = min(cfg.pooled_groups, len(generated))
+    groups = {m.name: [(Moments(full=True), Moments(full=True)) for _ in range(group_count)]
+              for m in frechet}
     for start in range(0, len(generated), cfg.batch_clips):
         batch = {(m.name, role): Moments(full=True) for m in frechet for role in ("gen", "gt")}
         for i in range(start, min(start + cfg.batch_clips, len(generated))):
@@ -158,6 +190,9 @@ def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
                     moments.add(metric.function(decoded, cfg))
                     batch[metric.name, role].merge(moments)
                     pooled[metric.name, role, bool(speaking[i])].merge(moments)
+                    if group_count:  # consecutive clips, the groups as equal as they go
+                        groups[metric.name][i * group_count // len(generated)][
+                            role == "gt"].merge(moments)
                 if role == "gen":
                     _add_clip_values(per_clip, decoded, cfg)
         for metric in frechet:
@@ -177,9 +212,11 @@ def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
                     everything[role].merge(pooled[metric.name, role, cat])
             batches = np.asarray(batch_values[metric.name]) * factor
             low, high = bootstrap_interval(batches)
+            whole = moments_distance(everything["gen"], everything["gt"], cfg.fd_ridge)
+            whole_low, whole_high = pooled_interval(groups[metric.name], cfg.fd_ridge, whole)
             values[metric.name] = CategoryValues(
-                float(batches.mean()), ns * factor, s * factor, low, high,
-                moments_distance(everything["gen"], everything["gt"], cfg.fd_ridge) * factor)
+                float(batches.mean()), ns * factor, s * factor, low, high, whole * factor,
+                whole_low * factor, whole_high * factor)
         else:
             values[metric.name] = category_means(np.asarray(per_clip[metric.name]) * factor, speaking)
     return _table(values, cfg, speaking, reference, -(-len(generated) // cfg.batch_clips))
