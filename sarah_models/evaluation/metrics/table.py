@@ -68,8 +68,9 @@ def pooled_interval(groups: Sequence[tuple[Moments, Moments]], ridge: float,
     """95 % interval of the Fréchet distance over all clips from a delete-one-group jackknife:
     ``groups`` holds each group's (generated, ground-truth) moments; each group is left out in
     turn, both sides together, and the spread of those G distances gives the standard error,
-    sqrt((G - 1) / G * sum (d_g - mean d)^2); the interval is ``pooled`` +- 1.96 of it. NaN
-    with fewer than 3 groups (or of two samples each)."""
+    sqrt((G - 1) / G * sum (d_g - mean d)^2); the interval is ``pooled`` +- 1.96 of it, its
+    low end at least 0 (a distance is not negative). NaN with fewer than 3 groups (or of two
+    samples each)."""
     if len(groups) < 3:
         return math.nan, math.nan
     left_out = []
@@ -84,7 +85,7 @@ def pooled_interval(groups: Sequence[tuple[Moments, Moments]], ridge: float,
     if not np.all(np.isfinite(values)):
         return math.nan, math.nan
     spread = 1.96 * math.sqrt((len(values) - 1) / len(values) * np.sum((values - values.mean()) ** 2))
-    return pooled - spread, pooled + spread
+    return max(pooled - spread, 0.0), pooled + spread
 
 
 @dataclass
