@@ -259,6 +259,11 @@ class TrainConfig:
     log_every: int = 50
     checkpoint_every: int = 5_000
     num_workers: int = 2  # WindowLoader worker processes filling reused batch slots (0: this process)
+    # torch.compile the training step's model (not in the paper; off: the first steps wait for
+    # the compiler). On the 2-core AMD EPYC (tiny preset, 8 windows, 2026-11-27): the flow
+    # step 0.23 -> 0.15 s and the VAE's 400-frame step 1.47 -> 0.73 s, its 100-frame step
+    # 0.21 -> 0.18 s, each after ~65 s of compiling (docs/performance.md).
+    compile: bool = False
     seed: int = 0
     split: str = "train"
     audio_features: str = "hubert-large"  # extractor name in the shards (paper: HuBERT-Large)

@@ -322,6 +322,24 @@ def test_resume_repeats_the_uninterrupted_run_exactly(tmp_path):
     assert load_checkpoint(straight / "flow.pt")["flow"]["out.proj.weight"].abs().sum() > 0
 
 
+def test_compiled_training_learns_what_eager_training_learns(tmp_path):
+    """train.compile: the same losses to float rounding, and checkpoints holding the modules'
+    own weights (no compiler wrapper in their names), resumable without the compiler."""
+    def stage(out: Path, steps: int, compile: bool, resume: bool = False) -> Path:
+        return train("vae", tiny_config(steps, compile=compile), None, out, resume=resume,
+                     device="cpu", dataset=SyntheticWindows(), stats=STATS, progress=False,
+                     echo=lambda _: None)
+
+    stage(tmp_path / "eager", 4, compile=False)
+    stage(tmp_path / "compiled", 3, compile=True)
+    stage(tmp_path / "compiled", 4, compile=False, resume=True)
+    eager, compiled = losses(tmp_path / "eager", "vae"), losses(tmp_path / "compiled", "vae")
+    assert [s for s, _ in compiled] == [1, 2, 3, 4]
+    np.testing.assert_allclose([v for _, v in compiled], [v for _, v in eager], rtol=1e-4)
+    weights = load_checkpoint(tmp_path / "compiled" / "vae.pt")["vae"]
+    assert set(weights) == set(load_checkpoint(tmp_path / "eager" / "vae.pt")["vae"])
+
+
 def test_resume_compares_config_meanings_and_replace_changed_sets_stale_stages_aside(tmp_path):
     """A checkpoint saved before a config field existed resumes under that field's default; a
     stage trained with another config is moved aside (never deleted) by set_aside, its flow with

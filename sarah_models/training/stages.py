@@ -355,6 +355,8 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
 
         model = DistributedDataParallel(
             objective, device_ids=[info.device.index] if info.device.type == "cuda" else None)
+    if tcfg.compile:  # checkpoints keep the modules' own state dicts (``objective``'s)
+        model = torch.compile(model)
 
     def save(step: int) -> None:
         if not info.is_main:
