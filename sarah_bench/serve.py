@@ -1,7 +1,9 @@
 """The live server under load (``sarah-bench --serve``): how many concurrent sessions hold real
 time on this machine, at tiny and paper size, and whether a long run loses, reorders or leaks.
 
-A ``sarah-serve`` process serves random-weight models of each size (int8 path, as deployed);
+A ``sarah-serve`` process serves random-weight models of each size (int8 path, as deployed), or
+for ``fixture-tiny`` the shipped trained model (``--pretrained``), whose decoding chain (seams,
+root hold, rigid skeleton, foot lock) random weights' configs leave off;
 this process plays N clients over loopback, each sending a 4-frame chunk every 133 ms on the
 clock (two voices as s16le PCM, a walking user) and checking every answer's sequence number. A
 level holds real time when every session's p99 round trip (send to frames received, queueing
@@ -31,6 +33,8 @@ from sarah_data.constants import FPS, SAMPLES_PER_FRAME
 from .load import BackgroundLoad
 
 CHUNK = 4
+SHIPPED = "fixture-tiny"  # a "size" that is the shipped trained model
+SIZES = ("tiny", "paper", SHIPPED)
 
 
 @dataclass
@@ -87,11 +91,12 @@ def _save_random_run(folder: Path, size: str, seed: int) -> Path:
 
 
 class ServerProcess:
-    def __init__(self, run: Path, cfg: ServeBenchConfig):
+    def __init__(self, model: list[str], cfg: ServeBenchConfig):
+        """``model``: sarah-serve's model arguments (``--run PATH`` or ``--pretrained NAME``)."""
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         threads = [] if cfg.threads is None else ["--threads", str(cfg.threads)]
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "sarah_cli.serve", "--run", str(run), "--port", "0", "--device",
+            [sys.executable, "-m", "sarah_cli.serve", *model, "--port", "0", "--device",
              "cpu", "--speed", cfg.mode, "--steps", str(cfg.steps), "--max-sessions", "256",
              *threads],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
@@ -235,7 +240,9 @@ def run_serve_bench(cfg: ServeBenchConfig = ServeBenchConfig(),
     result = ServeBenchResult(config=asdict(cfg), environment=environment(cfg.threads or "auto"))
     with tempfile.TemporaryDirectory() as tmp:
         for size in cfg.sizes:
-            server = ServerProcess(_save_random_run(Path(tmp) / size, size, cfg.seed), cfg)
+            model = (["--pretrained", SHIPPED] if size == SHIPPED else
+                     ["--run", str(_save_random_run(Path(tmp) / size, size, cfg.seed))])
+            server = ServerProcess(model, cfg)
             try:
                 held = 0
                 for count in cfg.session_counts:

@@ -41,7 +41,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "bf16 is a little faster but moved a trained model's joints by "
                              "centimetres (docs/performance.md)")
     parser.add_argument("--sizes", default=",".join(defaults.sizes),
-                        help="model sizes to benchmark (paper, tiny)")
+                        help="model sizes to benchmark (paper, tiny; with --serve also "
+                             "fixture-tiny, the shipped trained model with its decoding chain)")
     parser.add_argument("--quick", action="store_true",
                         help="smoke run: tiny model, short streams, small prep, no HuBERT")
     parser.add_argument("--no-prep", action="store_true", help="skip the prep benchmark")
@@ -66,12 +67,12 @@ def serve_main(args) -> int:
     from dataclasses import asdict
 
     from sarah_bench.report import write_json
-    from sarah_bench.serve import ServeBenchConfig, format_serve_report, run_serve_bench
+    from sarah_bench.serve import SIZES, ServeBenchConfig, format_serve_report, run_serve_bench
 
     sizes = tuple(s.strip() for s in args.sizes.split(",") if s.strip())
-    if args.serve_seconds <= 0 or args.soak_seconds < 0 or not set(sizes) <= {"tiny", "paper"}:
+    if args.serve_seconds <= 0 or args.soak_seconds < 0 or not set(sizes) <= set(SIZES):
         print("sarah-bench: error: --serve needs --serve-seconds > 0, --soak-seconds >= 0 and "
-              "sizes from tiny, paper", file=sys.stderr)
+              f"sizes from {', '.join(SIZES)}", file=sys.stderr)
         return 2
     config = ServeBenchConfig(sizes=sizes, level_seconds=args.serve_seconds,
                               soak_seconds=args.soak_seconds, mode=args.mode, threads=args.threads,

@@ -172,14 +172,17 @@ def test_serve_bench_beside_a_busy_process(tmp_path, capsys):
     from sarah_cli.bench import main as bench_main
 
     out = tmp_path / "serve.json"
-    assert bench_main(["--serve", "--sizes", "tiny", "--serve-seconds", "1", "--soak-seconds", "0",
-                       "--background-load", "1", "--json", str(out)]) == 0
+    assert bench_main(["--serve", "--sizes", "tiny,fixture-tiny", "--serve-seconds", "1",
+                       "--soak-seconds", "0", "--background-load", "1", "--json", str(out)]) == 0
     result = json.loads(out.read_text())
     assert result["config"]["background_load"] == 1
-    levels = result["levels"]
-    assert [level["sessions"] for level in levels] == list(result["config"]["session_counts"][:len(levels)])
-    assert all(level["chunks"] > 0 and level["lost"] == 0 for level in levels)
-    assert result["capacity"]["tiny"] == max([0] + [level["sessions"] for level in levels if level["holds"]])
+    for size in ("tiny", "fixture-tiny"):  # random weights, and the shipped model with its chain
+        levels = [level for level in result["levels"] if level["size"] == size]
+        assert [level["sessions"] for level in levels] == list(
+            result["config"]["session_counts"][:len(levels)])
+        assert all(level["chunks"] > 0 and level["lost"] == 0 for level in levels)
+        assert result["capacity"][size] == max([0] + [level["sessions"] for level in levels
+                                                      if level["holds"]])
     assert "beside 1 busy processes" in capsys.readouterr().out
     assert spinning_processes() == []
 
