@@ -213,11 +213,10 @@ def optimize_for_inference(models, mode: str = "int8", *, stream_config: StreamC
             packed_where_worth_it(flow, [n for n in flow_outer_linears(flow) if n not in batched])
         if mode == "int8":
             swap_linears(flow, flow_block_linears(flow), Int8Linear)
-        elif mode == "bf16":
-            rest = flow_block_linears(flow)
-            if packed and packed_linears_available(torch.bfloat16):
-                rest = packed_where_worth_it(flow, rest, torch.bfloat16)
-            swap_linears(flow, rest, BF16Linear)
+        elif mode == "bf16":  # at any size: the solve calls them on many streams' rows
+            bf16_packed = packed and packed_linears_available(torch.bfloat16)
+            swap_linears(flow, flow_block_linears(flow),
+                         partial(PackedLinear, dtype=torch.bfloat16) if bf16_packed else BF16Linear)
         table_decoder_rope(vae, fused)
         memoize_time_path(flow, fused)
         if fused:
