@@ -167,6 +167,8 @@ def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
         cfg = replace(cfg, batch_clips=batch_clips)
     if cfg.batch_clips < 1:
         raise ValueError(f"evaluate: batch_clips must be positive, got {cfg.batch_clips}")
+    if cfg.pooled_groups < 0:
+        raise ValueError(f"evaluate: pooled_groups must be >= 0, got {cfg.pooled_groups}")
     speaking = np.asarray(as_numpy(speaking)).astype(bool).reshape(-1)
     if len(generated) != len(ground_truth) or len(generated) != len(speaking) or len(generated) == 0:
         raise ValueError(f"evaluate: {len(generated)} generated clips, {len(ground_truth)} ground-truth "
