@@ -46,7 +46,7 @@ from sarah_models.sampling.stream import (StreamingGenerator, StreamingSession, 
                                           push_together)
 from sarah_models.testing import random_models, stream_deviation, synthetic_inputs, without_foot_lock
 
-from .config import CHUNK_FRAMES, BenchConfig
+from .config import CHUNK_FRAMES, SHIPPED_MODEL, BenchConfig
 from .data import bench_hubert_windows, bench_loader, bench_prep, write_random_hubert
 from .kernels import chunk_weight_bytes, read_floor_ms, total_bytes
 from .naive import NaiveStreamer
@@ -261,11 +261,7 @@ class SizeBench:
         --pretrained fixture-tiny`` serves, with the decoding chain (seams, root hold, rigid
         skeleton, foot lock) that random weights' configs leave off; built once."""
         if self._shipped is None:
-            from sarah_models.pretrained import model_path
-            from sarah_models.training.model_file import load_model_file
-
-            shipped = load_model_file(model_path("fixture-tiny"))
-            fast = optimize_for_inference(shipped, self.cfg.mode, decoder=self.cfg.decoder)
+            fast = optimize_for_inference(load_shipped(), self.cfg.mode, decoder=self.cfg.decoder)
             self._shipped = (fast.vae, fast.flow, fast.normalizer)
         return self._shipped
 
@@ -311,14 +307,19 @@ class SizeBench:
         return out
 
 
+def load_shipped():
+    """The shipped trained model (``SHIPPED_MODEL``), plain, as ``load_model_file`` gives it."""
+    from sarah_models.pretrained import model_path
+    from sarah_models.training.model_file import load_model_file
+
+    return load_model_file(model_path(SHIPPED_MODEL))
+
+
 def shipped_deviation(cfg: BenchConfig) -> dict[str, Any]:
     """The optimized mode against fp32 on the shipped trained model (``--pretrained
     fixture-tiny``): random weights give small, smooth activations and once hid a decoder
     precision that moved a trained model's joints by centimetres (docs/performance.md)."""
-    from sarah_models.pretrained import model_path
-    from sarah_models.training.model_file import load_model_file
-
-    shipped = without_foot_lock(load_model_file(model_path("fixture-tiny")))
+    shipped = without_foot_lock(load_shipped())
     fast = optimize_for_inference(shipped, cfg.mode, decoder=cfg.decoder)
     return stream_deviation(shipped, fast, frames=cfg.deviation_frames, seed=cfg.seed).as_dict()
 

@@ -10,6 +10,7 @@ from sarah_models.accel import MODES, resolve_decoder
 from sarah_models.config import STRIDE, WINDOW
 
 CHUNK_FRAMES = STRIDE  # paper A.3: chunks of s = 4 frames
+SHIPPED_MODEL = "fixture-tiny"  # the shipped trained model (--pretrained), its decoding chain on
 # #20's paper-size streaming goals: idle at twice real time, and beside a busy process
 IDLE_FPS, IDLE_P99_MS, LOADED_FPS, LOADED_P99_MS = 120.0, 33.0, 60.0, 50.0
 GOALS = (  # (key, description, target, "min" = at least / "max" = below)

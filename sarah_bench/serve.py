@@ -30,11 +30,11 @@ import numpy as np
 
 from sarah_data.constants import FPS, SAMPLES_PER_FRAME
 
+from .config import SHIPPED_MODEL
 from .load import BackgroundLoad
 
 CHUNK = 4
-SHIPPED = "fixture-tiny"  # a "size" that is the shipped trained model
-SIZES = ("tiny", "paper", SHIPPED)
+SIZES = ("tiny", "paper", SHIPPED_MODEL)  # a "size" that is the shipped trained model too
 
 
 @dataclass
@@ -240,7 +240,7 @@ def run_serve_bench(cfg: ServeBenchConfig = ServeBenchConfig(),
     result = ServeBenchResult(config=asdict(cfg), environment=environment(cfg.threads or "auto"))
     with tempfile.TemporaryDirectory() as tmp:
         for size in cfg.sizes:
-            model = (["--pretrained", SHIPPED] if size == SHIPPED else
+            model = (["--pretrained", SHIPPED_MODEL] if size == SHIPPED_MODEL else
                      ["--run", str(_save_random_run(Path(tmp) / size, size, cfg.seed))])
             server = ServerProcess(model, cfg)
             try:

@@ -208,9 +208,9 @@ def optimize_for_inference(models, mode: str = "int8", *, stream_config: StreamC
         packed = fused and device.type == "cpu" and packed_linears_available()
         swap_decoder_linears(vae, precision, packed)
         if packed:  # fp32 kept (see the module docstring), packed: summation order only
-            batched = [n for n in flow_outer_linears(flow) if n in BATCHED_OUTER_LINEARS]
-            swap_linears(flow, batched, PackedLinear)
-            packed_where_worth_it(flow, [n for n in flow_outer_linears(flow) if n not in batched])
+            outer = flow_outer_linears(flow)
+            swap_linears(flow, [n for n in outer if n in BATCHED_OUTER_LINEARS], PackedLinear)
+            packed_where_worth_it(flow, [n for n in outer if n not in BATCHED_OUTER_LINEARS])
         if mode == "int8":
             swap_linears(flow, flow_block_linears(flow), Int8Linear)
         elif mode == "bf16":  # at any size: the solve calls them on many streams' rows

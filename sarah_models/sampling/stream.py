@@ -194,13 +194,11 @@ class StreamingGenerator:
         check_gaze(gaze)
         self.gaze = gaze
 
-    @torch.inference_mode()
     def step(self, user_head, agent_audio, user_audio) -> np.ndarray:
         """user_head (s, 2) world floor (x, z); agent_audio, user_audio (s, Da) raw features ->
-        the agent's next s frames (s, Dx) as a world-frame motion vector (icosahedra, shell)."""
-        block = self.begin_step(self.block_condition(user_head, agent_audio, user_audio))
-        z = solve(block.flow, block.cond_tokens, block.noise, block.known, block.config)
-        return self.end_step(block, z[-1])
+        the agent's next s frames (s, Dx) as a world-frame motion vector (icosahedra, shell):
+        ``step_together`` with this stream alone."""
+        return step_together([self], [(user_head, agent_audio, user_audio)])[0]
 
     def block_condition(self, user_head, agent_audio, user_audio) -> Tensor:
         """The next block's conditioning tokens (B, 1, hidden) from its inputs, which it checks
