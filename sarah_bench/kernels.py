@@ -37,6 +37,7 @@ from sarah_models.accel.linears import (
     BF16Linear,
     Int8Linear,
     PackedLinear,
+    PerStreamLinear,
     decoder_linears,
     flow_block_linears,
     flow_outer_linears,
@@ -157,7 +158,7 @@ def weight_bytes(module: nn.Module) -> int:
         return module.in_features * module.out_features * 2
     if isinstance(module, PackedLinear):
         return module.in_features * module.out_features * torch.finfo(module.dtype).bits // 8
-    if isinstance(module, nn.Linear):
+    if isinstance(module, (nn.Linear, PerStreamLinear)):
         return module.weight.numel() * module.weight.element_size()
     raise TypeError(f"not a Linear: {type(module).__name__}")
 

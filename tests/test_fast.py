@@ -28,9 +28,9 @@ from helpers import spinning_processes
 from sarah_bench.naive import NaiveStreamer
 from sarah_models.accel import optimize_for_inference, resolve_decoder
 import sarah_models.accel.linears as linears_module
-from sarah_models.accel.linears import (BF16Linear, Int8Linear, PackedLinear, decoder_linears,
-                                        flow_block_linears, flow_outer_linears,
-                                        packed_linears_available, worth_packing)
+from sarah_models.accel.linears import (BF16Linear, Int8Linear, PackedLinear, PerStreamLinear,
+                                        decoder_linears, flow_block_linears, flow_outer_linears,
+                                        packed_linears_available, worth_packing, worth_quantizing)
 from sarah_models.accel.memo import InputMemo
 from sarah_models.config import RunConfig, StreamConfig
 from sarah_models.nn.layers import KVCache, RopeAngles
@@ -84,8 +84,9 @@ def test_optimized_copies_leave_the_originals_alone(tiny):
     assert not any(isinstance(m, InputMemo) for m in flow.modules())
     assert all(torch.equal(before[k], v) for k, v in flow.state_dict().items())
     assert fast[0] is not vae and fast[2] is tiny[2]
-    assert not any(isinstance(m, torch.nn.Linear) for m in fast[1].blocks[0].mlp)
-    assert any(isinstance(m, Int8Linear) for m in fast[1].blocks[0].mlp)
+    # the tiny preset's block Linears are too small to be worth int8 (linears.worth_quantizing)
+    assert not any(isinstance(m, (torch.nn.Linear, Int8Linear)) for m in fast[1].blocks[0].mlp)
+    assert any(isinstance(m, PerStreamLinear) for m in fast[1].blocks[0].mlp)
 
 
 def test_loaded_models_in_loaded_models_out(tiny):
@@ -138,6 +139,8 @@ def test_int8_within_tolerance_at_paper_size(decoder):
     paper = random_models("paper", audio_dim=AUDIO_DIM, shell_points=SHELL, seed=1)
     fast = optimize_for_inference(paper, "int8", decoder=decoder)
     assert any(computes_in_bf16(m) for m in fast[0].modules()) == (decoder == "bf16")
+    block_linears = [fast[1].get_submodule(name) for name in flow_block_linears(paper[1])]
+    assert block_linears and all(isinstance(m, Int8Linear) for m in block_linears)
     deviation = stream_deviation(paper, fast, frames=12)
     assert 0.0 < deviation.max_joint_mm <= TOLERANCE_MM, deviation
     assert deviation.head_angle_delta <= METRIC_TOLERANCE
@@ -258,12 +261,15 @@ def test_trained_model_decodes_the_same_through_the_default_fast_decoder(shipped
     assert deviation.max_joint_mm < 0.01, deviation
 
 
-def test_trained_model_int8_stays_within_millimetres(shipped):
-    """The default int8 path on the shipped model over 64 streamed frames: measured 2.8 mm with
-    8-bit rows (VNNI) and 6.5 mm with 7-bit rows; #20's 1 mm holds on random weights only
-    (docs/performance.md). A bound that catches a kernel or precision regression."""
-    deviation = stream_deviation(shipped, optimize_for_inference(shipped, "int8"), frames=64)
-    assert deviation.max_joint_mm <= (4.0 if cpu_module.int8_full_range() else 8.0), deviation
+@pytest.mark.parametrize("seed", [0, 1])
+def test_trained_model_int8_mode_stays_within_tolerance(shipped, seed):
+    """The default int8 mode on the shipped model over 64 streamed frames. Its block Linears
+    are too small to be worth int8 (``linears.worth_quantizing``); in int8 they moved joints by
+    3.3-3.6 mm with this CPU's 7-bit activations (2.8 mm with VNNI's 8-bit ones), in fp32 by
+    0.002-0.005 mm (docs/performance.md)."""
+    deviation = stream_deviation(shipped, optimize_for_inference(shipped, "int8"), frames=64,
+                                 seed=seed)
+    assert deviation.max_joint_mm <= TOLERANCE_MM, deviation
     assert deviation.head_angle_delta <= METRIC_TOLERANCE
 
 
@@ -311,6 +317,23 @@ def test_stream_groups_split_int8_batches_and_nothing_else():
     with pytest.raises(ValueError, match="at least one stream"):
         with independent_streams(0):
             pass
+
+
+def test_per_stream_linear_gives_each_stream_its_own_rows():
+    """A stream's rows come out the same whatever shares the call (``F.linear`` may round a row
+    differently with the number of rows beside it), and the same as the plain Linear's alone."""
+    torch.manual_seed(0)
+    linear = torch.nn.Linear(128, 384)
+    layer = PerStreamLinear(linear)
+    x = torch.randn(8, 3, 128)
+    with independent_streams(4):
+        together = layer(x)
+        with pytest.raises(ValueError, match="does not split into 4 streams"):
+            layer(x[:6])
+    for rows in range(0, 8, 2):
+        assert torch.equal(together[rows:rows + 2], linear(x[rows:rows + 2]))
+    assert layer.weight is linear.weight and not worth_quantizing(linear)
+    assert worth_quantizing(torch.nn.Linear(1024, 4096))
 
 
 def test_time_grid_is_the_midpoint_grid():
@@ -493,11 +516,7 @@ def test_bench_quick_runs_end_to_end(tmp_path):
     assert fewer["steps"] == 1 and fewer["fps"] > 0
     assert fewer["deviation"]["max_joint_mm"] > 0  # fewer steps are not exact: measured, not hidden
     shipped = tiny_stream["deviation_shipped"]  # trained weights, measured in every run
-    # without VNNI the int8 activations are 7-bit (cpu.int8_full_range): 10.35 mm here on an
-    # AVX2-only EPYC (2026-11-26) against 2.5-4 mm with VNNI; a sanity bound, the bench's goal
-    # row (1 mm) reports the figure
-    bound = 10.0 if cpu_module.int8_full_range() else 20.0
-    assert shipped["frames"] == 16 and 0.0 < shipped["max_joint_mm"] < bound
+    assert shipped["frames"] == 16 and shipped["max_joint_mm"] <= TOLERANCE_MM
     assert results["prep"]["logmel"]["rtf"] > 0 and results["loader"]["workers_2"]["windows"] > 0
     goals = {g["goal"]: g for g in results["goals"]}
     assert goals["prep.logmel.rtf"]["met"] is not None
@@ -595,21 +614,27 @@ def test_every_decoder_kernel_of_the_kernel_bench_computes_the_same_product():
 
 
 @pytest.mark.parametrize("mode", ["none", "int8", "bf16"])
-def test_chunk_weight_bytes_counts_every_linear_a_chunk_reads_in_its_precision(tiny, mode):
+def test_chunk_weight_bytes_counts_every_linear_a_chunk_reads_in_its_precision(mode):
     """The bench's memory floor is only a floor if it counts every weight a streamed chunk
     reads: the flow's block Linears and its latent input and output projection per evaluation
-    (int8: a byte each, bf16: two, fp32: four), the condition encoders once, the decoder's once."""
+    (int8: a byte each where ``worth_quantizing``, else four; bf16: two; fp32: four), the
+    condition encoders once, the decoder's once. A flow 256 wide has blocks of both kinds."""
     from sarah_bench.kernels import chunk_weight_bytes
 
-    plain_vae, plain_flow, _ = tiny
+    wide = random_models("tiny", audio_dim=AUDIO_DIM, shell_points=SHELL, seed=0,
+                         overrides=("flow.hidden=256",))
+    plain_vae, plain_flow, _ = wide
     numel = lambda root, names: sum(root.get_submodule(n).weight.numel() for n in names)
-    block = numel(plain_flow, flow_block_linears(plain_flow))
+    blocks = [plain_flow.get_submodule(n) for n in flow_block_linears(plain_flow)]
+    assert {worth_quantizing(m) for m in blocks} == {True, False}
+    per_weight = {"none": lambda m: 4, "bf16": lambda m: 2,
+                  "int8": lambda m: 1 if worth_quantizing(m) else 4}[mode]
+    block = sum(per_weight(m) * m.weight.numel() for m in blocks)
     outer = numel(plain_flow, ["latent_in", "out.proj"])
     once = numel(plain_flow, [n for n in flow_outer_linears(plain_flow)
                               if n == "cond_in" or n.startswith("encoders.")])
-    per_weight = {"none": 4, "int8": 1, "bf16": 2}[mode]
-    models = tiny if mode == "none" else optimize_for_inference(tiny, mode)
+    models = wide if mode == "none" else optimize_for_inference(wide, mode)
     weights = chunk_weight_bytes(models, StreamConfig(steps=3))
-    assert weights == {"evaluation": per_weight * block + 4 * outer, "evaluations": 6,
+    assert weights == {"evaluation": block + 4 * outer, "evaluations": 6,
                        "chunk": 4 * once,
                        "decoder": 4 * numel(plain_vae, decoder_linears(plain_vae))}

@@ -11,6 +11,9 @@ evaluations over 3 tokens x 2 guidance branches), so weight bytes are the first 
   ``per_channel_dynamic_qconfig``, built from public calls only (observer,
   ``quantize_per_channel``, ``linear_prepack``) and called as one kernel (the eager quantized
   module adds ~10 us of Python to a ~15 us call).
+  Only for Linears large enough to gain from it (``worth_quantizing``).
+* ``PerStreamLinear``: fp32, each stream's rows of a batch computed on their own -- where a
+  Linear is too small for int8 to pay.
 * ``BF16Linear``: bfloat16 weights and activations, output in the input dtype.
 * ``PackedLinear``: fp32 or bfloat16 weights reordered once into oneDNN's blocked GEMM layout
   (``cpu.onednn_linear_ops``). ``F.linear`` repacks its weight at every call: for the few rows
@@ -69,20 +72,49 @@ class Int8Linear(nn.Module):
         (``nn.streams.independent_streams``) is computed one stream's rows at a time: a
         stream's output must not depend on the other streams' activations."""
         op, packed, reduce_range = torch.ops.quantized.linear_dynamic.default, self.packed, self.reduce_range
-
-        def compute(x: Tensor) -> Tensor:
-            groups = stream_groups()
-            if groups == 1:
-                return op(x, packed, reduce_range)
-            if x.shape[0] % groups:
-                raise ValueError(f"a batch of {x.shape[0]} rows does not split into "
-                                 f"{groups} streams")
-            return torch.cat([op(rows, packed, reduce_range) for rows in x.chunk(groups)])
-        return compute
+        return stream_by_stream(lambda rows: op(rows, packed, reduce_range))
 
     def extra_repr(self) -> str:
         bits = 7 if self.reduce_range else 8
         return f"in_features={self.in_features}, out_features={self.out_features}, int8 ({bits}-bit rows)"
+
+
+def stream_by_stream(compute_rows: Callable[[Tensor], Tensor]) -> Callable[[Tensor], Tensor]:
+    """``compute_rows`` applied to each stream's rows of a batch on their own
+    (``nn.streams.stream_groups``), so that a stream's output does not depend on what else the
+    batch holds."""
+
+    def compute(x: Tensor) -> Tensor:
+        groups = stream_groups()
+        if groups == 1:
+            return compute_rows(x)
+        if x.shape[0] % groups:
+            raise ValueError(f"a batch of {x.shape[0]} rows does not split into {groups} streams")
+        return torch.cat([compute_rows(rows) for rows in x.chunk(groups)])
+    return compute
+
+
+class PerStreamLinear(nn.Module):
+    """A Linear in fp32 (the same weights), computed one stream's rows at a time
+    (``stream_by_stream``): MKL's ``F.linear`` rounds a row differently with the number of rows
+    in the call, so a stream's rows would move with what else a server batches beside them.
+    For Linears too small to be worth ``Int8Linear`` (``worth_quantizing``)."""
+
+    def __init__(self, linear: nn.Linear) -> None:
+        super().__init__()
+        self.in_features, self.out_features = linear.in_features, linear.out_features
+        self.weight, self.bias = linear.weight, linear.bias
+        weight, bias = self.weight, self.bias
+        self._compute = stream_by_stream(lambda rows: F.linear(rows, weight, bias))
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self._compute(x)
+
+    def function(self) -> Callable[[Tensor], Tensor]:
+        return self._compute
+
+    def extra_repr(self) -> str:
+        return f"in_features={self.in_features}, out_features={self.out_features}, fp32 per stream"
 
 
 class BF16Linear(nn.Module):
@@ -156,8 +188,22 @@ def worth_packing(linear: nn.Linear) -> bool:
     return linear.in_features * linear.out_features >= PACK_MIN_WEIGHTS
 
 
+# The smallest weight (in x out entries) worth an ``Int8Linear``. Below it a call costs what
+# the kernel's own overhead costs, not what reading the weights does, and int8 saves nothing
+# (timed on the AMD EPYC of 2026-11-27, 1 thread, 6 rows, us per call, F.linear / int8: 128 x
+# 128 17 / 38, 128 x 384 32 / 29, 128 x 512 51 / 41, 512 x 128 41 / 30 -- the tiny preset's
+# blocks, equal in sum -- against 1024 x 1024 705 / 186 and 1024 x 4096 5,864 / 358), while its
+# 7-bit activations cost millimetres on trained weights (docs/performance.md).
+INT8_MIN_WEIGHTS = 2 ** 17
+
+
+def worth_quantizing(linear: nn.Linear) -> bool:
+    """Whether an ``Int8Linear`` is worth its rounding for ``linear`` (see INT8_MIN_WEIGHTS)."""
+    return linear.in_features * linear.out_features >= INT8_MIN_WEIGHTS
+
+
 # A Linear as it stands before or after ``optimize_for_inference`` swapped it.
-LINEAR_KINDS = (nn.Linear, Int8Linear, BF16Linear, PackedLinear)
+LINEAR_KINDS = (nn.Linear, Int8Linear, PerStreamLinear, BF16Linear, PackedLinear)
 
 
 def packed_linears_available(dtype: torch.dtype = torch.float32) -> bool:
@@ -174,7 +220,7 @@ def linear_function(module: nn.Module) -> Callable[[Tensor], Tensor]:
     fused blocks call their Linears some 30 times per evaluation, and a module call costs
     ~10 us of Python next to a ~40 us int8 kernel. Take it once the layer is final (after any
     swap): it holds that layer's weights."""
-    if isinstance(module, (Int8Linear, BF16Linear, PackedLinear)):
+    if isinstance(module, (Int8Linear, PerStreamLinear, BF16Linear, PackedLinear)):
         return module.function()
     if type(module) is nn.Linear:
         weight, bias = module.weight, module.bias
