@@ -327,15 +327,18 @@ def test_per_stream_linear_gives_each_stream_its_own_rows():
     """A stream's rows come out the same whatever shares the call (``F.linear`` may round a row
     differently with the number of rows beside it), and the same as the plain Linear's alone."""
     torch.manual_seed(0)
-    linear = torch.nn.Linear(128, 384)
-    layer = PerStreamLinear(linear)
-    x = torch.randn(8, 3, 128)
-    with independent_streams(4):
-        together = layer(x)
-        with pytest.raises(ValueError, match="does not split into 4 streams"):
-            layer(x[:6])
-    for rows in range(0, 8, 2):
-        assert torch.equal(together[rows:rows + 2], linear(x[rows:rows + 2]))
+    for shape, bias in (((8, 3, 128), True), ((8, 1, 128), True), ((4, 1, 128), False)):
+        linear = torch.nn.Linear(128, 384, bias=bias)
+        layer = PerStreamLinear(linear)
+        x = torch.randn(shape)
+        with independent_streams(4):
+            together = layer(x)
+            with pytest.raises(ValueError, match="does not split into 4 streams"):
+                layer(x[:6] if shape[0] == 8 else x[:3])
+        step = shape[0] // 4  # one stream's rows: up to 3 is another path of MKL's F.linear
+        for rows in range(0, shape[0], step):
+            assert torch.equal(together[rows:rows + step], linear(x[rows:rows + step])), shape
+        assert torch.equal(layer(x), linear(x))  # one stream: F.linear itself
     assert layer.weight is linear.weight and not worth_quantizing(linear)
     assert worth_quantizing(torch.nn.Linear(1024, 4096))
 
