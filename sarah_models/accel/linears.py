@@ -12,8 +12,8 @@ evaluations over 3 tokens x 2 guidance branches), so weight bytes are the first 
   ``quantize_per_channel``, ``linear_prepack``) and called as one kernel (the eager quantized
   module adds ~10 us of Python to a ~15 us call).
   Only for Linears large enough to gain from it (``worth_quantizing``).
-* ``PerStreamLinear``: fp32, each stream's rows of a batch computed on their own -- where a
-  Linear is too small for int8 to pay.
+* ``PerStreamLinear``: fp32, each stream's rows of a batch computed as they are alone -- where a
+  Linear is too small for int8 to pay, and in the exact fp32 mode's solve.
 * ``BF16Linear``: bfloat16 weights and activations, output in the input dtype.
 * ``PackedLinear``: fp32 or bfloat16 weights reordered once into oneDNN's blocked GEMM layout
   (``cpu.onednn_linear_ops``). ``F.linear`` repacks its weight at every call: for the few rows
@@ -79,17 +79,22 @@ class Int8Linear(nn.Module):
         return f"in_features={self.in_features}, out_features={self.out_features}, int8 ({bits}-bit rows)"
 
 
+def streams_in(x: Tensor) -> int:
+    """How many streams' rows the batch ``x`` holds (``nn.streams.stream_groups``), checked."""
+    groups = stream_groups()
+    if x.shape[0] % groups:
+        raise ValueError(f"a batch of {x.shape[0]} rows does not split into {groups} streams")
+    return groups
+
+
 def stream_by_stream(compute_rows: Callable[[Tensor], Tensor]) -> Callable[[Tensor], Tensor]:
-    """``compute_rows`` applied to each stream's rows of a batch on their own
-    (``nn.streams.stream_groups``), so that a stream's output does not depend on what else the
-    batch holds."""
+    """``compute_rows`` applied to each stream's rows of a batch on their own, so that a
+    stream's output does not depend on what else the batch holds."""
 
     def compute(x: Tensor) -> Tensor:
-        groups = stream_groups()
+        groups = streams_in(x)
         if groups == 1:
             return compute_rows(x)
-        if x.shape[0] % groups:
-            raise ValueError(f"a batch of {x.shape[0]} rows does not split into {groups} streams")
         return torch.cat([compute_rows(rows) for rows in x.chunk(groups)])
     return compute
 
@@ -112,11 +117,9 @@ class PerStreamLinear(nn.Module):
         size_in, size_out = self.in_features, self.out_features
 
         def compute(x: Tensor) -> Tensor:
-            groups = stream_groups()
+            groups = streams_in(x)
             if groups == 1:
                 return F.linear(x, weight, bias)
-            if x.shape[0] % groups:
-                raise ValueError(f"a batch of {x.shape[0]} rows does not split into {groups} streams")
             rows = x.reshape(groups, -1, size_in)
             weights = weight.t().expand(groups, size_in, size_out)
             y = torch.bmm(rows, weights) if bias is None else torch.baddbmm(bias, rows, weights)
@@ -276,10 +279,11 @@ def flow_outer_linears(flow: nn.Module) -> list[str]:
 
 
 # The flow's Linears outside its blocks that ``step_together`` calls on many streams' rows at
-# once. They stay oneDNN-packed whatever their size: MKL's ``F.linear`` rounds a row
-# differently with the number of rows beside it, and a stream served with three others then
-# came out up to 3.2 mm from itself alone (the shipped model through its decoding chain), where
-# the packed kernel gives it the same frames.
+# once. In the fused modes they stay oneDNN-packed whatever their size (in the exact fp32 mode
+# they are ``PerStreamLinear``): MKL's ``F.linear`` rounds a row differently with the number of
+# rows beside it, and a stream served with three others then came out up to 3.2 mm from itself
+# alone (the shipped model through its decoding chain), where the packed kernel gives it the
+# same frames.
 BATCHED_OUTER_LINEARS = ("latent_in", "out.proj")
 
 
