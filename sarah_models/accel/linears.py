@@ -72,7 +72,13 @@ class Int8Linear(nn.Module):
         (``nn.streams.independent_streams``) is computed one stream's rows at a time: a
         stream's output must not depend on the other streams' activations."""
         op, packed, reduce_range = torch.ops.quantized.linear_dynamic.default, self.packed, self.reduce_range
-        return stream_by_stream(lambda rows: op(rows, packed, reduce_range))
+
+        def compute(x: Tensor) -> Tensor:
+            groups = streams_in(x)
+            if groups == 1:
+                return op(x, packed, reduce_range)
+            return torch.cat([op(rows, packed, reduce_range) for rows in x.chunk(groups)])
+        return compute
 
     def extra_repr(self) -> str:
         bits = 7 if self.reduce_range else 8
@@ -85,18 +91,6 @@ def streams_in(x: Tensor) -> int:
     if x.shape[0] % groups:
         raise ValueError(f"a batch of {x.shape[0]} rows does not split into {groups} streams")
     return groups
-
-
-def stream_by_stream(compute_rows: Callable[[Tensor], Tensor]) -> Callable[[Tensor], Tensor]:
-    """``compute_rows`` applied to each stream's rows of a batch on their own, so that a
-    stream's output does not depend on what else the batch holds."""
-
-    def compute(x: Tensor) -> Tensor:
-        groups = streams_in(x)
-        if groups == 1:
-            return compute_rows(x)
-        return torch.cat([compute_rows(rows) for rows in x.chunk(groups)])
-    return compute
 
 
 class PerStreamLinear(nn.Module):
@@ -114,14 +108,14 @@ class PerStreamLinear(nn.Module):
         self.in_features, self.out_features = linear.in_features, linear.out_features
         self.weight, self.bias = linear.weight, linear.bias
         weight, bias = self.weight, self.bias
-        size_in, size_out = self.in_features, self.out_features
+        weight_t, size_in, size_out = weight.t(), self.in_features, self.out_features
 
         def compute(x: Tensor) -> Tensor:
             groups = streams_in(x)
             if groups == 1:
                 return F.linear(x, weight, bias)
             rows = x.reshape(groups, -1, size_in)
-            weights = weight.t().expand(groups, size_in, size_out)
+            weights = weight_t.expand(groups, size_in, size_out)
             y = torch.bmm(rows, weights) if bias is None else torch.baddbmm(bias, rows, weights)
             return y.reshape(*x.shape[:-1], size_out)
         self._compute = compute
