@@ -1,4 +1,4 @@
-"""The CUDA path end to end, on a machine with a GPU (docs/performance.md, "On a GPU"):
+"""The CUDA path end to end, on a machine with a GPU (docs/performance.md, the CUDA entries):
 
     python scripts/cuda_check.py WORK_DIR [--report FILE.json]
 
