@@ -255,6 +255,12 @@ class TrainConfig:
     vae_short_steps: int = 0
     vae_short_window: int = 100
     latent: str = "mean"  # flow target from the frozen encoder: "mean" (mu) or "sample"
+    # Not in the paper (1 = the paper): the flow stage encodes each batch with the frozen VAE
+    # once and takes `flow_echo` optimizer steps on it, each with its own flow times, noise and
+    # condition dropout ("data echoing", Choi et al. 2019). On a CPU the encoder is most of a
+    # flow step (tiny preset, 8 x 400 frames, 2 threads: 118 of 164 ms), so an echo of E costs
+    # about (118 + 46 E) / E ms per step (docs/results.md, thirty-first run).
+    flow_echo: int = 1
     latent_stats_batches: int = 64  # batches used to standardize latents before the flow stage
     log_every: int = 50
     checkpoint_every: int = 5_000
@@ -277,7 +283,7 @@ class TrainConfig:
         if not 0.0 <= self.final_lr_ratio <= 1.0:
             raise ValueError(f"TrainConfig.final_lr_ratio must be in [0, 1], got {self.final_lr_ratio}")
         for name in ("batch_size", "vae_steps", "flow_steps", "window", "log_every",
-                     "checkpoint_every", "latent_stats_batches", "vae_short_window"):
+                     "checkpoint_every", "latent_stats_batches", "vae_short_window", "flow_echo"):
             if getattr(self, name) < 1:
                 raise ValueError(f"TrainConfig.{name} must be >= 1, got {getattr(self, name)}")
         if self.num_workers < 0 or self.warmup_steps < 0 or self.seed < 0 or self.vae_short_steps < 0:

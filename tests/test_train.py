@@ -799,3 +799,79 @@ def test_stage_model_takes_the_skeleton_of_shards_for_a_rigid_decoding(prepared_
     assert written["config"]["vae"]["rigid_bones"] is True
     np.testing.assert_array_equal(written["normalizer"]["bone_length_mean"].numpy(),
                                   load_stats(prepared_shards)["bone_length/mean"])
+
+
+def test_echoed_batches_prepare_each_batch_once_and_resume_mid_echo():
+    from sarah_models.training.batches import echoed_batches
+
+    made: list[tuple[str, int]] = []
+
+    def prepare(batch: str, step: int) -> str:
+        made.append((batch, step))
+        return batch.upper()
+
+    straight = list(echoed_batches(iter("abc"), prepare, 3))
+    assert straight == ["A", "A", "A", "B", "B", "B", "C", "C", "C"]
+    assert made == [("a", 0), ("b", 3), ("c", 6)]  # once per batch, at its first step
+    for start in range(9):  # the batch source resumes at start // 3, as EpochBatches does
+        made.clear()
+        resumed = list(echoed_batches(iter("abc"[start // 3:]), prepare, 3, start_step=start))
+        assert resumed == straight[start:], start
+        assert made[0] == ("abc"[start // 3], 3 * (start // 3))
+    assert list(echoed_batches(iter("ab"), prepare, 1)) == ["A", "B"]
+
+
+def test_flow_loss_of_a_prepared_batch_is_the_loss_of_the_raw_batch(tmp_path):
+    """What train.flow_echo reuses is what the un-echoed step computes: a batch encoded once
+    by ``prepare`` gives the loss, to the bit, that the raw batch gives."""
+    from sarah_models.training.loop import step_generator
+    from sarah_models.training.objectives import FlowObjective
+
+    run("vae", tmp_path, 2)
+    run("flow", tmp_path, 2)
+    models = load_models(tmp_path / "flow.pt", device="cpu")
+    objective = FlowObjective(models.flow, models.vae, models.normalizer)
+    data = SyntheticWindows()
+    batch = {k: torch.stack([data[i][k] for i in range(4)]) for k in
+             ("motion", "user_head", "agent_audio", "user_audio", "gaze")}
+    generator = lambda: step_generator(torch.device("cpu"), 0, 0, 5)  # noqa: E731
+    raw = objective(batch, generator())
+    prepared = objective.prepare(batch)
+    again = objective(prepared, generator())
+    assert torch.equal(raw["loss"], again["loss"]) and torch.equal(raw["z1_pred"], again["z1_pred"])
+    other = objective(prepared, step_generator(torch.device("cpu"), 0, 0, 6))
+    assert not torch.equal(other["loss"], raw["loss"])  # each echo draws its own times and noise
+
+
+def test_flow_echo_trains_fewer_encodings_and_resumes_mid_echo_exactly(tmp_path, monkeypatch):
+    from sarah_models.training.objectives import FlowObjective
+
+    encoded: list[int] = []
+    real_latents = FlowObjective.latents
+
+    def counted(self, motion, generator=None):
+        encoded.append(motion.shape[0])
+        return real_latents(self, motion, generator)
+
+    monkeypatch.setattr(FlowObjective, "latents", counted)
+
+    def flow(out: Path, steps: int, resume: bool = False, echo_times: int = 3) -> dict:
+        if not (out / "vae.pt").exists():
+            run("vae", out, 2)
+        train("flow", tiny_config(steps, flow_echo=echo_times), None, out, resume=resume,
+              device="cpu", dataset=SyntheticWindows(), stats=STATS, progress=False,
+              echo=lambda _: None)
+        return load_checkpoint(out / "flow.pt")["flow"]
+
+    stats_batches = tiny_config(1).train.latent_stats_batches
+    straight = flow(tmp_path / "straight", 6)
+    assert len(encoded) == stats_batches + 2  # 6 steps, 2 encoded batches
+    broken = tmp_path / "broken"
+    flow(broken, 4)  # stops after the first step of the second batch's echo
+    resumed = flow(broken, 6, resume=True)
+    assert losses(tmp_path / "straight", "flow") == losses(broken, "flow")
+    assert all(torch.equal(value, resumed[key]) for key, value in straight.items())
+    plain = flow(tmp_path / "plain", 6, echo_times=1)
+    assert not all(torch.equal(value, plain[key]) for key, value in straight.items())
+    with pytest.raises(ValueError, match="flow_echo must be >= 1"):
+        tiny_config(1, flow_echo=0)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Iterable, Iterator
+from typing import Callable, Iterable, Iterator
 
 import torch
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
@@ -78,3 +78,19 @@ def phased_batches(first: Iterable[dict], first_steps: int, then: Iterable[dict]
         finally:
             getattr(batches, "close", lambda: None)()
     yield from then
+
+
+def echoed_batches(batches: Iterable[dict], prepare: Callable[[dict, int], dict], times: int,
+                   start_step: int = 0) -> Iterator[dict]:
+    """Each batch given ``times`` times in a row (``train.flow_echo``), made once by
+    ``prepare(batch, step)`` with ``step`` the first training step that uses it. ``batches``
+    starts at batch ``start_step // times`` (``EpochBatches(start_batch=...)``); a run resumed
+    mid-echo gives that batch's remaining repeats first, so it trains on what an uninterrupted
+    run does. ``prepare`` must copy what it keeps: a WindowLoader batch is valid only until the
+    next is requested."""
+    batch_index, skip = divmod(start_step, times)
+    for batch in batches:
+        prepared = prepare(batch, batch_index * times)
+        for _ in range(times - skip):
+            yield prepared
+        batch_index, skip = batch_index + 1, 0

@@ -41,6 +41,12 @@ def step_generator(device: torch.device, seed: int, rank: int, step: int) -> tor
         (seed * 1_000_003 + rank * 7_919 + step) % (2**63))
 
 
+def training_autocast(device: torch.device) -> torch.autocast:
+    """bf16 autocast on CUDA (docs/models.md), nothing elsewhere: every forward of training."""
+    return torch.autocast(device_type=device.type, dtype=torch.bfloat16,
+                          enabled=device.type == "cuda")
+
+
 def train_loop(objective: nn.Module, batches: Iterable[Mapping[str, Tensor]],
                optimizer: torch.optim.Optimizer, config: TrainConfig, *, total_steps: int,
                start_step: int = 0, device: torch.device | str = "cpu", rank: int = 0,
@@ -55,8 +61,7 @@ def train_loop(objective: nn.Module, batches: Iterable[Mapping[str, Tensor]],
 
     device = torch.device(device)
     trainable = [p for group in optimizer.param_groups for p in group["params"]]
-    autocast = torch.autocast(device_type=device.type, dtype=torch.bfloat16,
-                              enabled=device.type == "cuda")
+    autocast = training_autocast(device)
     objective.train()
     iterator = iter(batches)
     records: list[dict[str, float]] = []

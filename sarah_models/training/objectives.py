@@ -149,10 +149,19 @@ class FlowObjective(nn.Module):
             mu = mu + noise * (0.5 * logvar).exp()
         return mu.float()
 
-    def forward(self, batch: Mapping[str, Tensor], generator: torch.Generator | None = None):
+    @torch.no_grad()
+    def prepare(self, batch: Mapping[str, Tensor],
+                generator: torch.Generator | None = None) -> dict[str, Tensor]:
+        """The batch as the loss reads it: normalized inputs plus ``"latent"``, the frozen
+        encoder's standardized latents (what ``train.flow_echo`` reuses)."""
         inputs = self.normalizer.normalize_batch(batch, self.normalizer.motion_mean.device)
-        z = self.normalizer.normalize("latent", self.latents(inputs["motion"], generator))
-        return flow_matching_loss(self.flow, z, inputs, generator)
+        inputs["latent"] = self.normalizer.normalize("latent", self.latents(inputs["motion"], generator))
+        return inputs
+
+    def forward(self, batch: Mapping[str, Tensor], generator: torch.Generator | None = None):
+        """The loss of a raw batch, or of one ``prepare`` made already (it has ``"latent"``)."""
+        inputs = batch if "latent" in batch else self.prepare(batch, generator)
+        return flow_matching_loss(self.flow, inputs["latent"], inputs, generator)
 
 
 def flow_matching_loss(flow: FlowModel, z: Tensor, cond: Mapping[str, Tensor],

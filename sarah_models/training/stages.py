@@ -34,7 +34,7 @@ from sarah_data.atomic import atomic_write_text
 
 from ..config import DECODING_FIELDS, RunConfig, TrainConfig
 from ..nn.normalizer import Normalizer
-from .batches import EpochBatches, phased_batches
+from .batches import EpochBatches, echoed_batches, phased_batches
 from .checkpoint import (
     build_models,
     capture_rng_state,
@@ -43,7 +43,7 @@ from .checkpoint import (
     save_checkpoint,
 )
 from .distributed import DistInfo, setup_distributed
-from .loop import RunLog, make_optimizer, step_generator, train_loop
+from .loop import RunLog, make_optimizer, step_generator, train_loop, training_autocast
 from .model_file import read_weights
 from .objectives import FlowObjective, VAEObjective
 
@@ -373,7 +373,14 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
 
     # Each phase's batches are numbered on their own, so a resumed run continues either phase.
     done_short = min(start, short.steps) if short else 0
-    loader = EpochBatches(dataset, tcfg, info, start_batch=start - done_short)
+    echo_times = tcfg.flow_echo if stage == "flow" else 1
+    loader = EpochBatches(dataset, tcfg, info, start_batch=(start - done_short) // echo_times)
+    if echo_times > 1:
+        def prepare(batch: dict, step: int) -> dict:
+            # A latent="sample" draw of its own stream, fixed by the batch's first step.
+            with training_autocast(info.device):
+                return objective.prepare(batch, step_generator(info.device, tcfg.seed + 1, info.rank, step))
+        loader = echoed_batches(loader, prepare, echo_times, start)
     if short is not None:
         loader = phased_batches(EpochBatches(short.dataset, short.config, info, start_batch=done_short),
                                 short.steps - done_short, loader)
