@@ -258,8 +258,7 @@ class TrainConfig:
     # Not in the paper (1 = the paper): the flow stage encodes each batch with the frozen VAE
     # once and takes `flow_echo` optimizer steps on it, each with its own flow times, noise and
     # condition dropout ("data echoing", Choi et al. 2019). On a CPU the encoder is most of a
-    # flow step (tiny preset, 8 x 400 frames, 2 threads: 118 of 164 ms), so an echo of E costs
-    # about (118 + 46 E) / E ms per step (docs/results.md, thirty-first run).
+    # flow step; what echo buys is measured in docs/models.md ("Flow echo").
     flow_echo: int = 1
     latent_stats_batches: int = 64  # batches used to standardize latents before the flow stage
     log_every: int = 50
