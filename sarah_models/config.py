@@ -106,6 +106,12 @@ class VAEConfig:
     # Standardized, a horizontal millimetre (x/z std ~1 m: the agents walk) costs ~1000x less
     # than a vertical one (y std ~3.5 cm), which leaves horizontal jitter untrained.
     recon_units: str = "standardized"
+    # Not in the paper (False = the paper): standardize motion root-relative, every point's x and
+    # z less the root's (``nn.normalizer``), the root's own points absolute. Absolute, a head turn
+    # is a tenth of a channel's std (the agents walk ~1 m) and the encoder barely sees it. With
+    # recon_units="metres" the root's points then weigh as much as all points together: their
+    # error is where the whole body stands.
+    root_relative: bool = False
     # Not in the paper (0 = the paper): how the generators decode, not how the VAE trains. At the
     # first frame of every latent block each decoded point is offset to continue its last
     # position and velocity, and the offset decays by this factor per frame, as a critically

@@ -875,3 +875,85 @@ def test_flow_echo_trains_fewer_encodings_and_resumes_mid_echo_exactly(tmp_path,
     assert not all(torch.equal(value, plain[key]) for key, value in straight.items())
     with pytest.raises(ValueError, match="flow_echo must be >= 1"):
         tiny_config(1, flow_echo=0)
+
+
+def test_root_relative_standardization_is_exact_both_ways_and_travels_with_the_normalizer():
+    """vae.root_relative: every point's x and z less the root's, the root's points absolute, so
+    denormalize(normalize(x)) is x for any motion; the root's points survive a state dict."""
+    from sarah_models.nn.normalizer import Normalizer
+
+    points = 9
+    rng = np.random.default_rng(0)
+    stats = {"motion": (rng.normal(0, 1, 3 * points), rng.uniform(0.1, 2, 3 * points))}
+    norm = Normalizer(stats)
+    norm.set_root_relative([2, 3])
+    for _ in range(5):
+        x = torch.from_numpy(rng.normal(0, 3, (4, 7, 3 * points))).float()
+        shifted = x.clone().unflatten(-1, (points, 3))
+        shifted[..., [0, 2]] += torch.tensor([1.5, -2.0])  # the whole body walks elsewhere
+        shifted = shifted.flatten(-2)
+        assert torch.allclose(norm.denormalize("motion", norm.normalize("motion", x)), x, atol=1e-5)
+        moved = norm.normalize("motion", shifted) - norm.normalize("motion", x)
+        by_point = moved.unflatten(-1, (points, 3))
+        others = [p for p in range(points) if p not in (2, 3)]
+        assert by_point[..., others, :].abs().max() < 1e-5  # relative points do not see the walk
+        assert by_point[..., [2, 3], 0].abs().min() > 0.1  # the root's own points do
+    copy = Normalizer.from_state_dict(norm.state_dict())
+    assert copy.root_relative and copy.motion_root.tolist() == [2, 3]
+    assert not Normalizer(stats).root_relative
+    with pytest.raises(ValueError, match="root points"):
+        norm.set_root_relative([])
+
+
+def test_root_weighted_counts_the_root_once_per_point_of_the_body():
+    from sarah_models.training.objectives import root_weighted
+
+    variance = torch.arange(1.0, 13.0)  # 4 points
+    weighted = root_weighted(variance, torch.tensor([1])).unflatten(-1, (4, 3))
+    expected = variance.unflatten(-1, (4, 3)).clone()
+    expected[1, 0] *= 4
+    expected[1, 2] *= 4
+    assert torch.equal(weighted, expected)
+
+
+def test_root_relative_training_fits_its_statistics_and_the_model_file_keeps_them(prepared_shards,
+                                                                                    tmp_path):
+    """A root-relative VAE stage standardizes root-relative channels (about zero mean and unit
+    std on the batches it fitted them on, the head's x far narrower than absolute), its flow
+    and model file carry the same normalizer, and generation decodes to absolute motion."""
+    from sarah_data.dataset import WindowDataset
+    from sarah_data.skeleton import HEAD, ICOSAHEDRON_POINTS, ROOT, MotionLayout
+    from sarah_models.training.model_file import load_model_file, write_model_file
+    from sarah_models.training.objectives import VAEObjective
+
+    config = tiny_config(2).with_overrides(["train.window=16", "vae.root_relative=true",
+                                            "vae.recon_units=metres", "train.latent_stats_batches=4"])
+    out = tmp_path / "run"
+    common = dict(device="cpu", progress=False, echo=lambda _: None)
+    train("vae", config, prepared_shards, out, **common)
+    train("flow", config, prepared_shards, out, **common)
+    models = load_models(out / "flow.pt", device="cpu")
+    norm = models.normalizer
+    dims = norm.motion_mean.numel()
+    layout = MotionLayout.from_width(dims)
+    start = layout.joint(ROOT) * ICOSAHEDRON_POINTS
+    assert norm.motion_root.tolist() == list(range(start, start + ICOSAHEDRON_POINTS))
+    windows = WindowDataset.sliding(prepared_shards, "train", extractor=None, window=16)
+    motion = torch.stack([windows[i]["motion"] for i in range(len(windows))])
+    standardized = norm.normalize("motion", motion).reshape(-1, dims)
+    assert standardized.mean(0).abs().median() < 0.5
+    assert (standardized.std(0).median() - 1).abs() < 0.5
+    absolute = motion.reshape(-1, dims).std(0)
+    head_x = layout.joint_slice(HEAD).start  # the head icosahedron's first point's x
+    assert norm.motion_std[head_x] < 0.5 * absolute[head_x]
+    objective = VAEObjective(models.vae, norm)
+    weight = objective.channel_weight.unflatten(-1, (-1, 3))
+    assert weight[start, 0] > 20 * weight[start, 1]  # the root's x counts for every point
+    shared = write_model_file(out / "flow.pt", tmp_path / "m.safetensors")
+    loaded = load_model_file(shared, device="cpu").normalizer
+    assert loaded.root_relative and torch.equal(loaded.motion_root, norm.motion_root)
+    assert torch.allclose(loaded.denormalize("motion", loaded.normalize("motion", motion)), motion,
+                          atol=1e-4)
+    other = config.with_overrides(["vae.root_relative=false"])
+    with pytest.raises(ValueError, match="root_relative"):
+        train("vae", other, prepared_shards, tmp_path / "mixed", init_from=out, **common)

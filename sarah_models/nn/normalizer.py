@@ -7,6 +7,14 @@ The gaze score is in [-1, 1] already and is not standardized. ``bone_length`` (t
 split's mean length of every bone, ``MotionLayout.bones`` order) standardizes nothing: it travels
 here, with the other statistics of the training data, for the rigid decoding
 (``sampling.rigid_skeleton``).
+
+Root-relative motion (``set_root_relative``; ``vae.root_relative``, not in the paper). Where the
+normalizer holds ``motion_root`` (the point indices of the root's icosahedron), ``motion`` is
+standardized root-relative: every other point's x and z less the root's (the mean of those
+points), the root's own points as they are, so the map is exact both ways. The agents walk, so
+an absolute x/z channel's std is ~1 m and a head turn's 10 cm offsets are a tenth of it, lost
+among channels that move together; relative to the root they are most of their channel's range.
+The motion's statistics are then the root-relative channels' (``fit_root_relative_stats``).
 """
 
 from __future__ import annotations
@@ -64,11 +72,40 @@ class Normalizer(nn.Module):
 
     def normalize(self, key: str, x: Tensor) -> Tensor:
         mean, std = self._stats(key, x)
+        if key == "motion" and self.root_relative:
+            x = x - self.root_offset(x)
         return (x - mean) / std
 
     def denormalize(self, key: str, x: Tensor) -> Tensor:
         mean, std = self._stats(key, x)
-        return x * std + mean
+        x = x * std + mean
+        if key == "motion" and self.root_relative:
+            x = x + self.root_offset(x)  # the root's own points are absolute in both forms
+        return x
+
+    @property
+    def root_relative(self) -> bool:
+        return hasattr(self, "motion_root")
+
+    def set_root_relative(self, root_points: Tensor | np.ndarray | list[int]) -> None:
+        """Standardize ``motion`` root-relative from now on, the root being the mean of these
+        points (indices of 3-channel points in the motion vector). The motion statistics must
+        then be the root-relative channels' (``fit_root_relative_stats``)."""
+        points = torch.as_tensor(np.asarray(root_points, dtype=np.int64)).reshape(-1)
+        if points.numel() == 0 or bool((points < 0).any()):
+            raise ValueError(f"root points must be non-negative point indices, got {points.tolist()}")
+        device = next(self.buffers(), points).device
+        self.register_buffer("motion_root", points.to(device))
+
+    def root_offset(self, x: Tensor) -> Tensor:
+        """(..., 3P) -> the (..., 3P) offset that is the root's (x, 0, z) on every point but the
+        root's own and 0 on those."""
+        points = x.unflatten(-1, (-1, 3))
+        root = points[..., self.motion_root, :].mean(-2, keepdim=True)
+        others = torch.ones(points.shape[-2], 1, dtype=x.dtype, device=x.device)
+        others[self.motion_root] = 0
+        floor = torch.tensor([1.0, 0.0, 1.0], dtype=x.dtype, device=x.device)
+        return (root * floor * others).flatten(-2)
 
     def stats_key(self, batch_key: str) -> str:
         for key in BATCH_STATS[batch_key]:
@@ -98,4 +135,6 @@ class Normalizer(nn.Module):
         for key in keys:
             norm.register_buffer(f"{key}_mean", state[f"{key}_mean"].clone())
             norm.register_buffer(f"{key}_std", state[f"{key}_std"].clone())
+        if "motion_root" in state:
+            norm.set_root_relative(state["motion_root"].clone())
         return norm

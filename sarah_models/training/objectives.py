@@ -40,6 +40,8 @@ class VAEObjective(nn.Module):
         weight = None
         if vae.config.recon_units == "metres":
             variance = normalizer.motion_std.float().square()
+            if normalizer.root_relative:
+                variance = root_weighted(variance, normalizer.motion_root)
             weight = variance / variance.mean()
         self.register_buffer("channel_weight", weight, persistent=False)
 
@@ -62,6 +64,16 @@ class VAEObjective(nn.Module):
                 terms[name] = term(decoded, true)
                 loss = loss + weight * terms[name]
         return {**out, "loss": loss, **terms}
+
+
+def root_weighted(variance: Tensor, root_points: Tensor) -> Tensor:
+    """Root-relative channels' variances with the root points' x and z counted once per point of
+    the body: absolute, every point carries the root's error, so where the body stands weighs as
+    much as all of its pose together, and a loss in metres keeps that balance."""
+    points = variance.unflatten(-1, (-1, 3)).clone()
+    root = root_points.to(points.device)
+    points[root[:, None], torch.tensor([0, 2], device=points.device)] *= points.shape[0] / root.numel()
+    return points.flatten()
 
 
 class PlantedFeet(nn.Module):

@@ -31,6 +31,7 @@ import torch.distributed as dist
 from torch.utils.data import Dataset
 
 from sarah_data.atomic import atomic_write_text
+from sarah_data.skeleton import ICOSAHEDRON_POINTS, ROOT, MotionLayout
 
 from ..config import DECODING_FIELDS, RunConfig, TrainConfig
 from ..nn.normalizer import Normalizer
@@ -182,8 +183,8 @@ def _check_compatible(source: Mapping[str, Any], stage: str, config: RunConfig,
                       dims: Mapping[str, int], features: str) -> None:
     """Refuse an --init-from source whose weights cannot be this stage's, naming the difference."""
     file = source["path"]
-    wanted, stored = config.to_dict()[stage], source["config"][stage]
-    differ = sorted(k for k in wanted if k not in FINE_TUNE_FIELDS[stage] and wanted[k] != stored.get(k))
+    wanted, stored = config.to_dict()[stage], stored_config(source)[stage]
+    differ = sorted(k for k in wanted if k not in FINE_TUNE_FIELDS[stage] and wanted[k] != stored[k])
     if differ:
         pairs = ", ".join(f"{k}: {stored.get(k)} there, {wanted[k]} here" for k in differ)
         raise ValueError(f"{file}: the {stage} architecture differs ({pairs}); --init-from needs "
@@ -267,6 +268,8 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
                 normalizer.set("bone_length", *stats["bone_length"])  # the shards' skeleton
         else:
             normalizer = Normalizer(stats)
+            if config.vae.root_relative:
+                _fit_root_relative_stats(normalizer, dataset, tcfg, info, dims["motion"])
         vae, _ = build_models(config, dims)
         if previous is not None:
             vae.load_state_dict(previous["vae"])
@@ -418,6 +421,28 @@ def _short_windows(config: TrainConfig, total: int, shards_dir: str | Path | Non
         raise ValueError(f"{shards_dir}: windows of {short_config.window} frames have other widths "
                          f"than those of {config.window}")
     return ShortWindows(steps, short_config, dataset)
+
+
+@torch.no_grad()
+def _fit_root_relative_stats(normalizer: Normalizer, dataset: Dataset, config: TrainConfig,
+                             info: DistInfo, motion_width: int) -> None:
+    """Make ``normalizer`` standardize motion root-relative (``vae.root_relative``): the root
+    joint's icosahedron points, then per-channel mean/std of the root-relative motion over the
+    first ``latent_stats_batches`` batches of a fixed order (every rank reads the same ones)."""
+    layout = MotionLayout.from_width(motion_width)
+    start = layout.joint(ROOT) * ICOSAHEDRON_POINTS
+    normalizer.set_root_relative(torch.arange(start, start + ICOSAHEDRON_POINTS))
+    loader = EpochBatches(dataset, config, DistInfo(0, 1, 0, torch.device("cpu")), seed_offset=2)
+    s1 = s2 = None
+    total = 0
+    for _, batch in zip(range(config.latent_stats_batches), loader):
+        motion = batch["motion"].double()
+        x = (motion - normalizer.root_offset(motion)).reshape(-1, motion.shape[-1])
+        s1 = x.sum(0) if s1 is None else s1 + x.sum(0)
+        s2 = x.square().sum(0) if s2 is None else s2 + x.square().sum(0)
+        total += x.shape[0]
+    mean = s1 / total
+    normalizer.set("motion", mean.float(), (s2 / total - mean.square()).clamp_min(0).sqrt().float())
 
 
 @torch.no_grad()
