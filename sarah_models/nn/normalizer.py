@@ -14,7 +14,8 @@ standardized root-relative: every other point's x and z less the root's (the mea
 points), the root's own points as they are, so the map is exact both ways. The agents walk, so
 an absolute x/z channel's std is ~1 m and a head turn's 10 cm offsets are a tenth of it, lost
 among channels that move together; relative to the root they are most of their channel's range.
-The motion's statistics are then the root-relative channels' (``fit_root_relative_stats``).
+The motion's statistics are then the root-relative channels' (fitted on the first training
+batches by ``training.stages``).
 """
 
 from __future__ import annotations
@@ -90,7 +91,7 @@ class Normalizer(nn.Module):
     def set_root_relative(self, root_points: Tensor | np.ndarray | list[int]) -> None:
         """Standardize ``motion`` root-relative from now on, the root being the mean of these
         points (indices of 3-channel points in the motion vector). The motion statistics must
-        then be the root-relative channels' (``fit_root_relative_stats``)."""
+        then be the root-relative channels'."""
         points = torch.as_tensor(np.asarray(root_points, dtype=np.int64)).reshape(-1)
         if points.numel() == 0 or bool((points < 0).any()):
             raise ValueError(f"root points must be non-negative point indices, got {points.tolist()}")

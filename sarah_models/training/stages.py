@@ -269,7 +269,7 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
         else:
             normalizer = Normalizer(stats)
             if config.vae.root_relative:
-                _fit_root_relative_stats(normalizer, dataset, tcfg, info, dims["motion"])
+                _fit_root_relative_stats(normalizer, dataset, tcfg, dims["motion"])
         vae, _ = build_models(config, dims)
         if previous is not None:
             vae.load_state_dict(previous["vae"])
@@ -425,7 +425,7 @@ def _short_windows(config: TrainConfig, total: int, shards_dir: str | Path | Non
 
 @torch.no_grad()
 def _fit_root_relative_stats(normalizer: Normalizer, dataset: Dataset, config: TrainConfig,
-                             info: DistInfo, motion_width: int) -> None:
+                             motion_width: int) -> None:
     """Make ``normalizer`` standardize motion root-relative (``vae.root_relative``): the root
     joint's icosahedron points, then per-channel mean/std of the root-relative motion over the
     first ``latent_stats_batches`` batches of a fixed order (every rank reads the same ones)."""
