@@ -73,8 +73,8 @@ class Normalizer(nn.Module):
 
     def normalize(self, key: str, x: Tensor) -> Tensor:
         mean, std = self._stats(key, x)
-        if key == "motion" and self.root_relative:
-            x = x - self.root_offset(x)
+        if key == "motion":
+            x = self.relative_motion(x)
         return (x - mean) / std
 
     def denormalize(self, key: str, x: Tensor) -> Tensor:
@@ -97,6 +97,11 @@ class Normalizer(nn.Module):
             raise ValueError(f"root points must be non-negative point indices, got {points.tolist()}")
         device = next(self.buffers(), points).device
         self.register_buffer("motion_root", points.to(device))
+
+    def relative_motion(self, x: Tensor) -> Tensor:
+        """Motion (..., 3P) as this normalizer standardizes it: root-relative where it is so, else
+        as given (what its statistics describe)."""
+        return x - self.root_offset(x) if self.root_relative else x
 
     def root_offset(self, x: Tensor) -> Tensor:
         """(..., 3P) -> the (..., 3P) offset that is the root's (x, 0, z) on every point but the

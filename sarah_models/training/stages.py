@@ -28,6 +28,7 @@ from typing import Any, Callable, Mapping
 
 import torch
 import torch.distributed as dist
+from torch import Tensor
 from torch.utils.data import Dataset
 
 from sarah_data.atomic import atomic_write_text
@@ -433,16 +434,22 @@ def _fit_root_relative_stats(normalizer: Normalizer, dataset: Dataset, config: T
     start = layout.joint(ROOT) * ICOSAHEDRON_POINTS
     normalizer.set_root_relative(torch.arange(start, start + ICOSAHEDRON_POINTS))
     loader = EpochBatches(dataset, config, DistInfo(0, 1, 0, torch.device("cpu")), seed_offset=2)
+    batches = zip(range(config.latent_stats_batches), loader)
+    mean, std = _channel_stats(normalizer.relative_motion(batch["motion"].double()) for _, batch in batches)
+    normalizer.set("motion", mean.float(), std.float())
+
+
+def _channel_stats(chunks) -> tuple[Tensor, Tensor]:
+    """Per-channel mean and std (float64) of every row of a stream of (..., C) tensors."""
     s1 = s2 = None
     total = 0
-    for _, batch in zip(range(config.latent_stats_batches), loader):
-        motion = batch["motion"].double()
-        x = (motion - normalizer.root_offset(motion)).reshape(-1, motion.shape[-1])
+    for chunk in chunks:
+        x = chunk.reshape(-1, chunk.shape[-1]).double()
         s1 = x.sum(0) if s1 is None else s1 + x.sum(0)
         s2 = x.square().sum(0) if s2 is None else s2 + x.square().sum(0)
         total += x.shape[0]
     mean = s1 / total
-    normalizer.set("motion", mean.float(), (s2 / total - mean.square()).clamp_min(0).sqrt().float())
+    return mean, (s2 / total - mean.square()).clamp_min(0).sqrt()
 
 
 @torch.no_grad()
@@ -452,16 +459,12 @@ def _fit_latent_stats(objective: FlowObjective, dataset: Dataset, config: TrainC
     order; every rank reads the same batches, so all ranks agree without communicating."""
     single = DistInfo(0, 1, 0, info.device)
     loader = EpochBatches(dataset, config, single, seed_offset=1)
-    total = torch.zeros((), dtype=torch.float64, device=info.device)
-    s1 = s2 = None
-    for i, batch in zip(range(config.latent_stats_batches), loader):
-        motion = objective.normalizer.normalize_batch({"motion": batch["motion"]}, info.device)
-        z = objective.latents(motion["motion"], step_generator(info.device, config.seed, 0, i))
-        z = z.reshape(-1, z.shape[-1]).double()
-        s1 = z.sum(0) if s1 is None else s1 + z.sum(0)
-        s2 = z.square().sum(0) if s2 is None else s2 + z.square().sum(0)
-        total += z.shape[0]
-    mean = s1 / total
-    std = (s2 / total - mean.square()).clamp_min(0).sqrt()
+
+    def latents():
+        for i, batch in zip(range(config.latent_stats_batches), loader):
+            motion = objective.normalizer.normalize_batch({"motion": batch["motion"]}, info.device)
+            yield objective.latents(motion["motion"], step_generator(info.device, config.seed, 0, i))
+
+    mean, std = _channel_stats(latents())
     objective.normalizer.set("latent", mean.float().cpu(), std.float().cpu())
     objective.normalizer.to(info.device)
