@@ -63,7 +63,14 @@ def build_parser() -> argparse.ArgumentParser:
                         help="comma-separated subset of gt,real,random,nn,model (the paper's "
                              "Table 1 and the real-vs-real floor: other windows' ground truth) and vae (the run's VAE reconstructing the ground truth: the "
                              "floor under any flow sample; needs only vae.pt; adds "
-                             "reconstruction.md, its error per body part in mm)")
+                             "reconstruction.md, its error per body part in mm), blur and jitter "
+                             "(calibration: the ground truth through a moving average of "
+                             "--blur-frames frames, or plus --jitter-mm of i.i.d. noise: what a "
+                             "metric's value looks like)")
+    parser.add_argument("--blur-frames", type=int, default=d.blur_frames,
+                        help="frames of the blur row's centred moving average")
+    parser.add_argument("--jitter-mm", type=float, default=d.jitter_mm,
+                        help="standard deviation of the jitter row's noise, mm")
     parser.add_argument("--batch-clips", type=int, default=d.batch_clips,
                         help="clips per batch of the FGD / FGD_acc Avg column")
     parser.add_argument("--library-size", type=int, default=d.library_size,
@@ -110,7 +117,8 @@ def main(argv: list[str] | None = None) -> int:
                             gaze=args.gaze, table1_gaze=args.table1_gaze, methods=args.methods,
                             batch_clips=args.batch_clips, seed=args.seed, steps=args.steps,
                             cfg_scale=args.cfg, history_tokens=args.history,
-                            protocol=args.protocol,
+                            protocol=args.protocol, blur_frames=args.blur_frames,
+                            jitter_mm=args.jitter_mm,
                             library_size=args.library_size, features=args.features,
                             library_shards=(None if args.library_shards is None
                                             else str(args.library_shards)),

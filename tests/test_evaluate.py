@@ -13,6 +13,7 @@ from PIL import Image
 from sarah_cli.eval import main
 from helpers import write_split_shards
 from sarah_models.training.checkpoint import load_checkpoint, save_checkpoint
+from sarah_models.evaluation.degradations import blurred, jittered
 from sarah_models.evaluation.runner import select_windows
 from sarah_models.evaluation.tables import MethodResult, table1_markdown, table2_markdown
 from sarah_models.evaluation.metrics import METRICS, CategoryValues, MetricsConfig, MetricsTable
@@ -228,6 +229,53 @@ def test_vae_reconstruction_row_is_opt_in_and_needs_only_the_vae(tiny, tmp_path)
     assert main(eval_args(dict(tiny, run=vae_only), again, "--methods", "gt,vae")) == 2
 
 
+def test_calibration_rows_degrade_the_ground_truth_by_known_amounts(tiny, tmp_path):
+    out = tmp_path / "out"
+    # no model is needed: the rows are the ground truth's own
+    assert main(eval_args(tiny, out, "--methods", "gt,blur,jitter", "--gaze", "none",
+                          "--blur-frames", "5", "--jitter-mm", "2")[2:]) == 0
+    rows = {r["key"]: r for r in json.loads((out / "table1.json").read_text())["rows"]}
+    assert list(rows) == ["gt", "blur", "jitter"]
+    blur, jitter = rows["blur"], rows["jitter"]
+    assert blur["method"] == "GT, blurred (5 frames)" and jitter["method"] == "GT + 2 mm jitter"
+    assert blur["fps"] is None and jitter["fps"] is None and blur["causal"] is None
+    # a blur slows the wrists (these shards' motion is a random walk); both rows have
+    # accelerations the ground truth has not, and the noise leaves the path where it was
+    assert rows["blur"]["shown"]["wrist_speed/avg"] < rows["gt"]["shown"]["wrist_speed/avg"]
+    assert jitter["shown"]["fgd/avg"] < 1e-3 * blur["shown"]["fgd/avg"]
+    assert blur["shown"]["fgd_acc/avg"] > 0 and jitter["shown"]["fgd_acc/avg"] > 0
+    table = (out / "table1.md").read_text()
+    assert "GT, blurred (5 frames)" in table and "GT + 2 mm jitter" in table
+    # no blur and no noise: the ground truth itself, every distance 0
+    same = tmp_path / "same"
+    assert main(eval_args(tiny, same, "--methods", "gt,blur,jitter", "--gaze", "none",
+                          "--blur-frames", "1", "--jitter-mm", "0")[2:]) == 0
+    for row in json.loads((same / "table1.json").read_text())["rows"][1:]:
+        assert row["shown"]["fgd_acc/avg"] == pytest.approx(0, abs=1e-6)
+        assert row["shown"]["fgd/avg"] == pytest.approx(0, abs=1e-6)
+
+
+def test_degradations_are_seeded_and_keep_the_path():
+    rng = np.random.default_rng(1)
+    motion = np.cumsum(rng.normal(0, 0.01, (40, 6)), axis=0).astype(np.float32)
+    assert np.array_equal(blurred(motion, 1), motion)
+    smooth = blurred(motion, 5)
+    assert smooth.shape == motion.shape and smooth.dtype == np.float32
+    # a moving average keeps a straight line (away from the ends) and smooths the rest
+    line = np.outer(np.arange(40), [0.1, -0.2]).astype(np.float32)
+    assert np.allclose(blurred(line, 5)[2:-2], line[2:-2], atol=1e-5)
+    assert np.abs(np.diff(smooth, 2, axis=0)).mean() < np.abs(np.diff(motion, 2, axis=0)).mean()
+    noisy = jittered(motion, 1.0, seed=3, index=7)
+    assert np.array_equal(noisy, jittered(motion, 1.0, seed=3, index=7))
+    assert not np.array_equal(noisy, jittered(motion, 1.0, seed=3, index=8))
+    assert abs(float((noisy - motion).std()) - 0.001) < 0.0002
+    assert np.array_equal(jittered(motion, 0.0), motion)
+    with pytest.raises(ValueError, match="frames"):
+        blurred(motion, 0)
+    with pytest.raises(ValueError, match="mm"):
+        jittered(motion, -1.0)
+
+
 def _error(capsys, argv) -> str:
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -245,5 +293,8 @@ def test_one_line_errors(tiny, tmp_path, capsys):
     assert "mismatched feature extractor" in _error(capsys, eval_args(dict(tiny, shards=hubert), out))
     assert "--run is required" in _error(capsys, eval_args(dict(tiny, run=None), out)[2:])
     assert "unknown method" in _error(capsys, eval_args(tiny, out, "--methods", "gt,mdm"))
+    assert "--jitter-mm must be >= 0" in _error(capsys, eval_args(tiny, out, "--jitter-mm", "-1"))
+    assert "--blur-frames must be positive" in _error(capsys, eval_args(tiny, out,
+                                                                        "--blur-frames", "0"))
     assert "no manifest" in _error(capsys, eval_args(dict(tiny, shards=tmp_path), out))
     assert not out.exists()

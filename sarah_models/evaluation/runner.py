@@ -13,6 +13,9 @@ Methods, each producing one (T, Dx) motion per window in its window frame:
   model   the run's flow checkpoint, once per gaze setting: streaming 4 frames at a time by
           default (what users run), or the offline protocol (all T frames denoised at once
           under the causal mask, as the paper times FPS)
+  vae     the run's VAE reconstructing the window (opt-in)
+  blur    calibration: the window's own motion through a centred moving average (opt-in)
+  jitter  calibration: the window's own motion plus i.i.d. noise of a few mm (opt-in)
 
 Speaking: a window is S when the agent's per-frame speaking labels stored in the shards
 (``sarah_data.speaking`` on the agent's separated audio energy) satisfy the clip rule
@@ -62,11 +65,13 @@ from .tables import (
     table2_markdown,
     write_json,
 )
+from .degradations import BLUR_FRAMES, JITTER_MM, blurred, jittered
 from .reconstruction import ReconstructionErrors, summary_markdown
 from .windows import MethodClips, TestWindows, gt_clips, select_windows
 
-METHODS = ("gt", "real", "random", "nn", "model", "vae")
-# Table 1's rows: the paper's four and the real-vs-real floor; "vae" is opt-in
+METHODS = ("gt", "real", "random", "nn", "model", "vae", "blur", "jitter")
+# Table 1's rows: the paper's four and the real-vs-real floor; "vae" and the calibration rows
+# (``degradations``: the ground truth blurred or jittered by a known amount) are opt-in
 PAPER_METHODS = ("gt", "real", "random", "nn", "model")
 PROTOCOLS = ("offline", "stream")
 
@@ -96,6 +101,8 @@ class EvalConfig:
     # The shards the Random pool and NN library are drawn from (default: the evaluated ones).
     # Evaluating on a corpus the model never saw, point this at its training shards.
     library_shards: str | None = None
+    blur_frames: int = BLUR_FRAMES  # the "blur" row's moving average
+    jitter_mm: float = JITTER_MM  # the "jitter" row's noise
     features: str | None = None  # audio extractor when no model is evaluated (else the run's)
     device: str | None = None
 
@@ -106,10 +113,12 @@ class EvalConfig:
                             f"{', '.join(METHODS)}")
         if self.protocol not in PROTOCOLS:
             raise EvalError(f"unknown protocol {self.protocol!r}; choose offline or stream")
-        for name in ("windows", "window", "batch_clips", "steps", "library_size"):
+        for name in ("windows", "window", "batch_clips", "steps", "library_size", "blur_frames"):
             if getattr(self, name) < 1:
                 raise EvalError(f"--{name.replace('_', '-')} must be positive, got "
                                 f"{getattr(self, name)}")
+        if not self.jitter_mm >= 0:
+            raise EvalError(f"--jitter-mm must be >= 0, got {self.jitter_mm}")
         if self.history_tokens is not None and self.history_tokens < 0:
             raise EvalError(f"--history must be >= 0 or 'all', got {self.history_tokens}")
         for g in (*self.gaze, self.table1_gaze):
@@ -345,6 +354,14 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
         table1.append(score("real", "Real (other windows)",
                             lambda _, i: windows[(i + half) % len(windows)]["motion"], None,
                             timed=False, pooled=False))
+    if "blur" in config.methods:
+        table1.append(score("blur", f"GT, blurred ({config.blur_frames} frames)",
+                            lambda item, _: blurred(item["motion"], config.blur_frames), None,
+                            timed=False))
+    if "jitter" in config.methods:
+        table1.append(score("jitter", f"GT + {config.jitter_mm:g} mm jitter",
+                            lambda item, i: jittered(item["motion"], config.jitter_mm,
+                                                     config.seed, i), None, timed=False))
     if "random" in config.methods:
         from .baselines import RandomBaseline
 
