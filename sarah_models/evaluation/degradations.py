@@ -28,8 +28,9 @@ JITTER_MM = 1.0  # the issue's calibration: 1 mm of noise on the ground truth
 
 
 def blurred(motion, frames: int = BLUR_FRAMES) -> np.ndarray:
-    """(T, Dx) motion averaged over a centred window of ``frames`` frames (the ends repeat the
-    first and last frame), float32; ``frames`` = 1 returns the motion unchanged."""
+    """(T, Dx) motion averaged over a centred window of ``frames`` frames (an even count reaches
+    one frame further back than forward; the ends repeat the first and last frame), float32;
+    ``frames`` = 1 returns the motion unchanged."""
     if frames < 1:
         raise ValueError(f"blur: frames must be >= 1, got {frames}")
     motion = np.asarray(motion, dtype=np.float64)
