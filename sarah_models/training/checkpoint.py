@@ -55,6 +55,15 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     return data
 
 
+def seed_global_rngs(seed: int) -> None:
+    """Seed every global RNG a checkpoint captures (python, numpy legacy, torch and cuda), so
+    that the same inputs, config and seed give byte-identical checkpoints, their saved RNG
+    states included, and not only identical weights."""
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
 def capture_rng_state() -> dict[str, Any]:
     """Global RNG states as plain values/tensors (python, numpy legacy, torch, cuda)."""
     version, internal, gauss = random.getstate()

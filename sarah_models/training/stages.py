@@ -43,6 +43,7 @@ from .checkpoint import (
     load_checkpoint,
     restore_rng_state,
     save_checkpoint,
+    seed_global_rngs,
 )
 from .distributed import DistInfo, setup_distributed
 from .loop import RunLog, make_optimizer, step_generator, train_loop, training_autocast
@@ -254,7 +255,7 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
     source = None if init_from is None else load_init_source(init_from, stage)
 
     # Initial weights are a function of the seed (resumed runs load theirs over them).
-    torch.manual_seed(tcfg.seed + STAGES.index(stage))
+    seed_global_rngs(tcfg.seed + STAGES.index(stage))
     short = None
     if stage == "vae":
         dims = feature_dims(dataset, tcfg.window)
