@@ -32,6 +32,7 @@ from torch import Tensor
 from torch.utils.data import Dataset
 
 from sarah_data.atomic import atomic_write_text
+from sarah_data.moments import Moments
 from sarah_data.skeleton import ICOSAHEDRON_POINTS, ROOT, MotionLayout
 
 from ..config import DECODING_FIELDS, RunConfig, TrainConfig
@@ -436,21 +437,19 @@ def _fit_root_relative_stats(normalizer: Normalizer, dataset: Dataset, config: T
     normalizer.set_root_relative(torch.arange(start, start + ICOSAHEDRON_POINTS))
     loader = EpochBatches(dataset, config, DistInfo(0, 1, 0, torch.device("cpu")), seed_offset=2)
     batches = zip(range(config.latent_stats_batches), loader)
-    mean, std = _channel_stats(normalizer.relative_motion(batch["motion"].double()) for _, batch in batches)
-    normalizer.set("motion", mean.float(), std.float())
+    mean, std = _channel_stats(normalizer.relative_motion(batch["motion"].double())
+                               for _, batch in batches)
+    normalizer.set("motion", mean, std)
 
 
 def _channel_stats(chunks) -> tuple[Tensor, Tensor]:
-    """Per-channel mean and std (float64) of every row of a stream of (..., C) tensors."""
-    s1 = s2 = None
-    total = 0
+    """Per-channel mean and population std (float32, on the CPU) of every row of a stream of
+    (..., C) tensors, accumulated exactly as the shards' statistics are (``Moments``)."""
+    moments = Moments()
     for chunk in chunks:
-        x = chunk.reshape(-1, chunk.shape[-1]).double()
-        s1 = x.sum(0) if s1 is None else s1 + x.sum(0)
-        s2 = x.square().sum(0) if s2 is None else s2 + x.square().sum(0)
-        total += x.shape[0]
-    mean = s1 / total
-    return mean, (s2 / total - mean.square()).clamp_min(0).sqrt()
+        moments.add(chunk.detach().reshape(-1, chunk.shape[-1]).double().cpu().numpy())
+    mean, std = moments.mean_std(0.0)
+    return torch.from_numpy(mean), torch.from_numpy(std)
 
 
 @torch.no_grad()
@@ -467,5 +466,5 @@ def _fit_latent_stats(objective: FlowObjective, dataset: Dataset, config: TrainC
             yield objective.latents(motion["motion"], step_generator(info.device, config.seed, 0, i))
 
     mean, std = _channel_stats(latents())
-    objective.normalizer.set("latent", mean.float().cpu(), std.float().cpu())
+    objective.normalizer.set("latent", mean, std)
     objective.normalizer.to(info.device)
