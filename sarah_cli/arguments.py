@@ -55,6 +55,13 @@ def pretrained_model(name: str) -> Path:
         raise argparse.ArgumentTypeError(str(error)) from None
 
 
+def model_or_name(text: str) -> Path:
+    """A path, or the name of a shipped model when no such path exists."""
+    from sarah_models.pretrained import MODELS
+
+    return pretrained_model(text) if text in MODELS and not Path(text).exists() else Path(text)
+
+
 def add_model_arguments(parser: argparse.ArgumentParser, required: bool, run_help: str) -> None:
     """``--run`` (a run folder or a model file) or ``--pretrained NAME``; both land in ``run``."""
     from sarah_models.pretrained import MODELS

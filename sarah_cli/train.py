@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 from sarah_models.config import PRESETS, RunConfig, decoding_settings
-from sarah_cli.arguments import HelpFormatter
+from sarah_cli.arguments import HelpFormatter, model_or_name
 
 EXIT_ERROR = 2
 
@@ -51,6 +51,11 @@ def build_parser() -> argparse.ArgumentParser:
                              "vae.velocity_weight=100) and train.lr_schedule may differ, sizes "
                              "may not; --stage flow into a folder without vae.pt fine-tunes "
                              "CKPT's flow on CKPT's own VAE")
+    parser.add_argument("--decoding-from", type=model_or_name, default=None, metavar="MODEL",
+                        help="with --stage model: start from the decoding settings MODEL was "
+                             "written with (a model file, flow checkpoint or run folder, or a "
+                             "shipped model's name such as fixture-tiny); --set changes them "
+                             "further")
     parser.add_argument("--device", default=None,
                         help="cpu, cuda or cuda:N; None = cuda when available (cuda:LOCAL_RANK "
                              "under torchrun), else cpu")
@@ -86,6 +91,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.replace_changed and not args.resume:
         parser.error("--replace-changed goes with --resume (it decides what a resume keeps)")
+    if args.decoding_from is not None and args.stage != "model":
+        parser.error("--decoding-from goes with --stage model (a trained stage writes its "
+                     "decoding settings from --set)")
     if args.stage == "model":
         return write_model(args)
     if args.shards is None:
@@ -140,17 +148,17 @@ def main(argv: list[str] | None = None) -> int:
 def write_model(args: argparse.Namespace) -> int:
     """--stage model: a model file from another run's weights, with other decoding settings."""
     from sarah_data.loading import DataProblem
-    from sarah_models.training.model_file import MODEL_FILE, write_model_file
+    from sarah_models.training.model_file import (MODEL_FILE, decoding_of, flow_source,
+                                                  write_model_file)
 
     if args.init_from is None:
         print("sarah-train: error: --stage model writes the weights of --init-from (a run folder, "
               "flow.pt or a model file); give it", file=sys.stderr)
         return EXIT_ERROR
-    source = Path(args.init_from)
-    if source.is_dir():
-        source = source / "flow.pt" if (source / "flow.pt").is_file() else source / MODEL_FILE
     try:
-        model = write_model_file(source, Path(args.out) / MODEL_FILE, args.overrides, args.shards)
+        decoding = [] if args.decoding_from is None else decoding_of(args.decoding_from)
+        model = write_model_file(flow_source(args.init_from), Path(args.out) / MODEL_FILE,
+                                 decoding + args.overrides, args.shards)
     except (DataProblem, ValueError, FileNotFoundError, OSError) as exc:
         print(f"sarah-train: error: {exc}", file=sys.stderr)
         return EXIT_ERROR

@@ -782,6 +782,43 @@ def test_stage_model_rewrites_decoding_settings_and_nothing_else(tmp_path, capsy
     assert not (tmp_path / "no").exists()
 
 
+def test_stage_model_copies_the_decoding_settings_of_another_model(tmp_path, capsys):
+    """--decoding-from: a model written with no settings spelled decodes as the shipped one does,
+    and --set still changes one of them; it belongs to --stage model only."""
+    from sarah_cli.train import main
+    from sarah_models.config import RunConfig, decoding_settings
+    from sarah_models.pretrained import model_path
+    from sarah_models.training.model_file import read_model_file
+
+    def decoding(run):
+        config = read_model_file(Path(run) / "model.safetensors")["config"]
+        return {name: config["vae"][name.split(".")[1]] for name in decoding_settings()}
+
+    shipped = read_model_file(model_path("fixture-tiny"))["config"]["vae"]
+    plain = tmp_path / "plain"  # the shipped weights with every decoding setting at its default
+    defaults = RunConfig.preset("tiny").to_dict()["vae"]
+    assert main(["--stage", "model", "--init-from", str(model_path("fixture-tiny")), "--out", str(plain)]
+                + [a for name in decoding_settings() for a in
+                   ("--set", f"{name}={defaults[name.split('.')[1]]}")]) == 0
+    wanted = {name: shipped[name.split(".")[1]] for name in decoding_settings()}
+    assert decoding(plain) != wanted
+    assert main(["--stage", "model", "--init-from", str(plain), "--out", str(tmp_path / "same"),
+                 "--decoding-from", "fixture-tiny"]) == 0
+    assert decoding(tmp_path / "same") == wanted
+    same, before = (read_model_file(Path(run) / "model.safetensors")["config"]
+                    for run in (tmp_path / "same", plain))
+    for section in same:  # nothing but the decoding settings came across
+        assert {k: v for k, v in same[section].items() if f"{section}.{k}" not in wanted} == \
+            {k: v for k, v in before[section].items() if f"{section}.{k}" not in wanted}
+    assert main(["--stage", "model", "--init-from", str(plain), "--out", str(tmp_path / "other"),
+                 "--decoding-from", str(tmp_path / "same"), "--set", "vae.foot_lock=0"]) == 0
+    assert decoding(tmp_path / "other") == {**wanted, "vae.foot_lock": 0.0} != wanted
+    with pytest.raises(SystemExit):
+        main(["--stage", "flow", "--shards", str(tmp_path), "--out", str(tmp_path / "no"),
+              "--decoding-from", "fixture-tiny"])
+    assert "--decoding-from goes with --stage model" in capsys.readouterr().err
+
+
 def test_stage_model_takes_the_skeleton_of_shards_for_a_rigid_decoding(prepared_shards, tmp_path,
                                                                        capsys):
     """A model trained before stats.h5 had bone lengths: asked to decode onto a rigid skeleton

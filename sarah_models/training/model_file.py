@@ -70,6 +70,24 @@ def write_model_file(source: str | Path, out: str | Path, decoding: Sequence[str
     return out
 
 
+def flow_source(path: str | Path) -> Path:
+    """What a path names as finished weights: a model file or flow checkpoint as given, a run
+    folder's ``flow.pt`` (or its model file when it has none)."""
+    path = Path(path)
+    if path.is_dir():
+        return path / "flow.pt" if (path / "flow.pt").is_file() else path / MODEL_FILE
+    return path
+
+
+def decoding_of(source: str | Path) -> list[str]:
+    """The decoding settings (DECODING_FIELDS) a model file, flow checkpoint or run folder was
+    written with, as ``--set`` strings: another run's model file decodes the same way without
+    spelling them again."""
+    config = read_weights(flow_source(source))["config"]
+    return [f"{name}={json.dumps(config[name.split('.')[0]][name.split('.')[1]])}"
+            for name in decoding_settings()]
+
+
 def skeleton_statistics(shards: str | Path) -> dict[str, torch.Tensor]:
     """The normalizer's ``bone_length`` buffers from a shards folder's statistics; stats.h5
     written before they were added is computed again from the shards (same numbers otherwise)."""
