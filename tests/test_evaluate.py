@@ -86,6 +86,26 @@ def test_table2_markdown_rows_per_gaze():
     assert lines[4].split("|")[2].strip() == "1.28"
 
 
+def test_paired_comparison_cancels_what_the_windows_share():
+    """Clips that differ from GT by a constant: the difference's interval is that constant
+    exactly, however widely the windows spread, while each mean's own interval is wide; the
+    ratio of a scaled copy is its factor; no interval without clips or where GT's mean is 0."""
+    from sarah_models.evaluation.metrics.table import bootstrap_interval, paired_comparison
+
+    gt = np.random.default_rng(1).normal(50.0, 20.0, size=300)
+    shifted = paired_comparison(gt + 0.04, gt)
+    assert shifted["gap"] == pytest.approx(0.04)
+    assert shifted["gap_low"] == pytest.approx(0.04) and shifted["gap_high"] == pytest.approx(0.04)
+    low, high = bootstrap_interval(gt + 0.04)
+    assert high - low > 2.0  # unpaired, the two means' intervals overlap entirely
+    scaled = paired_comparison(1.2 * gt, gt)
+    assert (scaled["ratio_low"], scaled["ratio"], scaled["ratio_high"]) == pytest.approx((1.2,) * 3)
+    noisy = paired_comparison(gt + np.random.default_rng(2).normal(0.0, 1.0, 300), gt)
+    assert noisy["gap_low"] < noisy["gap"] < noisy["gap_high"]
+    assert paired_comparison([], []) == {}
+    assert "ratio" not in paired_comparison([1.0, 2.0], [0.0, 0.0])
+
+
 # --------------------------------------------------------------------------- end to end
 
 
@@ -137,9 +157,23 @@ def test_end_to_end_tables_plots_and_determinism(tiny, tmp_path, capsys):
     assert t2["rows"][0]["shown"] == model["shown"]  # Table 1's model row is the ∅ run
     assert t2["gt_head_angle"] == gt["shown"]["head_angle/avg"]
     md = (out / "table1.md").read_text().splitlines()
-    assert [line.split("|")[1].strip() for line in md[4:]][:4] == ["GT", "Real (other windows)",
-                                                                   "Random", "NN"]
+    assert [line.split("|")[1].strip() for line in md[4:8]] == ["GT", "Real (other windows)",
+                                                                "Random", "NN"]
     assert "Avg (95 %)" in md[2] and "Pooled" in md[2]
+    beside = md[md.index("**Beside GT on the same windows: difference (this − GT) and ratio "
+                         "(this ÷ GT) of the means, paired 95 % bootstrap intervals.**"):]
+    assert [line.split("|")[1].strip() for line in beside[4:]] == [
+        r["method"] for r in (real, random, nn, model)]
+    for row in (real, random, nn, model):  # each per-clip metric paired with GT's, same windows
+        shown = row["shown"]
+        for name in ("wrist_speed", "head_angle"):
+            gap, low, high = (shown[f"{name}/{k}"] for k in ("gap", "gap_low", "gap_high"))
+            assert gap == pytest.approx(shown[f"{name}/avg"] - gt["shown"][f"{name}/avg"], abs=1e-9)
+            assert low <= gap + 1e-9 <= high + 2e-9
+        ratio = shown["wrist_speed/ratio"]
+        assert ratio == pytest.approx(shown["wrist_speed/avg"] / gt["shown"]["wrist_speed/avg"])
+        assert shown["wrist_speed/ratio_low"] <= ratio <= shown["wrist_speed/ratio_high"]
+        assert shown["fgd/gap"] is None  # Fréchet metrics are distances to GT already
     listing = json.loads((out / "windows.json").read_text())["windows"]
     assert len(listing) == 6 and {w["start"] for w in listing} <= {0, 16}
     assert sum(w["speaking"] for w in listing) == t1["num_speaking"]

@@ -122,6 +122,32 @@ def table1_markdown(rows: Sequence[MethodResult], caption: str) -> str:
             if metric.kind == "frechet":
                 cells.append(interval(shown, name, d, ("pooled", "pooled_low", "pooled_high")))
         lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n" + beside_gt_markdown(rows)
+
+
+def beside_gt_markdown(rows: Sequence[MethodResult]) -> str:
+    """Each scored row's per-clip metrics against GT's on the same windows: the difference of
+    the means and their ratio, each with its paired 95 % bootstrap interval; "" when no row
+    has them (GT alone, or tables from before they were computed)."""
+    metrics = [m for m in scored(rows) if m.kind == "clip"] if rows else []
+    scored_rows = [r for r in rows if not r.reference
+                   and any(r.shown().get(f"{m.name}/gap") is not None for m in metrics)]
+    if not scored_rows:
+        return ""
+    head = ["Method"] + [f"{m.label} − GT; ÷ GT" for m in metrics]
+    lines = ["", "**Beside GT on the same windows: difference (this − GT) and ratio (this ÷ GT) "
+             "of the means, paired 95 % bootstrap intervals.**", "",
+             "| " + " | ".join(head) + " |", "|" + "|".join([":---"] + [":---:"] * len(metrics)) + "|"]
+    for row in scored_rows:
+        shown, cells = row.shown(), [row.label]
+        for metric in metrics:
+            gap, low, high = (shown.get(f"{metric.name}/{k}") for k in ("gap", "gap_low", "gap_high"))
+            d = metric.decimals + 1
+            cell = "-" if gap is None else f"{gap:+.{d}f} ({low:+.{d}f} to {high:+.{d}f})"
+            if shown.get(f"{metric.name}/ratio") is not None:
+                cell += f"; {interval(shown, metric.name, 2, ('ratio', 'ratio_low', 'ratio_high'))}×"
+            cells.append(cell)
+        lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

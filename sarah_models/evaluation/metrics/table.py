@@ -10,7 +10,8 @@
   together.
 * Per-clip metrics (foot slide, wrist speed, head angle): one value per generated clip; S and
   NS are the means over the clips of each category; Avg is their clip-count-weighted mean, with
-  a 95 % bootstrap interval over clips.
+  a 95 % bootstrap interval over clips; beside GT on the same windows, the difference and the
+  ratio of the means with paired 95 % bootstrap intervals (``paired_comparison``).
 
 Reported values are in centimetres (the paper's meshes are in centimetres, and its thresholds
 and table magnitudes read naturally in them); "FGD (x10^1)" in the paper's table header is read
@@ -46,9 +47,20 @@ class CategoryValues:
     pooled: float = math.nan
     pooled_low: float = math.nan
     pooled_high: float = math.nan
+    # A per-clip metric beside the ground truth of the same windows: the difference of the
+    # means (this minus GT) and their ratio, each with a 95 % paired bootstrap interval. The
+    # acceptance targets are of this form ("within 0.05 of GT", "within 20 % of GT"), and
+    # pairing cancels the spread the windows share, which two separate intervals count twice.
+    gap: float = math.nan
+    gap_low: float = math.nan
+    gap_high: float = math.nan
+    ratio: float = math.nan
+    ratio_low: float = math.nan
+    ratio_high: float = math.nan
 
 
 BOOTSTRAP_DRAWS = 1000
+UNSCALED_COLUMNS = ("ratio", "ratio_low", "ratio_high")  # no unit: the display scale cancels
 
 
 def bootstrap_interval(values, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> tuple[float, float]:
@@ -61,6 +73,27 @@ def bootstrap_interval(values, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> t
     means = values[rng.integers(len(values), size=(draws, len(values)))].mean(axis=1)
     low, high = np.percentile(means, [2.5, 97.5])
     return float(low), float(high)
+
+
+def paired_comparison(values, reference, seed: int = 0,
+                      draws: int = BOOTSTRAP_DRAWS) -> dict[str, float]:
+    """``values`` against ``reference``, clip i of each from the same window: the difference of
+    their means and the ratio, each with its 95 % percentile-bootstrap interval, both means of
+    every draw taken over the same resampled windows (a ratio is NaN where GT's mean is 0)."""
+    values = np.asarray(values, dtype=np.float64)
+    reference = np.asarray(reference, dtype=np.float64)
+    if len(values) == 0 or values.shape != reference.shape:
+        return {}
+    rng = np.random.default_rng(seed)
+    picks = rng.integers(len(values), size=(draws, len(values)))
+    means, gt_means = values[picks].mean(axis=1), reference[picks].mean(axis=1)
+    out = {"gap": float(values.mean() - reference.mean())}
+    out["gap_low"], out["gap_high"] = (float(v) for v in np.percentile(means - gt_means, [2.5, 97.5]))
+    if reference.mean() != 0 and np.all(gt_means != 0):
+        out["ratio"] = float(values.mean() / reference.mean())
+        out["ratio_low"], out["ratio_high"] = (float(v) for v in
+                                               np.percentile(means / gt_means, [2.5, 97.5]))
+    return out
 
 
 def pooled_interval(groups: Sequence[tuple[Moments, Moments]], ridge: float,
@@ -110,7 +143,7 @@ class MetricsTable:
         for name in self.values:
             factor = self.display_scale[name] if scale else 1.0
             for column, value in asdict(self.values[name]).items():
-                row[f"{name}/{column}"] = value / factor
+                row[f"{name}/{column}"] = value if column in UNSCALED_COLUMNS else value / factor
         return row
 
     def to_dict(self) -> dict:
@@ -176,6 +209,7 @@ def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
     reference = generated[0]
     frechet = [m for m in registered() if m.kind == "frechet"]
     per_clip = {m.name: [] for m in registered() if m.kind == "clip"}
+    gt_per_clip = {m.name: [] for m in registered() if m.kind == "clip"}
     pooled = {(m.name, role, cat): Moments(full=True) for m in frechet
               for role in ("gen", "gt") for cat in (False, True)}
     batch_values: dict[str, list[float]] = {m.name: [] for m in frechet}
@@ -196,8 +230,7 @@ def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
                     if group_count:  # consecutive clips, the groups as equal as they go
                         groups[metric.name][i * group_count // len(generated)][
                             role == "gt"].merge(moments)
-                if role == "gen":
-                    _add_clip_values(per_clip, decoded, cfg)
+                _add_clip_values(per_clip if role == "gen" else gt_per_clip, decoded, cfg)
         for metric in frechet:
             batch_values[metric.name].append(moments_distance(
                 batch[metric.name, "gen"], batch[metric.name, "gt"], cfg.fd_ridge))
@@ -221,7 +254,10 @@ def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
                 float(batches.mean()), ns * factor, s * factor, low, high, whole * factor,
                 whole_low * factor, whole_high * factor)
         else:
-            values[metric.name] = category_means(np.asarray(per_clip[metric.name]) * factor, speaking)
+            clips = np.asarray(per_clip[metric.name]) * factor
+            values[metric.name] = replace(
+                category_means(clips, speaking),
+                **paired_comparison(clips, np.asarray(gt_per_clip[metric.name]) * factor))
     return _table(values, cfg, speaking, reference, -(-len(generated) // cfg.batch_clips))
 
 
