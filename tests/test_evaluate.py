@@ -104,6 +104,7 @@ def test_paired_comparison_cancels_what_the_windows_share():
     assert noisy["gap_low"] < noisy["gap"] < noisy["gap_high"]
     assert paired_comparison([], []) == {}
     assert "ratio" not in paired_comparison([1.0, 2.0], [0.0, 0.0])
+    assert "ratio" not in paired_comparison(gt + 0.04, gt, ratio=False)
 
 
 # --------------------------------------------------------------------------- end to end
@@ -160,8 +161,9 @@ def test_end_to_end_tables_plots_and_determinism(tiny, tmp_path, capsys):
     assert [line.split("|")[1].strip() for line in md[4:8]] == ["GT", "Real (other windows)",
                                                                 "Random", "NN"]
     assert "Avg (95 %)" in md[2] and "Pooled" in md[2]
-    beside = md[md.index("**Beside GT on the same windows: difference (this − GT) and ratio "
-                         "(this ÷ GT) of the means, paired 95 % bootstrap intervals.**"):]
+    beside = md[md.index("**Beside GT on the same windows: difference (this − GT) and, for "
+                         "magnitudes, ratio (this ÷ GT) of the means, paired 95 % bootstrap "
+                         "intervals.**"):]
     assert [line.split("|")[1].strip() for line in beside[4:]] == [
         r["method"] for r in (real, random, nn, model)]
     for row in (real, random, nn, model):  # each per-clip metric paired with GT's, same windows
@@ -174,6 +176,7 @@ def test_end_to_end_tables_plots_and_determinism(tiny, tmp_path, capsys):
         assert ratio == pytest.approx(shown["wrist_speed/avg"] / gt["shown"]["wrist_speed/avg"])
         assert shown["wrist_speed/ratio_low"] <= ratio <= shown["wrist_speed/ratio_high"]
         assert shown["fgd/gap"] is None  # Fréchet metrics are distances to GT already
+        assert shown["head_angle/ratio"] is None  # compared by difference only
     listing = json.loads((out / "windows.json").read_text())["windows"]
     assert len(listing) == 6 and {w["start"] for w in listing} <= {0, 16}
     assert sum(w["speaking"] for w in listing) == t1["num_speaking"]

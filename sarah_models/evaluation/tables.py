@@ -127,16 +127,16 @@ def table1_markdown(rows: Sequence[MethodResult], caption: str) -> str:
 
 def beside_gt_markdown(rows: Sequence[MethodResult]) -> str:
     """Each scored row's per-clip metrics against GT's on the same windows: the difference of
-    the means and their ratio, each with its paired 95 % bootstrap interval; "" when no row
-    has them (GT alone, or tables from before they were computed)."""
+    the means and (``ratio_to_gt``) their ratio, each with its paired 95 % bootstrap interval;
+    "" when no row has them (GT alone, or tables from before they were computed)."""
     metrics = [m for m in scored(rows) if m.kind == "clip"] if rows else []
     scored_rows = [r for r in rows if not r.reference
                    and any(r.shown().get(f"{m.name}/gap") is not None for m in metrics)]
     if not scored_rows:
         return ""
-    head = ["Method"] + [f"{m.label} − GT; ÷ GT" for m in metrics]
-    lines = ["", "**Beside GT on the same windows: difference (this − GT) and ratio (this ÷ GT) "
-             "of the means, paired 95 % bootstrap intervals.**", "",
+    head = ["Method"] + [f"{m.label} − GT" + ("; ÷ GT" if m.ratio_to_gt else "") for m in metrics]
+    lines = ["", "**Beside GT on the same windows: difference (this − GT) and, for magnitudes, "
+             "ratio (this ÷ GT) of the means, paired 95 % bootstrap intervals.**", "",
              "| " + " | ".join(head) + " |", "|" + "|".join([":---"] + [":---:"] * len(metrics)) + "|"]
     for row in scored_rows:
         shown, cells = row.shown(), [row.label]

@@ -44,6 +44,9 @@ class Metric:
     better: str = "lower"  # "lower" or "higher": the table's arrow
     value_range: str = ""  # shown in the header, e.g. " ∈ [0, 1]"
     window_frame: bool = False  # defined for clips in their window frame only (not world clips)
+    # A per-clip magnitude that reads as a share of GT's ("wrists at 1.2x GT's speed"); others
+    # are compared to GT by difference only (GT's bone-length error or frame-0 offset is ~0).
+    ratio_to_gt: bool = False
 
     def __post_init__(self) -> None:
         if self.kind not in ("frechet", "clip"):

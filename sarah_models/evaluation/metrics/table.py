@@ -10,8 +10,9 @@
   together.
 * Per-clip metrics (foot slide, wrist speed, head angle): one value per generated clip; S and
   NS are the means over the clips of each category; Avg is their clip-count-weighted mean, with
-  a 95 % bootstrap interval over clips; beside GT on the same windows, the difference and the
-  ratio of the means with paired 95 % bootstrap intervals (``paired_comparison``).
+  a 95 % bootstrap interval over clips; beside GT on the same windows, the difference of the
+  means (and their ratio, for a metric with ``ratio_to_gt``) with paired 95 % bootstrap
+  intervals (``paired_comparison``).
 
 Reported values are in centimetres (the paper's meshes are in centimetres, and its thresholds
 and table magnitudes read naturally in them); "FGD (x10^1)" in the paper's table header is read
@@ -75,11 +76,12 @@ def bootstrap_interval(values, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> t
     return float(low), float(high)
 
 
-def paired_comparison(values, reference, seed: int = 0,
+def paired_comparison(values, reference, ratio: bool = True, seed: int = 0,
                       draws: int = BOOTSTRAP_DRAWS) -> dict[str, float]:
     """``values`` against ``reference``, clip i of each from the same window: the difference of
-    their means and the ratio, each with its 95 % percentile-bootstrap interval, both means of
-    every draw taken over the same resampled windows (a ratio is NaN where GT's mean is 0)."""
+    their means and (with ``ratio``) their ratio, each with its 95 % percentile-bootstrap
+    interval, both means of every draw taken over the same resampled windows (no ratio where
+    GT's mean is 0)."""
     values = np.asarray(values, dtype=np.float64)
     reference = np.asarray(reference, dtype=np.float64)
     if len(values) == 0 or values.shape != reference.shape:
@@ -89,7 +91,7 @@ def paired_comparison(values, reference, seed: int = 0,
     means, gt_means = values[picks].mean(axis=1), reference[picks].mean(axis=1)
     out = {"gap": float(values.mean() - reference.mean())}
     out["gap_low"], out["gap_high"] = (float(v) for v in np.percentile(means - gt_means, [2.5, 97.5]))
-    if reference.mean() != 0 and np.all(gt_means != 0):
+    if ratio and reference.mean() != 0 and np.all(gt_means != 0):
         out["ratio"] = float(values.mean() / reference.mean())
         out["ratio_low"], out["ratio_high"] = (float(v) for v in
                                                np.percentile(means / gt_means, [2.5, 97.5]))
@@ -257,7 +259,8 @@ def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
             clips = np.asarray(per_clip[metric.name]) * factor
             values[metric.name] = replace(
                 category_means(clips, speaking),
-                **paired_comparison(clips, np.asarray(gt_per_clip[metric.name]) * factor))
+                **paired_comparison(clips, np.asarray(gt_per_clip[metric.name]) * factor,
+                                    ratio=metric.ratio_to_gt))
     return _table(values, cfg, speaking, reference, -(-len(generated) // cfg.batch_clips))
 
 

@@ -22,6 +22,6 @@ def wrist_speed(joint_positions, fps: float = FPS, wrist_joints: Sequence[str] =
 
 
 METRIC = Metric(name="wrist_speed", label="Wrist Var", kind="clip", order=40, unit="{u}/s",
-                length_power=1, decimals=1, better="higher",
+                length_power=1, decimals=1, better="higher", ratio_to_gt=True,
                 function=lambda clip, config: wrist_speed(clip.joints[0], clip.fps,
                                                           config.wrist_joints))
