@@ -49,7 +49,8 @@ class CategoryValues:
     pooled_low: float = math.nan
     pooled_high: float = math.nan
     # A per-clip metric beside the ground truth of the same windows: the difference of the
-    # means (this minus GT) and their ratio, each with a 95 % paired bootstrap interval. The
+    # means (this minus GT) and, for a magnitude (``Metric.ratio_to_gt``), their ratio, each
+    # with a 95 % paired bootstrap interval. The
     # acceptance targets are of this form ("within 0.05 of GT", "within 20 % of GT"), and
     # pairing cancels the spread the windows share, which two separate intervals count twice.
     gap: float = math.nan
@@ -193,7 +194,8 @@ def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
 
     speaking (N,) bool: whether clip i is a speaking clip (sarah_data.speaking's clip rule on the
     agent's audio). FGD batches are consecutive runs of `batch_clips` clips in the given order;
-    the last batch may be shorter. Per-clip metrics are computed on the generated clips only.
+    the last batch may be shorter. Per-clip metrics are scored on the generated clips and
+    compared with the same metric on their ground truth (``paired_comparison``).
     The clip sequences may be lazy (any __len__/__getitem__); each clip is read once, in order.
     All clips must share one length, frame rate and shell size.
     """
