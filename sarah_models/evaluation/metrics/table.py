@@ -50,9 +50,9 @@ class CategoryValues:
     pooled_high: float = math.nan
     # A per-clip metric beside the ground truth of the same windows: the difference of the
     # means (this minus GT) and, for a magnitude (``Metric.ratio_to_gt``), their ratio, each
-    # with a 95 % paired bootstrap interval. The
-    # acceptance targets are of this form ("within 0.05 of GT", "within 20 % of GT"), and
-    # pairing cancels the spread the windows share, which two separate intervals count twice.
+    # with a 95 % paired bootstrap interval. The acceptance targets are of this form ("within
+    # 0.05 of GT", "within 20 % of GT"), and pairing cancels the spread the windows share,
+    # which two separate intervals count twice.
     gap: float = math.nan
     gap_low: float = math.nan
     gap_high: float = math.nan
