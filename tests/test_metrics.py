@@ -260,6 +260,11 @@ def test_evaluate_pools_speaking_categories_and_averages_batches():
         assert values.ns == pytest.approx(ns, rel=1e-8)
         assert values.avg == pytest.approx(np.mean(batches), rel=1e-8)
         assert values.avg != pytest.approx((2 * s + 4 * ns) / 6, rel=1e-3)  # not a weighted mean
+    # The ground truth's per-clip values given (the runner scores them once for the GT row):
+    # the same table, every column.
+    given = evaluate(generated, ground_truth, speaking, batch_clips=4,
+                     reference_values=metrics.clip_values(ground_truth))
+    assert given.to_dict() == table.to_dict()
 
     assert (table.num_clips, table.num_speaking, table.num_non_speaking) == (6, 2, 4)
     assert (table.window_frames, table.batch_clips, table.num_batches) == (12, 4, 2)

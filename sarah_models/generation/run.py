@@ -23,7 +23,7 @@ from sarah_data.skeleton import HEAD, MotionLayout
 from ..config import StreamConfig, check_gaze
 from ..sampling.stream import StreamingGenerator, StreamingSession, offline_with_latents
 from ..training.checkpoint import LoadedModels, load_models
-from ..training.model_file import MODEL_FILE, load_model_file
+from ..training.model_file import MODEL_FILE, flow_source, load_model_file
 from .inputs import (
     DEFAULT_FRAMES,
     GenerateError,
@@ -52,9 +52,7 @@ def load_run(run: str | Path, checkpoint: str | Path | None = None,
     elif not run.is_dir():
         raise GenerateError(f"{run}: no such run folder or model file")
     if checkpoint is None:
-        path = run / "flow.pt"
-        if not path.is_file() and (run / MODEL_FILE).is_file():
-            path = run / MODEL_FILE
+        path = flow_source(run)
     else:
         path = Path(checkpoint)
         if not path.is_file() and (run / path).is_file():

@@ -25,7 +25,7 @@ from safetensors.torch import load_file, safe_open, save
 
 from sarah_data.atomic import atomic_path
 
-from ..config import RunConfig, decoding_settings
+from ..config import DECODING_FIELDS, RunConfig, decoding_settings
 from ..nn.normalizer import Normalizer
 from .checkpoint import LoadedModels, build_models, load_checkpoint
 
@@ -72,11 +72,13 @@ def write_model_file(source: str | Path, out: str | Path, decoding: Sequence[str
 
 def flow_source(path: str | Path) -> Path:
     """What a path names as finished weights: a model file or flow checkpoint as given, a run
-    folder's ``flow.pt`` (or its model file when it has none)."""
+    folder's ``flow.pt``, or its model file when it has only that."""
     path = Path(path)
-    if path.is_dir():
-        return path / "flow.pt" if (path / "flow.pt").is_file() else path / MODEL_FILE
-    return path
+    if not path.is_dir():
+        return path
+    if not (path / "flow.pt").is_file() and (path / MODEL_FILE).is_file():
+        return path / MODEL_FILE
+    return path / "flow.pt"
 
 
 def decoding_of(source: str | Path) -> list[str]:
@@ -84,8 +86,8 @@ def decoding_of(source: str | Path) -> list[str]:
     written with, as ``--set`` strings: another run's model file decodes the same way without
     spelling them again."""
     config = read_weights(flow_source(source))["config"]
-    return [f"{name}={json.dumps(config[name.split('.')[0]][name.split('.')[1]])}"
-            for name in decoding_settings()]
+    return [f"{section}.{name}={json.dumps(config[section][name])}"
+            for section, names in DECODING_FIELDS.items() for name in names]
 
 
 def skeleton_statistics(shards: str | Path) -> dict[str, torch.Tensor]:

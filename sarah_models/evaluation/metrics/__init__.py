@@ -21,6 +21,7 @@ from .table import (
                       CategoryValues,
                       MetricsTable,
                       category_means,
+                      clip_values,
                       evaluate,
                       metric_units,
                       reference_table,
@@ -30,7 +31,7 @@ from .wrist_speed import wrist_speed
 METRICS = tuple(m.name for m in registered())
 
 __all__ = ["METRICS", "CategoryValues", "Clip", "DecodedClip", "FrechetRidgeWarning", "Metric",
-           "MetricsConfig", "MetricsTable", "Moments", "accelerations", "category_means",
+           "MetricsConfig", "MetricsTable", "Moments", "accelerations", "category_means", "clip_values",
            "evaluate", "foot_slide", "foot_steps", "frechet_distance", "frechet_distance_from_moments",
            "head_angle", "metric_units", "moments_distance", "reference_table", "registered",
            "step_paths", "step_reaches", "wrist_speed"]

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, replace
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -189,13 +189,16 @@ def _table(values: dict[str, CategoryValues], cfg: MetricsConfig, speaking: np.n
 
 
 def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
-             batch_clips: int | None = None, config: MetricsConfig | None = None) -> MetricsTable:
+             batch_clips: int | None = None, config: MetricsConfig | None = None,
+             reference_values: Mapping[str, np.ndarray] | None = None) -> MetricsTable:
     """Score generated clips against their ground truth (clip i of each is the same window).
 
     speaking (N,) bool: whether clip i is a speaking clip (sarah_data.speaking's clip rule on the
     agent's audio). FGD batches are consecutive runs of `batch_clips` clips in the given order;
     the last batch may be shorter. Per-clip metrics are scored on the generated clips and
-    compared with the same metric on their ground truth (``paired_comparison``).
+    compared with the same metric on their ground truth (``paired_comparison``);
+    ``reference_values`` (``clip_values`` of the ground truth) spares computing those again for
+    every method scored against the same windows.
     The clip sequences may be lazy (any __len__/__getitem__); each clip is read once, in order.
     All clips must share one length, frame rate and shell size.
     """
@@ -234,7 +237,8 @@ def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
                     if group_count:  # consecutive clips, the groups as equal as they go
                         groups[metric.name][i * group_count // len(generated)][
                             role == "gt"].merge(moments)
-                _add_clip_values(per_clip if role == "gen" else gt_per_clip, decoded, cfg)
+                if role == "gen" or reference_values is None:
+                    _add_clip_values(per_clip if role == "gen" else gt_per_clip, decoded, cfg)
         for metric in frechet:
             batch_values[metric.name].append(moments_distance(
                 batch[metric.name, "gen"], batch[metric.name, "gt"], cfg.fd_ridge))
@@ -261,8 +265,9 @@ def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
             clips = np.asarray(per_clip[metric.name]) * factor
             values[metric.name] = replace(
                 category_means(clips, speaking),
-                **paired_comparison(clips, np.asarray(gt_per_clip[metric.name]) * factor,
-                                    ratio=metric.ratio_to_gt))
+                **paired_comparison(clips, np.asarray(gt_per_clip[metric.name] if reference_values
+                                                      is None else reference_values[metric.name])
+                                    * factor, ratio=metric.ratio_to_gt))
     return _table(values, cfg, speaking, reference, -(-len(generated) // cfg.batch_clips))
 
 
@@ -273,16 +278,24 @@ def _add_clip_values(per_clip: dict[str, list[float]], decoded: DecodedClip,
             per_clip[metric.name].append(metric.function(decoded, cfg))
 
 
-def reference_table(clips: Sequence[Clip], speaking: np.ndarray,
-                    config: MetricsConfig = MetricsConfig()) -> MetricsTable:
-    """The GT row: the per-clip metrics of real motion with the same S/NS pooling as ``evaluate``
-    and the Fréchet metrics NaN -- FGD of the ground truth against itself is 0 by definition,
-    and computing it would only measure the covariance square root's rounding."""
-    speaking = np.asarray(speaking, bool)
+def clip_values(clips: Sequence[Clip], config: MetricsConfig = MetricsConfig()) -> dict[str, np.ndarray]:
+    """Every per-clip metric of every clip, raw (metres and seconds), in clip order."""
     per_clip: dict[str, list[float]] = {m.name: [] for m in registered() if m.kind == "clip"}
     for i in range(len(clips)):
         _add_clip_values(per_clip, DecodedClip(clips[i], config.root_joint, config.normalize_window),
                          config)
+    return {name: np.asarray(values, dtype=np.float64) for name, values in per_clip.items()}
+
+
+def reference_table(clips: Sequence[Clip], speaking: np.ndarray,
+                    config: MetricsConfig = MetricsConfig(),
+                    per_clip: Mapping[str, np.ndarray] | None = None) -> MetricsTable:
+    """The GT row: the per-clip metrics of real motion (``per_clip``, when ``clip_values`` of
+    ``clips`` is at hand) with the same S/NS pooling as ``evaluate`` and the Fréchet metrics NaN
+    -- FGD of the ground truth against itself is 0 by definition, and computing it would only
+    measure the covariance square root's rounding."""
+    speaking = np.asarray(speaking, bool)
+    per_clip = clip_values(clips, config) if per_clip is None else per_clip
     length = 1.0 / config.report_unit
     values = {}
     for metric in registered():
