@@ -67,7 +67,7 @@ class NaiveStreamer:
         first = len(self._latents) - len(history)  # the stream index of the window's first block
         branches = [flow.encode_condition(cond, masks[i:i + 1], first_token=first)
                     for i in range(masks.shape[0])]
-        eps = token_noise(self._generator, flow.latent_dim)
+        eps = token_noise(self._generator, flow.latent_dim, cfg.noise_scale)
         noise = torch.stack([self._noise[i] for i in history] + [eps])
         known = torch.stack([self._latents[i] for i in history]) if history else None
         z = self._solve(branches, noise, known)[-1]

@@ -26,6 +26,23 @@ def history_tokens(text: str) -> int | None:
         raise argparse.ArgumentTypeError(f"--history: {error} (or 'all')") from None
 
 
+def noise_scale(text: str) -> float:
+    """--noise-scale: the temperature of each token's starting noise, a finite number above 0."""
+    from sarah_models.config import check_noise_scale
+
+    try:
+        value = float(text)
+        check_noise_scale(value)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"--noise-scale: {error}" if "noise" in str(error)
+                                         else f"--noise-scale: not a number: {text!r}") from None
+    return value
+
+
+NOISE_SCALE_HELP = ("temperature of each token's starting noise: 1 is the paper's N(0, I); "
+                    "below 1 samples nearer the flow's mode (calmer, less varied motion)")
+
+
 def positive_int(text: str) -> int:
     value = non_negative_int(text)
     if value == 0:

@@ -6,7 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import HelpFormatter, add_model_arguments, history_tokens
+from sarah_cli.arguments import (NOISE_SCALE_HELP, HelpFormatter, add_model_arguments, history_tokens,
+                                 noise_scale)
 
 EXIT_ERROR = 2
 
@@ -84,6 +85,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
     parser.add_argument("--steps", type=int, default=d.steps, help="midpoint solver steps")
     parser.add_argument("--cfg", type=float, default=d.cfg_scale, help="guidance scale w")
+    parser.add_argument("--noise-scale", type=noise_scale, default=d.noise_scale,
+                        help=NOISE_SCALE_HELP)
     parser.add_argument("--history", type=history_tokens, default=d.history_tokens,
                         help="latents of history a stream keeps beside the new one (or 'all'; "
                              "the paper keeps 2; the offline protocol ignores it)")
@@ -116,7 +119,8 @@ def main(argv: list[str] | None = None) -> int:
         config = EvalConfig(split=args.split, windows=args.windows, window=args.window,
                             gaze=args.gaze, table1_gaze=args.table1_gaze, methods=args.methods,
                             batch_clips=args.batch_clips, seed=args.seed, steps=args.steps,
-                            cfg_scale=args.cfg, history_tokens=args.history,
+                            cfg_scale=args.cfg, noise_scale=args.noise_scale,
+                            history_tokens=args.history,
                             protocol=args.protocol, blur_frames=args.blur_frames,
                             jitter_mm=args.jitter_mm,
                             library_size=args.library_size, features=args.features,

@@ -6,7 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import HelpFormatter, add_model_arguments, history_tokens, positive_int
+from sarah_cli.arguments import (NOISE_SCALE_HELP, HelpFormatter, add_model_arguments, history_tokens,
+                                 noise_scale, positive_int)
 from sarah_models.accel import MODE_HELP, MODES
 
 EXIT_ERROR = 2
@@ -69,6 +70,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--solver", choices=("midpoint", "euler"), default=d.solver,
                         help="ODE solver (midpoint: 2 network evaluations per step)")
     parser.add_argument("--cfg", type=float, default=d.cfg_scale, help="guidance scale w")
+    parser.add_argument("--noise-scale", type=noise_scale, default=d.noise_scale,
+                        help=NOISE_SCALE_HELP)
     parser.add_argument("--history", type=history_tokens, default=d.history_tokens,
                         help="history tokens kept (or 'all')")
     parser.add_argument("--seed", type=int, default=d.seed,
@@ -121,7 +124,8 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         config = StreamConfig(history_tokens=args.history, steps=args.steps, solver=args.solver,
-                              cfg_scale=args.cfg, gaze=_gaze(args.gaze), seed=args.seed)
+                              cfg_scale=args.cfg, noise_scale=args.noise_scale, gaze=_gaze(args.gaze),
+                              seed=args.seed)
     except (ValueError, argparse.ArgumentTypeError) as exc:
         print(f"sarah-generate: error: {exc}", file=sys.stderr)
         return EXIT_ERROR

@@ -9,7 +9,8 @@ import sys
 from pathlib import Path
 
 from sarah_models.accel import MODE_HELP, MODES
-from sarah_cli.arguments import HelpFormatter, add_model_arguments, positive_int
+from sarah_cli.arguments import (NOISE_SCALE_HELP, HelpFormatter, add_model_arguments, noise_scale,
+                                 positive_int)
 
 EXIT_ERROR = 2
 
@@ -55,6 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "parameters per frame (this model's body with zero betas)")
     parser.add_argument("--steps", type=int, default=d.steps, help="default solver steps per chunk")
     parser.add_argument("--cfg", type=float, default=d.cfg_scale, help="default guidance scale w")
+    parser.add_argument("--noise-scale", type=noise_scale, default=d.noise_scale,
+                        help=NOISE_SCALE_HELP + " (every session's)")
     client = parser.add_argument_group("client (--client URL)")
     client.add_argument("--client", metavar="URL", default=None,
                         help="stream files through the server at URL (ws://127.0.0.1:8765) instead of serving")
@@ -128,7 +131,8 @@ def main(argv: list[str] | None = None) -> int:
     # 2-core VMs (paper size, p50 57-70 -> 100-108 ms; docs/performance.md), so it keeps one.
     torch.set_num_threads(1)
     try:
-        defaults = replace(StreamConfig(), steps=args.steps, cfg_scale=args.cfg)
+        defaults = replace(StreamConfig(), steps=args.steps, cfg_scale=args.cfg,
+                           noise_scale=args.noise_scale)
         models, path = load_server_models(args.run, args.checkpoint, args.device, args.speed, defaults)
     except (GenerateError, ValueError) as error:
         print(f"sarah-serve: error: {error}", file=sys.stderr)

@@ -206,6 +206,27 @@ def test_streaming_equals_offline_where_the_maths_says_so(models):
     assert np.abs(streamed[S:] - offline[S:]).max() > 1e-4
 
 
+def test_noise_scale_is_the_temperature_of_every_tokens_noise(models):
+    """noise_scale multiplies each token's eps, in streaming and offline alike (the one-step
+    Euler stream still equals offline), and 1 is the paper's standard normal."""
+    from sarah_models.sampling.solver import token_noise
+
+    draws = [token_noise(torch.Generator().manual_seed(5), 16, scale) for scale in (1.0, 0.6)]
+    assert torch.equal(draws[1], draws[0] * 0.6)
+    inputs = make_inputs(24)
+    head, a, b = inputs
+    cool = StreamConfig(history_tokens=None, solver="euler", steps=1, noise_scale=0.6)
+    np.testing.assert_allclose(stream(models, inputs, cool),
+                               generate_offline(*models, head, a, b, cool), atol=1e-5)
+    assert np.array_equal(stream(models, inputs, StreamConfig()),
+                          stream(models, inputs, StreamConfig(noise_scale=1.0)))
+    assert not np.allclose(stream(models, inputs, StreamConfig()),
+                           stream(models, inputs, StreamConfig(noise_scale=0.6)), atol=1e-4)
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="noise scale"):
+            StreamConfig(noise_scale=bad)
+
+
 def test_recorded_latents_are_the_ones_decoded(models):
     """generate()'s Result.latents (what motion_anatomy's latent table reads) are the flow's
     standardized latents of each protocol: decoding them gives the motion, token 1 is the same

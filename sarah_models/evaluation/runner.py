@@ -46,7 +46,8 @@ from sarah_data.atomic import atomic_write_text
 from sarah_data.constants import FPS
 from sarah_data.skeleton import MotionLayout
 
-from ..config import CFG_SCALE, HISTORY_TOKENS, SOLVER_STEPS, STRIDE, WINDOW, check_gaze
+from ..config import (CFG_SCALE, HISTORY_TOKENS, NOISE_SCALE, SOLVER_STEPS, STRIDE, WINDOW,
+                      check_gaze, check_noise_scale)
 from .metrics import (
     FrechetRidgeWarning,
     MetricsConfig,
@@ -94,6 +95,7 @@ class EvalConfig:
     seed: int = 0
     steps: int = SOLVER_STEPS  # solver steps (midpoint)
     cfg_scale: float = CFG_SCALE
+    noise_scale: float = NOISE_SCALE  # temperature of the model's starting noise (StreamConfig)
     # Streamed latents kept as history (None: all). The offline protocol has none to drop.
     history_tokens: int | None = HISTORY_TOKENS
     protocol: str = "stream"  # what users run; "offline" is the paper's fps protocol
@@ -118,6 +120,10 @@ class EvalConfig:
             if getattr(self, name) < 1:
                 raise EvalError(f"--{name.replace('_', '-')} must be positive, got "
                                 f"{getattr(self, name)}")
+        try:
+            check_noise_scale(self.noise_scale)
+        except ValueError as error:
+            raise EvalError(f"--noise-scale: {error}") from None
         if not self.jitter_mm >= 0:
             raise EvalError(f"--jitter-mm must be >= 0, got {self.jitter_mm}")
         if self.history_tokens is not None and self.history_tokens < 0:
@@ -213,6 +219,7 @@ def window_generator(models, config: EvalConfig, gaze: float | None):
                         agent_audio=item["agent_audio"].numpy(),
                         user_audio=item["user_audio"].numpy())
         stream = StreamConfig(steps=config.steps, cfg_scale=config.cfg_scale, gaze=gaze,
+                              noise_scale=config.noise_scale,
                               history_tokens=config.history_tokens,
                               seed=_window_seed(config.seed, index))
         return generate(models, inputs, stream, offline=config.protocol == "offline")
@@ -422,7 +429,11 @@ def _caption1(ev: Evaluation, config: EvalConfig, shards: Path) -> str:
             f"FGD_acc in (cm/s²)² shown ÷{scale['fgd_acc']:g}, Wrist Var = mean wrist speed in "
             f"cm/s. FGD Avg = mean over batches of {config.batch_clips} clips; NS/S pooled. "
             f"Model: {config.protocol} protocol{_history_note(config)}, {config.steps} midpoint "
-            f"steps, cfg {config.cfg_scale:g}, seed {config.seed}.")
+            f"steps, cfg {config.cfg_scale:g}{_noise_note(config)}, seed {config.seed}.")
+
+
+def _noise_note(config: EvalConfig) -> str:
+    return "" if config.noise_scale == NOISE_SCALE else f", noise scale {config.noise_scale:g}"
 
 
 def _history_note(config: EvalConfig) -> str:

@@ -40,10 +40,13 @@ def time_grid(steps: int, solver: str) -> list[float]:
     return [t for tau, _, mid in stage_times(steps, solver) for t in (tau, mid) if t is not None]
 
 
-def token_noise(generator: torch.Generator, latent_dim: int) -> Tensor:
-    """The noise eps_k of one new token (CPU float32). Streaming and offline draw it token by
-    token in the same order, so one seed gives both the same noise on any device."""
-    return torch.randn(latent_dim, generator=generator, dtype=torch.float32)
+def token_noise(generator: torch.Generator, latent_dim: int, scale: float) -> Tensor:
+    """The noise eps_k of one new token (CPU float32), ``scale`` (``StreamConfig.noise_scale``)
+    times a standard normal draw. Streaming and offline draw it token by token in the same
+    order, so one seed gives both the same noise on any device. The scaled eps is the token's
+    start and, while it is history, the noise end of its imputed path: one straight line."""
+    eps = torch.randn(latent_dim, generator=generator, dtype=torch.float32)
+    return eps if scale == 1.0 else eps * scale
 
 
 def imputer(noise: Tensor, known: Tensor | None) -> Impute:

@@ -216,7 +216,7 @@ class StreamingGenerator:
         window = list(self._cond)
         if any(t.shape[0] == 2 for t in window):  # guidance active somewhere in the window
             window = [t if t.shape[0] == 2 else t.expand(2, -1, -1) for t in window]
-        eps = token_noise(self._generator, m.flow.latent_dim).to(m.device)
+        eps = token_noise(self._generator, m.flow.latent_dim, self.config.noise_scale).to(m.device)
         return PendingBlock(m.flow, self.config, torch.cat(window, dim=1),
                             torch.stack([*self._noise, eps]),
                             torch.stack(list(self._latents)) if self._latents else None, eps)
@@ -302,7 +302,7 @@ def offline_with_latents(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer
         raise ValueError(f"offline generation needs a positive multiple of {m.stride} frames, "
                          f"got {t}")
     generator = torch.Generator().manual_seed(config.seed)
-    noise = torch.stack([token_noise(generator, flow.latent_dim)
+    noise = torch.stack([token_noise(generator, flow.latent_dim, config.noise_scale)
                          for _ in range(t // m.stride)]).to(m.device)
     z = solve(flow, m.cond_tokens(cond, config.gaze), noise, None, config)
     return m.to_world(vae.decode(m.latent_for_decoder(z)[None])[0], m.decoding()), z
