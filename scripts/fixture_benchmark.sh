@@ -13,10 +13,13 @@
 # model's, whose own script (pretrained_fixture_model.sh) owns their values. Stages are skipped once
 # their folder has a .done marker, so an interrupted run resumes at the stage it stopped in (that
 # stage starts over). Every step is seeded (train.seed 0): the same code on the same thread count
-# gives the same model file, whose sha256 is printed. Settings can be overridden through the
-# environment, e.g. FLOW_STEPS=3000 scripts/fixture_benchmark.sh. Wall-clock times of every
-# stage go to BENCH_DIR/timings.txt; run it on an otherwise idle machine for the training time
-# (the thirty-fourth run, a 2-core AMD EPYC: 27.8 min of training, then 43 min of evaluation).
+# and the same kind of CPU gives the same model file, whose sha256 is printed (another instruction
+# set rounds differently: 21b0e4c7... on an AVX2-only AMD EPYC, 9b8b0958... on one with
+# AVX-512). Settings can be overridden through the environment, e.g. FLOW_STEPS=3000
+# scripts/fixture_benchmark.sh. Wall-clock times of every stage go to BENCH_DIR/timings.txt; run
+# it on an otherwise idle machine for the training time (2-core AMD EPYC VMs: 27.8 min of
+# training on the AVX2-only one, thirty-fourth run, then 43 min of evaluation; 15.6 min on the
+# one with AVX-512, thirty-sixth run).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
