@@ -172,7 +172,8 @@ def bench_concurrent(models, counts: tuple[int, ...], inputs: dict[str, np.ndarr
     the round, the server's way) or with ``together=False`` one after another (round robin, the
     server's way until 2026-11-27). A stream holds real time when it gets >= 30 fps and the p99
     round (the longest a chunk can wait) is at most one chunk period (133 ms). Counts are tried
-    in order until one fails; ``fit`` is the most streams that held."""
+    in order until one fails; ``fit`` is the most streams that held, and ``every_count_held``
+    says that the largest count tried held too (more might fit)."""
     s = STRIDE
     n = s * SAMPLES_PER_FRAME
     period_ms = 1000.0 * s / FPS
@@ -208,7 +209,8 @@ def bench_concurrent(models, counts: tuple[int, ...], inputs: dict[str, np.ndarr
         if not held:
             break
     fit = max((row["streams"] for row in rows if row["real_time"]), default=0)
-    return {"rows": rows, "fit": fit, "seconds_per_count": seconds,
+    return {"rows": rows, "fit": fit, "every_count_held": all(r["real_time"] for r in rows),
+            "seconds_per_count": seconds,
             "schedule": "together" if together else "round robin"}
 
 

@@ -84,7 +84,8 @@ class BenchConfig:
     rounds: int = 0
     # Tiny streams served in one process (the server's figure: one solve per round for all, and
     # round robin beside it for the ratio), tried in order.
-    concurrent_streams: tuple[int, ...] = (1, 2, 4, 6, 8, 12)
+    # Tried in order until one fails: a fast host goes on to the larger counts.
+    concurrent_streams: tuple[int, ...] = (1, 2, 4, 6, 8, 12, 16, 24, 32)
     concurrent_seconds: float = 8.0
     seed: int = 0
 

@@ -220,6 +220,21 @@ def test_history_sets_what_a_stream_keeps(tiny, tmp_path):
     assert rows["all"]["fgd_local/avg"] != rows["0"]["fgd_local/avg"]
 
 
+def test_noise_scale_reaches_the_model_and_the_caption(tiny, tmp_path):
+    """--noise-scale: the model row samples at that temperature, which the caption and the
+    settings name; the paper's 1 is not named."""
+    rows, captions = {}, {}
+    for scale in ("1", "0.5"):
+        out = tmp_path / scale
+        assert main(eval_args(tiny, out, "--methods", "gt,model", "--gaze", "none",
+                              "--protocol", "stream", "--noise-scale", scale)) == 0
+        t1 = json.loads((out / "table1.json").read_text())
+        rows[scale], captions[scale] = t1["rows"][1]["shown"], t1["caption"]
+        assert t1["settings"]["noise_scale"] == float(scale)
+    assert "noise scale" not in captions["1"] and "noise scale 0.5" in captions["0.5"]
+    assert rows["0.5"]["wrist_speed/avg"] != rows["1"]["wrist_speed/avg"]
+
+
 def test_baselines_can_draw_from_another_corpus(tiny, tmp_path, capsys):
     """--library-shards: Random and NN retrieve from a training corpus other than the evaluated
     one (for test fixtures the model never saw); the evaluated windows stay the same."""
