@@ -38,6 +38,7 @@ from sarah_models.accel import (
     cpu_info,
     optimize_for_inference,
     resolve_decoder,
+    vector_isa,
     warm_up,
 )
 from sarah_models.accel.threads import ThreadPolicy, stream_probe
@@ -416,8 +417,9 @@ def bench_rounds(bench: SizeBench, processes: int, rounds: int,
 
 def environment(threads: int | str) -> dict[str, Any]:
     cpu = cpu_info("model name") or platform.processor() or "unknown"
+    isa = vector_isa()
     return {"date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-            "cpu": cpu, "cores": os.cpu_count(), "threads": threads, "torch": torch.__version__,
+            "cpu": f"{cpu} ({isa})" if isa else cpu, "cores": os.cpu_count(), "threads": threads, "torch": torch.__version__,
             "numpy": np.__version__, "python": platform.python_version(),
             "load_before": list(os.getloadavg())}
 

@@ -515,6 +515,12 @@ def test_bench_quick_runs_end_to_end(tmp_path):
     assert main(["--quick", "--threads", "1", "--json", str(out), "--history", str(history)]) == 0
     results = json.loads(out.read_text())
     assert results["environment"]["threads"] == 1
+    # the instruction set beside the CPU's name: two "AMD EPYC" VMs ran int8 2x apart
+    from sarah_models.accel import vector_isa
+
+    assert vector_isa() in ("AMX", "AVX-512 VNNI", "AVX-512", "AVX2", "")
+    assert not vector_isa() or results["environment"]["cpu"].endswith(f" ({vector_isa()})")
+    assert results["environment"]["cpu"] in history.read_text()
     tiny_stream = results["streaming"]["tiny"]
     assert tiny_stream["fps"] > 0 and tiny_stream["naive"]["fps"] > 0
     assert set(tiny_stream["stages_ms"]) == {"audio", "flow", "decode", "other"}

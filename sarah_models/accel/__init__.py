@@ -1,7 +1,7 @@
 """Inference speed-ups by module replacement (see ``optimize.py``): the reference model in
 ``sarah_models.nn`` never imports this package."""
 
-from .cpu import cpu_info
+from .cpu import cpu_info, vector_isa
 from .optimize import (
                        DECODER_PRECISIONS,
                        MODE_HELP,
@@ -13,4 +13,4 @@ from .optimize import (
 from .threads import ThreadPolicy
 
 __all__ = ["DECODER_PRECISIONS", "MODES", "MODE_HELP", "cpu_info", "optimize_for_inference",
-           "resolve_decoder", "warm_up", "ThreadPolicy"]
+           "resolve_decoder", "vector_isa", "warm_up", "ThreadPolicy"]

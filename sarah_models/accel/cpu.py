@@ -32,6 +32,17 @@ def has_cpu_feature(name: str) -> bool:
     return bool(getattr(torch.cpu, f"_is_{name}_supported", lambda: False)())
 
 
+def vector_isa() -> str:
+    """The widest matrix instruction set torch will use here, for reports: "AMX",
+    "AVX-512 VNNI", "AVX-512", "AVX2" or "" (the same model's int8 speed differs ~2x between
+    an AVX2-only and a VNNI host of the same name: docs/performance.md, 2026-11-28)."""
+    for feature, name in (("amx_tile", "AMX"), ("vnni", "AVX-512 VNNI"), ("avx512", "AVX-512"),
+                          ("avx2", "AVX2")):
+        if has_cpu_feature(feature):
+            return name
+    return ""
+
+
 def onednn_linear_ops():
     """torch's oneDNN linear over weights reordered once into the GEMM's blocked layout -- the
     kernels inductor's freezing pass puts in compiled CPU graphs -- as ``(reorder, linear)``:
