@@ -32,10 +32,12 @@ def noise_scale(text: str) -> float:
 
     try:
         value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    try:
         check_noise_scale(value)
     except ValueError as error:
-        raise argparse.ArgumentTypeError(f"--noise-scale: {error}" if "noise" in str(error)
-                                         else f"--noise-scale: not a number: {text!r}") from None
+        raise argparse.ArgumentTypeError(str(error)) from None
     return value
 
 

@@ -6,8 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import (NOISE_SCALE_HELP, HelpFormatter, add_model_arguments, history_tokens,
-                                 noise_scale)
+from sarah_cli.arguments import (NOISE_SCALE_HELP, HelpFormatter, add_model_arguments,
+                                 history_tokens, noise_scale)
 
 EXIT_ERROR = 2
 

@@ -6,8 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import (NOISE_SCALE_HELP, HelpFormatter, add_model_arguments, history_tokens,
-                                 noise_scale, positive_int)
+from sarah_cli.arguments import (NOISE_SCALE_HELP, HelpFormatter, add_model_arguments,
+                                 history_tokens, noise_scale, positive_int)
 from sarah_models.accel import MODE_HELP, MODES
 
 EXIT_ERROR = 2
@@ -124,8 +124,8 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         config = StreamConfig(history_tokens=args.history, steps=args.steps, solver=args.solver,
-                              cfg_scale=args.cfg, noise_scale=args.noise_scale, gaze=_gaze(args.gaze),
-                              seed=args.seed)
+                              cfg_scale=args.cfg, noise_scale=args.noise_scale,
+                              gaze=_gaze(args.gaze), seed=args.seed)
     except (ValueError, argparse.ArgumentTypeError) as exc:
         print(f"sarah-generate: error: {exc}", file=sys.stderr)
         return EXIT_ERROR

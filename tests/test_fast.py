@@ -565,7 +565,8 @@ def test_bench_background_load_reports_both_sides(tmp_path, capsys):
             assert schedule["rows"][0]["streams"] == 1 and schedule["fit"] in (0, 1, 2)
             # a count that failed ends the list; only a list that never failed says "more may fit"
             assert schedule["every_count_held"] == all(r["real_time"] for r in schedule["rows"])
-            assert schedule["every_count_held"] == (schedule["fit"] == schedule["rows"][-1]["streams"])
+            last = schedule["rows"][-1]["streams"]
+            assert schedule["every_count_held"] == (schedule["fit"] == last)
         assert (side["schedule"], side["round_robin"]["schedule"], side["shipped"]["schedule"]) == (
             "together", "round robin", "together")
     for side in ("idle", "loaded"):  # --rounds: each figure per round, and its median and range
