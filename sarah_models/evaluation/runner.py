@@ -320,21 +320,22 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
         library = shards if config.library_shards is None else Path(config.library_shards)
         train_windows = _training_windows(library, features, config)
 
-    gt_values: dict[str, dict[str, np.ndarray]] = {}  # the GT row's clip_values, once scored
+    gt_values: dict[str, np.ndarray] | None = None  # the GT row's clip_values, once scored
 
     def score(key: str, label: str, produce, causal: bool | None, gaze=None,
               reference: bool = False, timed: bool = True, pooled: bool = True) -> MethodResult:
+        nonlocal gt_values
         with tqdm(total=len(windows), desc=label, unit="window", disable=not progress,
                   leave=False) as bar:
             clips = MethodClips(windows, produce, bar)
             if reference:  # its per-clip values are every later row's paired comparison
-                gt_values["values"] = clip_values(clips, metrics_config)
-                table = reference_table(clips, speaking, metrics_config, gt_values["values"])
+                gt_values = clip_values(clips, metrics_config)
+                table = reference_table(clips, speaking, metrics_config, gt_values)
             else:
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always", FrechetRidgeWarning)
                     table = evaluate(clips, gt_clips(windows), speaking, config=metrics_config,
-                                     reference_values=gt_values.get("values"))
+                                     reference_values=gt_values)
                 ridged = [w for w in caught if issubclass(w.category, FrechetRidgeWarning)]
                 for w in caught:
                     if not issubclass(w.category, FrechetRidgeWarning):

@@ -45,8 +45,7 @@ def token_noise(generator: torch.Generator, latent_dim: int, scale: float) -> Te
     times a standard normal draw. Streaming and offline draw it token by token in the same
     order, so one seed gives both the same noise on any device. The scaled eps is the token's
     start and, while it is history, the noise end of its imputed path: one straight line."""
-    eps = torch.randn(latent_dim, generator=generator, dtype=torch.float32)
-    return eps if scale == 1.0 else eps * scale
+    return torch.randn(latent_dim, generator=generator, dtype=torch.float32) * scale
 
 
 def imputer(noise: Tensor, known: Tensor | None) -> Impute:

@@ -243,6 +243,7 @@ def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
             batch_values[metric.name].append(moments_distance(
                 batch[metric.name, "gen"], batch[metric.name, "gt"], cfg.fd_ridge))
 
+    gt_values = gt_per_clip if reference_values is None else reference_values
     length = 1.0 / cfg.report_unit  # metres -> reported unit
     values = {}
     for metric in registered():
@@ -265,9 +266,8 @@ def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
             clips = np.asarray(per_clip[metric.name]) * factor
             values[metric.name] = replace(
                 category_means(clips, speaking),
-                **paired_comparison(clips, np.asarray(gt_per_clip[metric.name] if reference_values
-                                                      is None else reference_values[metric.name])
-                                    * factor, ratio=metric.ratio_to_gt))
+                **paired_comparison(clips, np.asarray(gt_values[metric.name]) * factor,
+                                    ratio=metric.ratio_to_gt))
     return _table(values, cfg, speaking, reference, -(-len(generated) // cfg.batch_clips))
 
 
