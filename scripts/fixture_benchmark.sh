@@ -2,7 +2,8 @@
 # The fixture benchmark of docs/results.md and issue #16's acceptance run, in one command:
 # fixture dyads -> shards -> a tiny model trained on 2 CPU cores within #16's 30 minutes ->
 # sarah-eval on every 400-frame window of fixtures from a seed the training never saw (Table 1
-# in both protocols, the gaze sweep). Not run in CI.
+# in both protocols, the gaze sweep), at the paper's sampling settings and at those that
+# scripts/choose_sampling.py picks on a tuning corpus of a third seed. Not run in CI.
 #
 #   scripts/fixture_benchmark.sh [BENCH_DIR]          (default: bench/)
 #
@@ -28,13 +29,17 @@ PYTHON=${PYTHON:-python}
 SESSIONS=${SESSIONS:-20}             # 20 sessions x 2 sequences x 60 s = 40 dyad-minutes, seed 0
 TEST_SESSIONS=${TEST_SESSIONS:-36}   # seed 7: 36 x 2 x 60 s, every 400-frame window = 296
 TEST_SEED=${TEST_SEED:-7}
+TUNE_SESSIONS=${TUNE_SESSIONS:-36}   # seed 3: the sampling settings are chosen on these windows
+TUNE_SEED=${TUNE_SEED:-3}
+# (noise scale):(CFG) settings tried on the tuning corpus (the thirty-seventh run's grid)
+TUNE_GRID=${TUNE_GRID:-"1.0:1.3 0.7:0.7 0.7:0.6 0.7:0.5 0.6:0.6 0.6:0.5 0.6:0.4 0.5:0.6 0.5:0.5 0.5:0.4"}
 JOBS=${JOBS:-2}                      # prep workers, and evaluations run side by side
 VAE_SHORT_STEPS=${VAE_SHORT_STEPS:-2500}  # on 100-frame windows (~1/7 of a 400-frame step)
 VAE_LONG_STEPS=${VAE_LONG_STEPS:-150}     # then on 400-frame windows
 DECODER_STEPS=${DECODER_STEPS:-190}
 FLOW_STEPS=${FLOW_STEPS:-3600}
 SWEEP_WINDOWS=${SWEEP_WINDOWS:-104}  # the gaze sweep's windows, evenly spaced over the same split
-UNTIL=${UNTIL:-eval}                 # stop after this stage: prep, train or eval
+UNTIL=${UNTIL:-eval}                 # stop after this stage: prep, train, tune or eval
 RUN=$BENCH/runs
 EVAL_OUT=$BENCH/eval
 # Two intra-op threads, batches made in the training process: the corpus fits the loader's
@@ -59,6 +64,7 @@ corpus() {
 }
 corpus train "$SESSIONS" 0
 corpus test "$TEST_SESSIONS" "$TEST_SEED"
+corpus tune "$TUNE_SESSIONS" "$TUNE_SEED"
 [ "$UNTIL" = prep ] && exit 0
 
 # Settings every stage shares (docs/models.md): the loss in metres, root-relative motion, the
@@ -91,37 +97,70 @@ fi
 stamp "model: $MODEL sha256 $(sha256sum "$MODEL" | cut -d' ' -f1)"
 [ "$UNTIL" = train ] && exit 0
 
-# Every 400-frame window of the unseen fixtures (their "train" split: all sessions). Table 1
-# streamed (what users run) with the baselines, the real-vs-real floor and the VAE's
-# reconstruction; the model offline; the gaze sweep streamed (on SWEEP_WINDOWS of them, for
-# time: each gaze target is a full pass of the model). One process per evaluation, JOBS
-# of them side by side on one thread each (their FPS is then not a timing: sarah-bench times).
-EVAL=(--run "$MODEL" --shards "$BENCH/test_shards" --split train --library-shards "$BENCH/train_shards"
-      --windows 2048 --batch-clips 16 --seed 0 --device cpu --steps 4 --cfg 1.3 --no-progress)
-evaluate() {  # NAME ARGS...
-  local name=$1
-  shift
-  [ -f "$EVAL_OUT/$name/table1.json" ] && return 0
-  mkdir -p "$EVAL_OUT"
+# Every 400-frame window of a corpus the training never saw (its "train" split: all sessions).
+# One process per evaluation, JOBS of them side by side on one thread each (their FPS is then
+# not a timing: sarah-bench times). The paper's sampling settings (4 midpoint steps, CFG 1.3,
+# noise scale 1) unless an evaluation's own flags say otherwise (the last flag given wins).
+EVAL=(--run "$MODEL" --split train --library-shards "$BENCH/train_shards" --windows 2048
+      --batch-clips 16 --seed 0 --device cpu --steps 4 --cfg 1.3 --noise-scale 1 --no-progress)
+evaluate() {  # OUT CORPUS ARGS...
+  local out=$1 corpus=$2
+  shift 2
+  [ -f "$out/table1.json" ] && return 0
+  mkdir -p "$(dirname "$out")"
   OMP_NUM_THREADS=$([ "$JOBS" -gt 1 ] && echo 1 || echo "$OMP_NUM_THREADS") \
-    $PYTHON -m sarah_cli.eval "${EVAL[@]}" "$@" --out "$EVAL_OUT/$name" > "$EVAL_OUT/$name.log" 2>&1 \
-    || { echo "evaluation $name failed: see $EVAL_OUT/$name.log" >&2; return 1; }
+    $PYTHON -m sarah_cli.eval "${EVAL[@]}" --shards "$BENCH/${corpus}_shards" "$@" --out "$out" \
+    > "$out.log" 2>&1 || { echo "evaluation $out failed: see $out.log" >&2; return 1; }
 }
-stamp "eval: begin ($MODEL, $JOBS side by side)"
-run_eval() {  # NAME ARGS...: in the background, at most JOBS at once
+run_eval() {  # OUT CORPUS ARGS...: in the background, at most JOBS at once
   evaluate "$@" &
   while [ "$(jobs -rp | wc -l)" -ge "$JOBS" ]; do wait -n || true; done
 }
-run_eval stream --gaze none --table1-gaze none --methods gt,real,random,nn,model,vae --protocol stream
-run_eval offline --gaze none --table1-gaze none --methods gt,model --protocol offline
-for g in 0 0.8 1; do
-  run_eval "sweep_$g" --gaze "$g" --table1-gaze "$g" --methods gt,model --protocol stream \
-    --windows "$SWEEP_WINDOWS"
-done
+
+# The sampling settings: each of TUNE_GRID streamed (g = none) on the tuning corpus, then the
+# setting whose wrists and head lie nearest GT's by a rule fixed beforehand (choose_sampling.py).
+SAMPLING_FLAGS=$BENCH/sampling.txt
+if [ ! -f "$SAMPLING_FLAGS" ]; then
+  stamp "tune: begin (${TUNE_GRID})"
+  tuned=()
+  for setting in $TUNE_GRID; do
+    noise=${setting%%:*} cfg=${setting##*:}
+    tuned+=("$BENCH/tune/${noise}_${cfg}")
+    run_eval "$BENCH/tune/${noise}_${cfg}" tune --gaze none --table1-gaze none --methods gt,model \
+      --protocol stream --noise-scale "$noise" --cfg "$cfg"
+  done
+  wait
+  $PYTHON scripts/choose_sampling.py "${tuned[@]}" --flags-to "$SAMPLING_FLAGS" \
+    | tee "$BENCH/tune/choice.md"
+  stamp "tune: end ($(cat "$SAMPLING_FLAGS"))"
+fi
+[ "$UNTIL" = tune ] && exit 0
+read -r -a SAMPLING < "$SAMPLING_FLAGS"
+
+# On the test corpus, at the paper's settings and at the tuned ones: Table 1 streamed (what users
+# run; at the paper's settings with the baselines, the real-vs-real floor and the VAE's
+# reconstruction), the model offline, and the gaze sweep streamed (on SWEEP_WINDOWS of them, for
+# time: each gaze target is a full pass of the model).
+stamp "eval: begin ($MODEL, $JOBS side by side; tuned: ${SAMPLING[*]})"
+table1_and_sweep() {  # SUFFIX METHODS SAMPLING_FLAGS...
+  local suffix=$1 methods=$2
+  shift 2
+  run_eval "$EVAL_OUT/stream$suffix" test --gaze none --table1-gaze none --protocol stream \
+    --methods "$methods" "$@"
+  run_eval "$EVAL_OUT/offline$suffix" test --gaze none --table1-gaze none --methods gt,model \
+    --protocol offline "$@"
+  for g in 0 0.8 1; do
+    run_eval "$EVAL_OUT/sweep_$g$suffix" test --gaze "$g" --table1-gaze "$g" --methods gt,model \
+      --protocol stream --windows "$SWEEP_WINDOWS" "$@"
+  done
+}
+table1_and_sweep _tuned gt,model "${SAMPLING[@]}"
+table1_and_sweep "" gt,real,random,nn,model,vae
 wait
 stamp "eval: end"
 missing=0
-for name in stream offline sweep_0 sweep_0.8 sweep_1; do
+for name in stream offline sweep_0 sweep_0.8 sweep_1 stream_tuned offline_tuned sweep_0_tuned \
+    sweep_0.8_tuned sweep_1_tuned; do
   if [ -f "$EVAL_OUT/$name/table1.md" ]; then echo "$EVAL_OUT/$name/table1.md"; else missing=1; fi
 done
 exit $missing
