@@ -19,8 +19,9 @@
 # AVX-512). Settings can be overridden through the environment, e.g. FLOW_STEPS=3000
 # scripts/fixture_benchmark.sh. Wall-clock times of every stage go to BENCH_DIR/timings.txt; run
 # it on an otherwise idle machine for the training time (2-core AMD EPYC VMs: 27.8 min of
-# training on the AVX2-only one, thirty-fourth run, then 43 min of evaluation; 15.6 min on the
-# one with AVX-512, thirty-sixth run).
+# training on the AVX2-only one, thirty-fourth run, then 43 min of evaluation; on the one with
+# AVX-512, 12.8 min alone (thirty-seventh run; 15.6 beside an evaluation), then ~42 min for the
+# ten tuning evaluations and 24 min for the test corpus's ten).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
