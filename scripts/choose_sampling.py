@@ -64,11 +64,15 @@ def read_setting(folder: Path) -> Setting:
         table = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as error:
         raise ValueError(f"{path}: cannot read ({error})") from None
-    models = [row for row in table["rows"] if row["key"] == "model"]
+    try:
+        models = [row for row in table["rows"] if row["key"] == "model"]
+        settings, count = table["settings"], int(table["num_windows"])
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(f"{path}: not a sarah-eval table1.json") from None
     if len(models) != 1:
         raise ValueError(f"{path}: needs exactly one 'model' row (sarah-eval --methods gt,model), "
                          f"found {len(models)}")
-    shown, settings = models[0]["shown"], table["settings"]
+    shown = models[0]["shown"]
 
     def value(name: str) -> float:
         found = shown.get(name)
@@ -82,7 +86,7 @@ def read_setting(folder: Path) -> Setting:
 
     return Setting(folder=folder, noise_scale=float(settings["noise_scale"]),
                    cfg=float(settings["cfg_scale"]),
-                   windows=(str(settings["shards"]), str(settings["split"]), int(table["num_windows"])),
+                   windows=(str(settings["shards"]), str(settings["split"]), count),
                    wrists=triple("wrist_speed", "ratio"), head=triple("head_angle", "gap"),
                    foot_slide_gap=value("foot_slide/gap"), bone_length=value("bone_length/avg"),
                    frame0=value("frame0_offset/avg"))

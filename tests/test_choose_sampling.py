@@ -73,7 +73,10 @@ def test_other_windows_and_unreadable_folders_are_refused(tiny, folders, tmp_pat
     broken = tmp_path / "broken"
     broken.mkdir()
     (broken / "table1.json").write_text("{")
-    assert choose_sampling.main([str(broken), str(tmp_path / "missing")]) == 2
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "table1.json").write_text('{"rows": 3}')
+    assert choose_sampling.main([str(broken), str(tmp_path / "missing"), str(other)]) == 2
     err = capsys.readouterr().err.splitlines()
-    assert len(err) == 3 and str(broken / "table1.json") in err[0] and "missing" in err[1]
-    assert "no setting could be read" in err[2]
+    assert len(err) == 4 and str(broken / "table1.json") in err[0] and "missing" in err[1]
+    assert "not a sarah-eval table1.json" in err[2] and "no setting could be read" in err[3]
