@@ -70,13 +70,12 @@ def test_other_windows_and_unreadable_folders_are_refused(tiny, folders, tmp_pat
     assert choose_sampling.main([str(folders[0]), str(fewer)]) == 2
     assert "evaluated different windows" in capsys.readouterr().err
 
-    broken = tmp_path / "broken"
-    broken.mkdir()
-    (broken / "table1.json").write_text("{")
-    other = tmp_path / "other"
-    other.mkdir()
-    (other / "table1.json").write_text('{"rows": 3}')
-    assert choose_sampling.main([str(broken), str(tmp_path / "missing"), str(other)]) == 2
+    for name, text in (("broken", "{"), ("other", '{"rows": 3}')):  # not JSON; not a table
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "table1.json").write_text(text)
+    bad = [str(tmp_path / name) for name in ("broken", "missing", "other")]
+    assert choose_sampling.main(bad) == 2
     err = capsys.readouterr().err.splitlines()
-    assert len(err) == 4 and str(broken / "table1.json") in err[0] and "missing" in err[1]
+    assert len(err) == 4 and str(tmp_path / "broken" / "table1.json") in err[0]
+    assert "missing" in err[1]
     assert "not a sarah-eval table1.json" in err[2] and "no setting could be read" in err[3]
