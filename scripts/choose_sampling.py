@@ -36,7 +36,6 @@ FRAME0_MAX = 5.0  # #16 item 2: frame-0 pelvis offset <= 5 cm
 class Setting:
     """One evaluated (noise scale, guidance) and the figures the rule reads."""
 
-    folder: Path
     noise_scale: float
     cfg: float
     windows: tuple[str, str, int]  # shards, split, how many windows: settings compare on one
@@ -84,7 +83,7 @@ def read_setting(folder: Path) -> Setting:
     def triple(metric: str, kind: str) -> tuple[float, float, float]:
         return tuple(value(f"{metric}/{kind}{end}") for end in ("", "_low", "_high"))
 
-    return Setting(folder=folder, noise_scale=float(settings["noise_scale"]),
+    return Setting(noise_scale=float(settings["noise_scale"]),
                    cfg=float(settings["cfg_scale"]),
                    windows=(str(settings["shards"]), str(settings["split"]), count),
                    wrists=triple("wrist_speed", "ratio"), head=triple("head_angle", "gap"),
@@ -122,21 +121,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--flags-to", type=Path, default=None,
                         help="write the chosen setting here as sarah-eval flags")
     args = parser.parse_args(argv)
-    settings, problems = [], []
+    settings = []
     for folder in args.folders:
         try:
             settings.append(read_setting(folder))
         except ValueError as error:
-            problems.append(str(error))
-    for problem in problems:
-        print(f"choose_sampling: skipped {problem}", file=sys.stderr)
+            print(f"choose_sampling: skipped {error}", file=sys.stderr)
     if not settings:
         print("choose_sampling: no setting could be read", file=sys.stderr)
         return 2
-    if len({s.windows for s in settings}) > 1:
+    windows = {s.windows for s in settings}
+    if len(windows) > 1:
         print("choose_sampling: the folders evaluated different windows (shards, split, count: "
-              f"{sorted({s.windows for s in settings})}); compare settings on the same windows",
-              file=sys.stderr)
+              f"{sorted(windows)}); compare settings on the same windows", file=sys.stderr)
         return 2
     chosen = choose(settings)
     print(markdown(settings, chosen))

@@ -4,7 +4,10 @@ benchmarks' tests look for after a run (busy processes left behind)."""
 
 from __future__ import annotations
 
+import importlib.util
+import sys
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 
@@ -79,3 +82,14 @@ def spinning_processes() -> list[str]:
         except OSError:  # a process that ended while we looked
             pass
     return spinning
+
+
+def load_script(name: str) -> ModuleType:
+    """scripts/NAME.py imported as module NAME (scripts are not a package). It is registered in
+    sys.modules first, where dataclasses look their module up."""
+    path = Path(__file__).resolve().parents[1] / "scripts" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module

@@ -2,21 +2,16 @@
 compare settings evaluated on different windows."""
 
 import dataclasses
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
 
+from helpers import load_script
 from sarah_cli.eval import main as evaluate
 from test_evaluate import eval_args, tiny  # noqa: F401 (tiny is the module's fixture)
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "choose_sampling.py"
-spec = importlib.util.spec_from_file_location("choose_sampling", SCRIPT)
-choose_sampling = importlib.util.module_from_spec(spec)
-sys.modules["choose_sampling"] = choose_sampling  # its dataclass looks its module up there
-spec.loader.exec_module(choose_sampling)
+choose_sampling = load_script("choose_sampling")
 
 SETTINGS = (("1", "1.3"), ("0.5", "0.5"))
 

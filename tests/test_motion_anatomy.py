@@ -1,17 +1,12 @@
 """scripts/motion_anatomy.py's spectrum: the band energies that the nineteenth run's diagnosis
 (docs/results.md) reads."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 
+from helpers import load_script
 from sarah_data.constants import FPS, JOINT_NAMES
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "motion_anatomy.py"
-spec = importlib.util.spec_from_file_location("motion_anatomy", SCRIPT)
-anatomy = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(anatomy)
+anatomy = load_script("motion_anatomy")
 
 
 def test_a_beat_puts_its_acceleration_in_its_band_and_a_walk_puts_none():
