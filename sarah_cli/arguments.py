@@ -43,6 +43,10 @@ def noise_scale(text: str) -> float:
 
 NOISE_SCALE_HELP = ("temperature of each token's starting noise: 1 is the paper's N(0, I); "
                     "below 1 samples nearer the flow's mode (calmer, less varied motion)")
+IMPUTATION_HELP = ("a stream's history tokens while the new one is solved: final = re-noised "
+                   "from their final latents (eq. 4, the paper); trajectory = the states each "
+                   "passed through when it was solved, so the stream equals the offline solve "
+                   "(docs/models.md)")
 
 
 def positive_int(text: str) -> int:

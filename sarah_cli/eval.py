@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import (NOISE_SCALE_HELP, HelpFormatter, add_model_arguments,
+from sarah_cli.arguments import (IMPUTATION_HELP, NOISE_SCALE_HELP, HelpFormatter, add_model_arguments,
                                  history_tokens, noise_scale)
 
 EXIT_ERROR = 2
@@ -37,6 +37,7 @@ def _methods(text: str) -> tuple[str, ...]:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from sarah_models.config import IMPUTATIONS
     from sarah_models.evaluation.runner import EvalConfig
 
     d = EvalConfig()
@@ -90,6 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--history", type=history_tokens, default=d.history_tokens,
                         help="latents of history a stream keeps beside the new one (or 'all'; "
                              "the paper keeps 2; the offline protocol ignores it)")
+    parser.add_argument("--imputation", choices=IMPUTATIONS, default=d.imputation,
+                        help=IMPUTATION_HELP + "; the offline protocol ignores it")
     parser.add_argument("--protocol", choices=("offline", "stream"), default=d.protocol,
                         help="stream: 4 frames per step, as users run it; offline: all T frames "
                              "at once (causal mask), as the paper times FPS")
@@ -120,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
                             gaze=args.gaze, table1_gaze=args.table1_gaze, methods=args.methods,
                             batch_clips=args.batch_clips, seed=args.seed, steps=args.steps,
                             cfg_scale=args.cfg, noise_scale=args.noise_scale,
-                            history_tokens=args.history,
+                            history_tokens=args.history, imputation=args.imputation,
                             protocol=args.protocol, blur_frames=args.blur_frames,
                             jitter_mm=args.jitter_mm,
                             library_size=args.library_size, features=args.features,

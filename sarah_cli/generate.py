@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import (NOISE_SCALE_HELP, HelpFormatter, add_model_arguments,
+from sarah_cli.arguments import (IMPUTATION_HELP, NOISE_SCALE_HELP, HelpFormatter, add_model_arguments,
                                  history_tokens, noise_scale, positive_int)
 from sarah_models.accel import MODE_HELP, MODES
 
@@ -50,7 +50,7 @@ def _option(text: str) -> tuple[str, object]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from sarah_models.config import StreamConfig
+    from sarah_models.config import IMPUTATIONS, StreamConfig
 
     d = StreamConfig()
     parser = argparse.ArgumentParser(
@@ -74,6 +74,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help=NOISE_SCALE_HELP)
     parser.add_argument("--history", type=history_tokens, default=d.history_tokens,
                         help="history tokens kept (or 'all')")
+    parser.add_argument("--imputation", choices=IMPUTATIONS, default=d.imputation,
+                        help=IMPUTATION_HELP)
     parser.add_argument("--seed", type=int, default=d.seed,
                         help="noise seed: the same seed and inputs give the same motion (bit "
                              "for bit with the same --threads; other thread counts round "
@@ -123,7 +125,8 @@ def main(argv: list[str] | None = None) -> int:
     from sarah_models.config import StreamConfig
 
     try:
-        config = StreamConfig(history_tokens=args.history, steps=args.steps, solver=args.solver,
+        config = StreamConfig(history_tokens=args.history, imputation=args.imputation,
+                              steps=args.steps, solver=args.solver,
                               cfg_scale=args.cfg, noise_scale=args.noise_scale,
                               gaze=_gaze(args.gaze), seed=args.seed)
     except (ValueError, argparse.ArgumentTypeError) as exc:

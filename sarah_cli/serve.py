@@ -9,14 +9,14 @@ import sys
 from pathlib import Path
 
 from sarah_models.accel import MODE_HELP, MODES
-from sarah_cli.arguments import (NOISE_SCALE_HELP, HelpFormatter, add_model_arguments, noise_scale,
+from sarah_cli.arguments import (IMPUTATION_HELP, NOISE_SCALE_HELP, HelpFormatter, add_model_arguments, noise_scale,
                                  positive_int)
 
 EXIT_ERROR = 2
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from sarah_models.config import StreamConfig
+    from sarah_models.config import IMPUTATIONS, StreamConfig
     from sarah_models.serving.server import ServeConfig
 
     d, s = StreamConfig(), ServeConfig()
@@ -54,6 +54,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--body-model", type=Path, default=None,
                         help="a SMPL-X .npz: sessions that open with smplx: true also get SMPL-X "
                              "parameters per frame (this model's body with zero betas)")
+    parser.add_argument("--imputation", choices=IMPUTATIONS, default=d.imputation,
+                        help=IMPUTATION_HELP + " (every session's)")
     parser.add_argument("--steps", type=int, default=d.steps, help="default solver steps per chunk")
     parser.add_argument("--cfg", type=float, default=d.cfg_scale, help="default guidance scale w")
     parser.add_argument("--noise-scale", type=noise_scale, default=d.noise_scale,
@@ -132,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     try:
         defaults = replace(StreamConfig(), steps=args.steps, cfg_scale=args.cfg,
-                           noise_scale=args.noise_scale)
+                           noise_scale=args.noise_scale, imputation=args.imputation)
         models, path = load_server_models(args.run, args.checkpoint, args.device, args.speed, defaults)
     except (GenerateError, ValueError) as error:
         print(f"sarah-serve: error: {error}", file=sys.stderr)

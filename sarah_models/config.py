@@ -28,6 +28,11 @@ NOISE_SCALE = 1.0
 SOLVER = "midpoint"  # A.3: midpoint method, 4 steps (8 network evaluations per chunk)
 SOLVERS = ("midpoint", "euler")
 SOLVER_STEPS = 4
+# How a streamed chunk sees its history tokens while the new one is solved: "final" re-noises
+# each history token from its final latent at every solver time (eq. 4, the paper's 3.3);
+# "trajectory" replays the states the token itself passed through when it was solved, so a
+# stream is the offline joint solve computed causally (sampling/stream.py).
+IMPUTATIONS = ("final", "trajectory")
 GAZE_RANGE = (-1.0, 1.0)  # the gaze score is a cosine: targets outside cannot be reached
 HISTORY_TOKENS = 2  # latents of history the streaming flow sees beside the new one (A.3)
 STREAMED_TOKENS = HISTORY_TOKENS + 1  # what a streamed evaluation holds: the history and the new token
@@ -414,6 +419,8 @@ class StreamConfig:
     """Inference settings; defaults are the paper's (A.3 and Tab. 2)."""
 
     history_tokens: int | None = HISTORY_TOKENS  # latents kept as history (None: never drop any)
+    # "final" (the paper) or "trajectory" (the stream equals offline generation), IMPUTATIONS
+    imputation: str = "final"
     steps: int = SOLVER_STEPS  # solver steps (midpoint: 2 network evaluations each)
     solver: str = SOLVER
     cfg_scale: float = CFG_SCALE  # w in x1 = x1_u + w (x1_c - x1_u)
@@ -435,6 +442,8 @@ class StreamConfig:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
         if self.solver not in SOLVERS:
             raise ValueError(f"unknown solver {self.solver!r}; choose from {SOLVERS}")
+        if self.imputation not in IMPUTATIONS:
+            raise ValueError(f"unknown imputation {self.imputation!r}; choose from {IMPUTATIONS}")
         if not math.isfinite(self.cfg_scale):
             raise ValueError(f"cfg_scale must be finite, got {self.cfg_scale}")
         check_noise_scale(self.noise_scale)

@@ -220,6 +220,29 @@ def test_history_sets_what_a_stream_keeps(tiny, tmp_path):
     assert rows["all"]["fgd_local/avg"] != rows["0"]["fgd_local/avg"]
 
 
+def test_trajectory_imputation_streams_what_the_offline_protocol_scores(tiny, tmp_path):
+    """--imputation trajectory: the streamed model row is the offline protocol's, figure for
+    figure (the caption names it); the paper's imputation streams other figures."""
+    rows, captions = {}, {}
+    for name, flags in (("offline", ("--protocol", "offline")),
+                        ("trajectory", ("--protocol", "stream", "--imputation", "trajectory")),
+                        ("final", ("--protocol", "stream"))):
+        out = tmp_path / name
+        assert main(eval_args(tiny, out, "--methods", "gt,model", "--gaze", "none", *flags)) == 0
+        t1 = json.loads((out / "table1.json").read_text())
+        rows[name], captions[name] = t1["rows"][1]["shown"], t1["caption"]
+    assert "stream protocol (trajectory imputation)" in captions["trajectory"]
+    assert "imputation" not in captions["final"] + captions["offline"]
+    figures = [k for k, v in rows["offline"].items() if isinstance(v, float) and "fps" not in k]
+    assert "fgd_local/avg" in figures and "wrist_speed/avg" in figures
+
+    def largest_gap(name: str) -> float:
+        return max(abs(rows[name][k] - rows["offline"][k]) / max(abs(rows["offline"][k]), 1e-6)
+                   for k in figures)
+    assert largest_gap("trajectory") < 1e-5  # float rounding (measured 8e-7)
+    assert largest_gap("final") > 1e-3  # these 4-token windows: 0.017 measured
+
+
 def test_noise_scale_reaches_the_model_and_the_caption(tiny, tmp_path):
     """--noise-scale: the model row samples at that temperature, which the caption and the
     settings name; the paper's 1 is not named."""

@@ -275,8 +275,8 @@ def test_trained_model_int8_mode_stays_within_tolerance(shipped, seed):
 
 @pytest.mark.parametrize("mode", ["int8", "fp32"])
 def test_a_stream_served_with_others_gets_what_it_gets_alone(shipped, mode):
-    """Four streams of the shipped model through a fast path, stepped together: each gets
-    exactly its own ``step``'s joints. One activation scale for all the rows of a call moved
+    """Four streams of the shipped model (two with trajectory imputation) through a fast path,
+    stepped together: each gets exactly its own ``step``'s joints. One activation scale for all the rows of a call moved
     them by up to 8 mm (docs/performance.md); the int8 Linears quantize each stream's rows on
     their own. In fp32, ``F.linear`` on all streams' rows moved them by 0.002 mm over these 16
     frames and 0.1 mm over 256 with the decoding chain; the Linears of the solve now compute
@@ -291,10 +291,10 @@ def test_a_stream_served_with_others_gets_what_it_gets_alone(shipped, mode):
                rng.normal(-8.0, 4.0, (16, fast.flow.audio_dim)).astype(np.float32),
                rng.normal(-8.0, 4.0, (16, fast.flow.audio_dim)).astype(np.float32))
               for _ in range(streams)]
-    alone = [StreamingGenerator(fast.vae, fast.flow, fast.normalizer, StreamConfig(seed=i))
-             for i in range(streams)]
-    together = [StreamingGenerator(fast.vae, fast.flow, fast.normalizer, StreamConfig(seed=i))
-                for i in range(streams)]
+    configs = [StreamConfig(seed=i, imputation=("final", "trajectory")[i % 2])
+               for i in range(streams)]
+    alone = [StreamingGenerator(fast.vae, fast.flow, fast.normalizer, c) for c in configs]
+    together = [StreamingGenerator(fast.vae, fast.flow, fast.normalizer, c) for c in configs]
     layout = MotionLayout.from_width(fast.vae.motion_dim)
     worst = 0.0
     for k in range(0, 16, 4):

@@ -121,6 +121,16 @@ def test_offline_equals_streaming_for_one_euler_step(run_dir, raw, tmp_path):
     np.testing.assert_allclose(streamed["agent_audio"], offline["agent_audio"], atol=1e-5)
 
 
+def test_trajectory_imputation_streams_the_offline_motion(run_dir, raw, tmp_path):
+    """With the paper's solver (4 midpoint steps), a stream with trajectory imputation writes
+    the motion the offline protocol writes."""
+    assert main(raw_args(run_dir, raw, tmp_path / "s", "--no-animation",
+                         "--imputation", "trajectory")) == 0
+    assert main(raw_args(run_dir, raw, tmp_path / "o", "--no-animation", "--offline")) == 0
+    streamed, offline = (np.load(tmp_path / n / "motion.npz") for n in ("s", "o"))
+    np.testing.assert_allclose(streamed["icosahedra"], offline["icosahedra"], atol=1e-4)
+
+
 def _error(capsys, argv) -> str:
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()

@@ -24,6 +24,7 @@ from websockets.sync.client import connect
 from sarah_cli.generate import main as generate
 from sarah_cli.serve import main as serve_main
 from sarah_data.constants import SAMPLES_PER_FRAME
+from sarah_models.config import StreamConfig
 from sarah_models.serving.client import read_frames
 from sarah_models.serving.protocol import encode_pcm, pack
 from sarah_models.serving.server import LiveServer, ServeConfig, load_server_models
@@ -36,9 +37,9 @@ FRAMES = 60
 class RunningServer:
     """A LiveServer on a free loopback port, in a thread with its own event loop."""
 
-    def __init__(self, run: Path, body=None, **config):
+    def __init__(self, run: Path, body=None, defaults: StreamConfig = StreamConfig(), **config):
         models, _ = load_server_models(run, device="cpu")
-        self.server = LiveServer(models, ServeConfig(port=0, **config), body=body)
+        self.server = LiveServer(models, ServeConfig(port=0, **config), defaults, body=body)
         self.loop = asyncio.new_event_loop()
         self.ready = self.loop.create_future()
         self.stop_future = self.loop.create_future()
@@ -104,6 +105,25 @@ def test_streaming_through_the_server_is_sarah_generate(server, run_dir, raw, tm
     for key in ("icosahedra", "shell", "joint_positions", "joint_rotations", "gaze_score",
                 "agent_audio", "user_audio", "user_head", "agent_speaking", "anchor"):
         np.testing.assert_array_equal(served[key], direct[key], err_msg=key)
+
+
+def test_a_server_streaming_with_trajectory_imputation_sends_the_offline_motion(run_dir, raw,
+                                                                               tmp_path):
+    """``sarah-serve --imputation trajectory``: every session streams what ``sarah-generate
+    --offline`` writes for the same inputs and seed."""
+    running = RunningServer(run_dir, defaults=StreamConfig(imputation="trajectory"), threads=1)
+    try:
+        assert serve_main(["--client", running.url, *files(raw), "--out", str(tmp_path / "served"),
+                           "--seed", "5"]) == 0
+    finally:
+        running.stop()
+    assert generate(["--run", str(run_dir), *files(raw), "--out", str(tmp_path / "offline"),
+                     "--seed", "5", "--offline", "--no-animation", "--device", "cpu",
+                     "--threads", "1"]) == 0
+    served, offline = (np.load(tmp_path / name / "motion.npz", allow_pickle=False)
+                       for name in ("served", "offline"))
+    assert served["icosahedra"].shape[0] == FRAMES
+    np.testing.assert_allclose(served["icosahedra"], offline["icosahedra"], atol=1e-4)
 
 
 @contextmanager

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -20,6 +22,7 @@ from sarah_models.sampling.stream import (
     StreamingGenerator,
     StreamingSession,
     generate_offline,
+    offline_with_latents,
     push_together,
     solve,
     step_together,
@@ -206,6 +209,48 @@ def test_streaming_equals_offline_where_the_maths_says_so(models):
     assert np.abs(streamed[S:] - offline[S:]).max() > 1e-4
 
 
+@pytest.mark.parametrize("gaze, cfg, solver", [(0.8, 1.3, "midpoint"), (None, 0.6, "midpoint"),
+                                               (0.3, 1.0, "euler")])
+def test_trajectory_imputation_streams_the_offline_solve(models, gaze, cfg, solver):
+    """With each history token's own trajectory replayed, and as many history tokens as the
+    tiny flow's stacked attention windows reach, a stream is offline generation computed
+    causally: the same latents and frames, past the position embedding's last index too."""
+    vae, flow, _ = models
+    assert flow.context_tokens == 5  # 2 layers of windows of 3 tokens
+    inputs = make_inputs(4 * 22)  # 22 tokens: past the 16 position indices
+    config = StreamConfig(imputation="trajectory", gaze=gaze, cfg_scale=cfg, solver=solver,
+                          noise_scale=0.6)
+    gen = StreamingGenerator(*models, config)
+    streamed, latents = [], []
+    for i in range(0, len(inputs[0]), S):
+        streamed.append(gen.step(*(x[i:i + S] for x in inputs)))
+        latents.append(gen.last_latent)
+    offline, z = offline_with_latents(*models, *inputs, config)
+    torch.testing.assert_close(torch.stack(latents), z, atol=1e-5, rtol=0)
+    np.testing.assert_allclose(np.concatenate(streamed), offline, atol=1e-5)
+    # the paper's imputation of the same stream parts from offline after the first token
+    final = stream(models, inputs, dataclasses.replace(config, imputation="final"))
+    assert np.abs(final[S:] - offline[S:]).max() > 1e-4
+
+
+def test_trajectory_imputation_with_unbounded_attention_keeps_what_it_is_told():
+    """A flow that attends to every earlier token (the paper's) equals offline when the stream
+    keeps all its history, and not when it keeps the default two tokens."""
+    models = random_models("tiny", 8, SHELL, 0, motion_std=0.02, init_std=0.05,
+                           audio_mean=0.0, audio_std=1.0, latent_mean_std=0.1,
+                           overrides=("flow.attention_window=None",))
+    assert models[1].context_tokens is None
+    inputs = make_inputs(4 * 10)
+    offline = generate_offline(*models, *inputs, StreamConfig(imputation="trajectory"))
+    every = stream(models, inputs, StreamConfig(imputation="trajectory", history_tokens=None))
+    np.testing.assert_allclose(every, offline, atol=1e-5)
+    two = stream(models, inputs, StreamConfig(imputation="trajectory"))
+    np.testing.assert_allclose(two[:3 * S], offline[:3 * S], atol=1e-5)
+    assert np.abs(two[3 * S:] - offline[3 * S:]).max() > 1e-4
+    with pytest.raises(ValueError, match="imputation"):
+        StreamConfig(imputation="straight")
+
+
 def test_noise_scale_is_the_temperature_of_every_tokens_noise(models):
     """noise_scale multiplies each token's eps, in streaming and offline alike (the one-step
     Euler stream still equals offline), and 1 is the paper's standard normal."""
@@ -360,10 +405,11 @@ def test_session_streams_raw_audio_in_any_chunking():
 
 def test_streams_stepped_together_get_what_each_gets_alone(models):
     """``step_together`` over streams that differ in seed, gaze (one guidance branch or two),
-    steps and history length gives each stream the frames and latents of its own ``step``
+    steps, imputation and history length gives each stream the frames and latents of its own ``step``
     (to summation order), round after round."""
     configs = [StreamConfig(seed=0), StreamConfig(seed=1, gaze=0.8), StreamConfig(seed=2),
-               StreamConfig(seed=3, steps=2), StreamConfig(seed=4)]
+               StreamConfig(seed=3, steps=2), StreamConfig(seed=4, imputation="trajectory"),
+               StreamConfig(seed=5, imputation="trajectory"), StreamConfig(seed=6)]
     inputs = [make_inputs(24, seed=i) for i in range(len(configs))]
     alone = [StreamingGenerator(*models, c) for c in configs]
     together = [StreamingGenerator(*models, c) for c in configs]

@@ -46,7 +46,7 @@ from sarah_data.atomic import atomic_write_text
 from sarah_data.constants import FPS
 from sarah_data.skeleton import MotionLayout
 
-from ..config import (CFG_SCALE, HISTORY_TOKENS, NOISE_SCALE, SOLVER_STEPS, STRIDE, WINDOW,
+from ..config import (CFG_SCALE, HISTORY_TOKENS, IMPUTATIONS, NOISE_SCALE, SOLVER_STEPS, STRIDE, WINDOW,
                       check_gaze, check_noise_scale)
 from .metrics import (
     FrechetRidgeWarning,
@@ -99,6 +99,7 @@ class EvalConfig:
     # Streamed latents kept as history (None: all). The offline protocol has none to drop.
     history_tokens: int | None = HISTORY_TOKENS
     protocol: str = "stream"  # what users run; "offline" is the paper's fps protocol
+    imputation: str = "final"  # a stream's history (StreamConfig.imputation; "final": the paper)
     library_size: int = 2048  # NN library and Random pool of training windows
     train_split: str = "train"
     # The shards the Random pool and NN library are drawn from (default: the evaluated ones).
@@ -116,6 +117,9 @@ class EvalConfig:
                             f"{', '.join(METHODS)}")
         if self.protocol not in PROTOCOLS:
             raise EvalError(f"unknown protocol {self.protocol!r}; choose offline or stream")
+        if self.imputation not in IMPUTATIONS:
+            raise EvalError(f"unknown imputation {self.imputation!r}; choose from "
+                            f"{', '.join(IMPUTATIONS)}")
         for name in ("windows", "window", "batch_clips", "steps", "library_size", "blur_frames"):
             if getattr(self, name) < 1:
                 raise EvalError(f"--{name.replace('_', '-')} must be positive, got "
@@ -221,6 +225,7 @@ def window_generator(models, config: EvalConfig, gaze: float | None):
         stream = StreamConfig(steps=config.steps, cfg_scale=config.cfg_scale, gaze=gaze,
                               noise_scale=config.noise_scale,
                               history_tokens=config.history_tokens,
+                              imputation=config.imputation,
                               seed=_window_seed(config.seed, index))
         return generate(models, inputs, stream, offline=config.protocol == "offline")
 
@@ -438,7 +443,11 @@ def _noise_note(config: EvalConfig) -> str:
 
 
 def _history_note(config: EvalConfig) -> str:
-    if config.protocol != "stream" or config.history_tokens == HISTORY_TOKENS:
+    if config.protocol != "stream":
+        return ""
+    if config.imputation == "trajectory":
+        return " (trajectory imputation)"
+    if config.history_tokens == HISTORY_TOKENS:
         return ""
     return " (history: all tokens)" if config.history_tokens is None else (
         f" (history: {config.history_tokens} tokens)")

@@ -34,7 +34,10 @@ What can be cached while streaming (imputation re-noises the history at every so
   unchanged (no window truncation); ``forward(..., caches=..., commit=...)`` supports such
   per-step caches. The recommended streaming path does not: with the paper's window of 2 history
   blocks + 1 new block, a full forward over 3 tokens per evaluation costs less than managing
-  per-step caches, and it stays exact.
+  per-step caches, and it stays exact. With trajectory imputation (``StreamConfig.imputation``)
+  a history token's state at each solver time never changes, so per-evaluation caches would be
+  valid for as long as the token stays in the window; the stream recomputes its
+  ``context_tokens`` instead, which is as exact.
 """
 
 from __future__ import annotations
@@ -92,6 +95,13 @@ class FlowModel(nn.Module):
             AdaLNZeroBlock(h, config.heads, h, config.mlp_ratio, config.rope_base)
             for _ in range(config.layers))
         self.out = AdaLNZeroOutput(h, h, latent_dim)
+
+    @property
+    def context_tokens(self) -> int | None:
+        """How many tokens, itself included, the last token's prediction depends on: each layer
+        reaches ``attention_window - 1`` tokens further back; None without a window (all)."""
+        window = self.config.attention_window
+        return None if window is None else self.config.layers * (window - 1) + 1
 
     def _stack(self, name: str, value: Tensor, num_blocks: int | None) -> Tensor:
         if name == "gaze" and value.dim() == 2:

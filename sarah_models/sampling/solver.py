@@ -40,6 +40,12 @@ def time_grid(steps: int, solver: str) -> list[float]:
     return [t for tau, _, mid in stage_times(steps, solver) for t in (tau, mid) if t is not None]
 
 
+def replay_times(steps: int, solver: str) -> list[float]:
+    """The flow times of a token's recorded trajectory: every evaluation's, then 1 (its final
+    latent)."""
+    return [*time_grid(steps, solver), 1.0]
+
+
 def token_noise(generator: torch.Generator, latent_dim: int, scale: float) -> Tensor:
     """The noise eps_k of one new token (CPU float32), ``scale`` (``StreamConfig.noise_scale``)
     times a standard normal draw. Streaming and offline draw it token by token in the same
@@ -59,15 +65,33 @@ def imputer(noise: Tensor, known: Tensor | None) -> Impute:
     return impute
 
 
-def integrate(velocity: Velocity, noise: Tensor, impute: Impute, config) -> Tensor:
+def replayer(states: Tensor | None, config) -> Impute:
+    """Trajectory imputation: the first m tokens set to the state each held at flow time tau
+    when it was solved. states (..., m, len(replay_times), Dz), the times in ``replay_times``
+    order (a stream axis may lead); None or m = 0 imputes nothing."""
+    m = 0 if states is None else states.shape[-3]
+    index = {t: i for i, t in enumerate(replay_times(config.steps, config.solver))}
+
+    def impute(z: Tensor, tau: float) -> Tensor:
+        if m == 0:
+            return z
+        return torch.cat((states.select(-2, index[tau]), z[..., m:, :]), dim=-2)
+    return impute
+
+
+def integrate(velocity: Velocity, noise: Tensor, impute: Impute, config,
+              trace: list[Tensor] | None = None) -> Tensor:
     """tau from 0 to 1 in ``config.steps`` steps of ``config.solver``, imputing before every
-    evaluation; ``config`` is a ``StreamConfig`` (or anything with steps and solver)."""
+    evaluation; ``config`` is a ``StreamConfig`` (or anything with steps and solver). A ``trace``
+    list receives the state at every time of ``replay_times``: what each evaluation saw, then
+    the result."""
+    record = (lambda z: z) if trace is None else (lambda z: trace.append(z) or z)
     z = noise.clone()
     for tau, h, mid in stage_times(config.steps, config.solver):
-        z = impute(z, tau)
+        z = record(impute(z, tau))
         if mid is not None:
-            z_mid = impute(z + 0.5 * h * velocity(z, tau), mid)
+            z_mid = record(impute(z + 0.5 * h * velocity(z, tau), mid))
             z = z + h * velocity(z_mid, mid)
         else:
             z = z + h * velocity(z, tau)
-    return impute(z, 1.0)
+    return record(impute(z, 1.0))

@@ -6,10 +6,17 @@ by integrating the flow (``solver.py``) under classifier-free guidance (``guidan
 Streaming vs offline. ``generate_offline`` denoises all K tokens jointly under the causal mask
 (the paper's fps = T / time protocol) with the same per-token noise and guidance. Causality
 makes token 1 identical in both. For later tokens, offline history tokens follow their own
-solver trajectories while streaming substitutes tau z_final + (1 - tau) eps: the two coincide
-exactly when those trajectories are straight, which holds (a) for a single token, (b) for one
-Euler step (the only evaluation is at tau = 0, where both are the noise eps) and (c) whenever
-the network's x1 prediction is constant along the path. In general they differ.
+solver trajectories while streaming with the paper's imputation (``StreamConfig.imputation =
+"final"``) substitutes tau z_final + (1 - tau) eps: the two coincide exactly when those
+trajectories are straight, which holds (a) for a single token, (b) for one Euler step (the only
+evaluation is at tau = 0, where both are the noise eps) and (c) whenever the network's x1
+prediction is constant along the path. In general they differ. With ``imputation =
+"trajectory"`` a stream keeps each history token's own trajectory (the state at every solver
+time) and replays it, and keeps as many history tokens as the flow's attention reaches
+(``FlowModel.context_tokens`` - 1; ``history_tokens`` when attention is unbounded): a stream is
+then the offline joint solve computed causally, equal to it up to float rounding, for streams
+of any length when the flow's attention is windowed (the tiny preset) and, with unbounded
+attention, while the stream is within ``history_tokens`` + 1 tokens.
 
 Many streams. ``step_together`` (and ``push_together`` for sessions) takes one block of each
 of several streams and solves all of them in one network call per evaluation, as a server does
@@ -48,23 +55,29 @@ from ..nn.vae import CausalVAE
 from .decoding import StreamDecoding, stream_decoding
 from .guidance import combine, drop_masks
 from .path import velocity_from_x1
-from .solver import imputer, integrate, token_noise
+from .solver import imputer, integrate, replayer, token_noise
 
 IDENTITY = WindowTransform(0.0, 0.0, 0.0)
 
 
 def solve(flow: FlowModel, cond_tokens: Tensor, noise: Tensor, known: Tensor | None,
-          config: StreamConfig) -> Tensor:
+          config: StreamConfig, trace: list[Tensor] | None = None) -> Tensor:
     """Integrate tau 0 -> 1 for L tokens of one stream, or of G streams at once.
 
     One stream: cond_tokens (B, L, hidden) with B = 1, or 2 for (conditional, unconditional)
-    with guidance, run as one batch; noise (L, Dz) each token's eps; known (m, Dz) or None, the
-    final latents of the first m tokens, imputed as tau * known + (1 - tau) * eps before every
-    evaluation; returns z (L, Dz). G streams: a leading stream axis on all three, cond_tokens
-    (G, B, L, hidden); one network call per evaluation serves every stream's branches."""
+    with guidance, run as one batch; noise (L, Dz) each token's eps; known None or the first m
+    tokens' history: with ``config.imputation`` "final" their final latents (m, Dz), imputed as
+    tau * known + (1 - tau) * eps before every evaluation, with "trajectory" their recorded
+    states (m, len(replay_times), Dz); returns z (L, Dz). G streams: a leading stream axis on all
+    three, cond_tokens (G, B, L, hidden); one network call per evaluation serves every stream's
+    branches. ``trace`` receives the state of all L tokens at every time of ``replay_times``."""
     if noise.dim() == 2:
-        return solve(flow, cond_tokens[None], noise[None],
-                     None if known is None else known[None], config)[0]
+        inner = None if trace is None else []
+        z = solve(flow, cond_tokens[None], noise[None], None if known is None else known[None],
+                  config, inner)[0]
+        if trace is not None:
+            trace.extend(state[0] for state in inner)
+        return z
     streams, branches = cond_tokens.shape[:2]
     rows = cond_tokens.flatten(0, 1)
 
@@ -73,8 +86,18 @@ def solve(flow: FlowModel, cond_tokens: Tensor, noise: Tensor, known: Tensor | N
         x1 = flow(x, tau, cond_tokens=rows).unflatten(0, (streams, branches))
         return velocity_from_x1(combine(x1, config.cfg_scale), z, tau, flow.config.min_denominator)
 
+    impute = replayer(known, config) if config.imputation == "trajectory" else imputer(noise, known)
     with independent_streams(streams):
-        return integrate(velocity, noise, imputer(noise, known), config)
+        return integrate(velocity, noise, impute, config, trace)
+
+
+def kept_history(flow: FlowModel, config: StreamConfig) -> int | None:
+    """How many history tokens a stream keeps (None: all): ``config.history_tokens``, but with
+    trajectory imputation and windowed attention exactly what the flow's attention reaches, so
+    that the stream equals the offline solve at a bounded cost."""
+    if config.imputation == "trajectory" and flow.context_tokens is not None:
+        return flow.context_tokens - 1
+    return config.history_tokens
 
 
 def _as_tensor(x, shape_tail: tuple[int, ...], name: str, frames: int | None) -> Tensor:
@@ -179,9 +202,10 @@ class StreamingGenerator:
         """Start a new stream (same seed: the same noise again)."""
         cfg = self.config
         self._generator = torch.Generator().manual_seed(cfg.seed)
-        keep = None if cfg.history_tokens is None else cfg.history_tokens
+        keep = kept_history(self._m.flow, cfg)
         self._latents: deque[Tensor] = deque(maxlen=keep)  # final z of history tokens
         self._noise: deque[Tensor] = deque(maxlen=keep)  # their eps
+        self._states: deque[Tensor] = deque(maxlen=keep)  # their trajectories ("trajectory")
         window = None if keep is None else keep + 1
         self._cond: deque[Tensor] = deque(maxlen=window)  # per block (2, 1, hidden), padded
         self._decoder = self._m.vae.new_decoder_cache(cfg.decoder_blocks)
@@ -217,17 +241,23 @@ class StreamingGenerator:
         if any(t.shape[0] == 2 for t in window):  # guidance active somewhere in the window
             window = [t if t.shape[0] == 2 else t.expand(2, -1, -1) for t in window]
         eps = token_noise(self._generator, m.flow.latent_dim, self.config.noise_scale).to(m.device)
+        history = self._states if self.config.imputation == "trajectory" else self._latents
         return PendingBlock(m.flow, self.config, torch.cat(window, dim=1),
                             torch.stack([*self._noise, eps]),
-                            torch.stack(list(self._latents)) if self._latents else None, eps)
+                            torch.stack(list(history)) if history else None, eps)
 
-    def end_step(self, block: PendingBlock, z: Tensor) -> np.ndarray:
+    def end_step(self, block: PendingBlock, z: Tensor, states: Tensor | None = None) -> np.ndarray:
         """``step`` after the solve: the new token's latent z (Dz,) joins the history and is
-        decoded; returns its s frames."""
+        decoded; returns its s frames. ``states`` (len(replay_times), Dz): the token's
+        trajectory, which trajectory imputation needs."""
         m = self._m
         self.last_latent = z
         self._latents.append(z)  # a deque of maxlen 0 keeps nothing: no history
         self._noise.append(block.eps)
+        if self.config.imputation == "trajectory":
+            if states is None:
+                raise ValueError("trajectory imputation needs the new token's solver states")
+            self._states.append(states)
         frames = m.vae.decoder_step(m.latent_for_decoder(z)[None], self._decoder)[0]
         self.frames_generated += m.stride
         return m.to_world(frames, self._decoding)
@@ -241,7 +271,7 @@ class PendingBlock:
     config: StreamConfig
     cond_tokens: Tensor  # (B, L, hidden)
     noise: Tensor  # (L, Dz): the history tokens' eps, then the new one's
-    known: Tensor | None  # (m, Dz): the history tokens' final latents
+    known: Tensor | None  # the history: final latents (m, Dz) or trajectories (m, E + 1, Dz)
     eps: Tensor  # (Dz,): the new token's noise
 
     def batch_key(self) -> tuple:
@@ -249,7 +279,8 @@ class PendingBlock:
         guidance weight, and the same window shape (branches, tokens, history)."""
         c = self.config
         return (id(self.flow), tuple(self.cond_tokens.shape),
-                0 if self.known is None else self.known.shape[0], c.steps, c.solver, c.cfg_scale)
+                0 if self.known is None else self.known.shape[0], c.steps, c.solver, c.cfg_scale,
+                c.imputation)
 
 
 @torch.inference_mode()
@@ -269,15 +300,18 @@ def step_together(generators: Sequence[StreamingGenerator],
     groups: dict[tuple, list[PendingBlock]] = {}
     for block in blocks:
         groups.setdefault(block.batch_key(), []).append(block)
-    latents: dict[int, Tensor] = {}
+    solved: dict[int, tuple[Tensor, Tensor | None]] = {}
     for members in groups.values():
         lead = members[0]
+        trace = [] if lead.config.imputation == "trajectory" else None
         z = solve(lead.flow, torch.stack([b.cond_tokens for b in members]),
                   torch.stack([b.noise for b in members]),
                   None if lead.known is None else torch.stack([b.known for b in members]),
-                  lead.config)
-        latents.update((id(b), z[row, -1]) for row, b in enumerate(members))
-    return [g.end_step(b, latents[id(b)]) for g, b in zip(generators, blocks)]
+                  lead.config, trace)
+        states = None if trace is None else torch.stack([t[:, -1] for t in trace], dim=1)
+        solved.update((id(b), (z[row, -1], None if states is None else states[row]))
+                      for row, b in enumerate(members))
+    return [g.end_step(b, *solved[id(b)]) for g, b in zip(generators, blocks)]
 
 
 @torch.inference_mode()
