@@ -3,7 +3,8 @@
 # fixture dyads -> shards -> a tiny model trained on 2 CPU cores within #16's 30 minutes ->
 # sarah-eval on every 400-frame window of fixtures from a seed the training never saw (Table 1
 # in both protocols, the gaze sweep), at the paper's sampling settings and at those that
-# scripts/choose_sampling.py picks on a tuning corpus of a third seed. Not run in CI.
+# scripts/choose_sampling.py picks on a tuning corpus of a third seed, for the paper's streaming
+# imputation and for trajectory imputation (docs/models.md). Not run in CI.
 #
 #   scripts/fixture_benchmark.sh [BENCH_DIR]          (default: bench/)
 #
@@ -34,6 +35,10 @@ TUNE_SESSIONS=${TUNE_SESSIONS:-36}   # seed 3: the sampling settings are chosen 
 TUNE_SEED=${TUNE_SEED:-3}
 # (noise scale):(CFG) settings tried on the tuning corpus (the thirty-seventh run's grid)
 TUNE_GRID=${TUNE_GRID:-"1.0:1.3 0.7:0.7 0.7:0.6 0.7:0.5 0.6:0.6 0.6:0.5 0.6:0.4 0.5:0.6 0.5:0.5 0.5:0.4"}
+# ... and for streams with trajectory imputation, scored by the offline protocol: the same motion
+# (docs/models.md), in a quarter of the time (the thirty-eighth run's grid)
+TUNE_GRID_TRAJECTORY=${TUNE_GRID_TRAJECTORY:-"1.0:1.3 1.0:0.6 0.7:1.3 0.7:1.0 0.7:0.7 0.6:1.5 0.6:1.3 \
+  0.6:1.2 0.6:1.1 0.6:1.0 0.6:0.8 0.6:0.6 0.6:0.5 0.5:1.5 0.5:1.3 0.5:1.1 0.5:0.5 0.4:1.3"}
 JOBS=${JOBS:-2}                      # prep workers, and evaluations run side by side
 VAE_SHORT_STEPS=${VAE_SHORT_STEPS:-2500}  # on 100-frame windows (~1/7 of a 400-frame step)
 VAE_LONG_STEPS=${VAE_LONG_STEPS:-150}     # then on 400-frame windows
@@ -118,31 +123,37 @@ run_eval() {  # OUT CORPUS ARGS...: in the background, at most JOBS at once
   while [ "$(jobs -rp | wc -l)" -ge "$JOBS" ]; do wait -n || true; done
 }
 
-# The sampling settings: each of TUNE_GRID streamed (g = none) on the tuning corpus, then the
-# setting whose wrists and head lie nearest GT's by a rule fixed beforehand (choose_sampling.py).
-SAMPLING_FLAGS=$BENCH/sampling.txt
-if [ ! -f "$SAMPLING_FLAGS" ]; then
-  stamp "tune: begin (${TUNE_GRID})"
-  tuned=()
-  for setting in $TUNE_GRID; do
+# The sampling settings: each setting of a grid evaluated (g = none) on the tuning corpus, then
+# the one whose wrists and head lie nearest GT's by a rule fixed beforehand (choose_sampling.py).
+tune_sampling() {  # FLAGS_FILE FOLDER GRID EVAL_FLAGS...
+  local flags=$1 folder=$2 grid=$3 setting noise cfg
+  shift 3
+  [ -f "$flags" ] && return 0
+  stamp "tune $folder: begin ($grid)"
+  local tuned=()
+  for setting in $grid; do
     noise=${setting%%:*} cfg=${setting##*:}
-    tuned+=("$BENCH/tune/${noise}_${cfg}")
-    run_eval "$BENCH/tune/${noise}_${cfg}" tune --gaze none --table1-gaze none --methods gt,model \
-      --protocol stream --noise-scale "$noise" --cfg "$cfg"
+    tuned+=("$folder/${noise}_${cfg}")
+    run_eval "$folder/${noise}_${cfg}" tune --gaze none --table1-gaze none --methods gt,model \
+      --noise-scale "$noise" --cfg "$cfg" "$@"
   done
   wait
-  $PYTHON scripts/choose_sampling.py "${tuned[@]}" --flags-to "$SAMPLING_FLAGS" \
-    | tee "$BENCH/tune/choice.md"
-  stamp "tune: end ($(cat "$SAMPLING_FLAGS"))"
-fi
+  $PYTHON scripts/choose_sampling.py "${tuned[@]}" --flags-to "$flags" | tee "$folder/choice.md"
+  stamp "tune $folder: end ($(cat "$flags"))"
+}
+tune_sampling "$BENCH/sampling.txt" "$BENCH/tune" "$TUNE_GRID" --protocol stream
+tune_sampling "$BENCH/sampling_trajectory.txt" "$BENCH/tune_trajectory" "$TUNE_GRID_TRAJECTORY" --protocol offline
 [ "$UNTIL" = tune ] && exit 0
-read -r -a SAMPLING < "$SAMPLING_FLAGS"
+read -r -a SAMPLING < "$BENCH/sampling.txt"
+read -r -a SAMPLING_TRAJECTORY < "$BENCH/sampling_trajectory.txt"
 
 # On the test corpus, at the paper's settings and at the tuned ones: Table 1 streamed (what users
 # run; at the paper's settings with the baselines, the real-vs-real floor and the VAE's
 # reconstruction), the model offline, and the gaze sweep streamed (on SWEEP_WINDOWS of them, for
-# time: each gaze target is a full pass of the model).
-stamp "eval: begin ($MODEL, $JOBS side by side; tuned: ${SAMPLING[*]})"
+# time: each gaze target is a full pass of the model); streamed with trajectory imputation at
+# the settings tuned for it, where the offline row should repeat the streamed one.
+stamp "eval: begin ($MODEL, $JOBS side by side; tuned: ${SAMPLING[*]};" \
+      "trajectory: ${SAMPLING_TRAJECTORY[*]})"
 table1_and_sweep() {  # SUFFIX METHODS SAMPLING_FLAGS...
   local suffix=$1 methods=$2
   shift 2
@@ -155,13 +166,16 @@ table1_and_sweep() {  # SUFFIX METHODS SAMPLING_FLAGS...
       --protocol stream --windows "$SWEEP_WINDOWS" "$@"
   done
 }
+table1_and_sweep _trajectory gt,model --imputation trajectory "${SAMPLING_TRAJECTORY[@]}"
 table1_and_sweep _tuned gt,model "${SAMPLING[@]}"
 table1_and_sweep "" gt,real,random,nn,model,vae
 wait
 stamp "eval: end"
 missing=0
-for name in stream offline sweep_0 sweep_0.8 sweep_1 stream_tuned offline_tuned sweep_0_tuned \
-    sweep_0.8_tuned sweep_1_tuned; do
-  if [ -f "$EVAL_OUT/$name/table1.md" ]; then echo "$EVAL_OUT/$name/table1.md"; else missing=1; fi
+for suffix in "" _tuned _trajectory; do
+  for name in stream offline sweep_0 sweep_0.8 sweep_1; do
+    table=$EVAL_OUT/$name$suffix/table1.md
+    if [ -f "$table" ]; then echo "$table"; else missing=1; fi
+  done
 done
 exit $missing
