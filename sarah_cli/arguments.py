@@ -26,6 +26,26 @@ def history_tokens(text: str) -> int | None:
         raise argparse.ArgumentTypeError(f"--history: {error} (or 'all')") from None
 
 
+def guided_modalities(text: str) -> tuple[str, ...]:
+    """--guide: the modalities the unconditional pass drops, comma-separated, or 'all'."""
+    from sarah_models.nn.flow import MODALITIES
+
+    if text.strip().lower() == "all":
+        return MODALITIES
+    names = tuple(part.strip() for part in text.split(",") if part.strip())
+    unknown = [name for name in names if name not in MODALITIES]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(
+            f"unknown modalities {unknown or '(none given)'}; give 'all' or some of "
+            f"{', '.join(MODALITIES)}")
+    return names
+
+
+GUIDE_HELP = ("modalities the unconditional pass of guidance drops, comma-separated: all (the "
+              "paper: w guides the conditioning as a whole) or some of user_head, agent_audio, "
+              "user_audio, gaze (gaze alone guides only gaze control, a no-op for --gaze none)")
+
+
 def noise_scale(text: str) -> float:
     """--noise-scale: the temperature of each token's starting noise, a finite number above 0."""
     from sarah_models.config import check_noise_scale

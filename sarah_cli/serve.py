@@ -9,8 +9,8 @@ import sys
 from pathlib import Path
 
 from sarah_models.accel import MODE_HELP, MODES
-from sarah_cli.arguments import (IMPUTATION_HELP, NOISE_SCALE_HELP, HelpFormatter, add_model_arguments, noise_scale,
-                                 positive_int)
+from sarah_cli.arguments import (GUIDE_HELP, IMPUTATION_HELP, NOISE_SCALE_HELP, HelpFormatter,
+                                 add_model_arguments, guided_modalities, noise_scale, positive_int)
 
 EXIT_ERROR = 2
 
@@ -56,6 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "parameters per frame (this model's body with zero betas)")
     parser.add_argument("--imputation", choices=IMPUTATIONS, default=d.imputation,
                         help=IMPUTATION_HELP + " (every session's)")
+    parser.add_argument("--guide", type=guided_modalities, default="all",
+                        help=GUIDE_HELP + " (every session's)")
     parser.add_argument("--steps", type=int, default=d.steps, help="default solver steps per chunk")
     parser.add_argument("--cfg", type=float, default=d.cfg_scale, help="default guidance scale w")
     parser.add_argument("--noise-scale", type=noise_scale, default=d.noise_scale,
@@ -134,7 +136,8 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     try:
         defaults = replace(StreamConfig(), steps=args.steps, cfg_scale=args.cfg,
-                           noise_scale=args.noise_scale, imputation=args.imputation)
+                           noise_scale=args.noise_scale, imputation=args.imputation,
+                           guide=args.guide)
         models, path = load_server_models(args.run, args.checkpoint, args.device, args.speed, defaults)
     except (GenerateError, ValueError) as error:
         print(f"sarah-serve: error: {error}", file=sys.stderr)

@@ -243,6 +243,26 @@ def test_trajectory_imputation_streams_what_the_offline_protocol_scores(tiny, tm
     assert largest_gap("final") > 1e-3  # these 4-token windows: 0.017 measured
 
 
+def test_guide_sets_what_the_unconditional_pass_drops(tiny, tmp_path):
+    """--guide: guiding gaze alone at g = none is no guidance at all (the same row as w = 1);
+    guiding some modalities is a row of its own, named in the caption; the paper's all is not."""
+    rows, captions = {}, {}
+    for name, flags in (("all", ()), ("gaze", ("--guide", "gaze")), ("w1", ("--cfg", "1")),
+                        ("audio", ("--guide", "agent_audio,user_audio"))):
+        out = tmp_path / name
+        assert main(eval_args(tiny, out, "--methods", "gt,model", "--gaze", "none", *flags)) == 0
+        t1 = json.loads((out / "table1.json").read_text())
+        rows[name], captions[name] = t1["rows"][1]["shown"], t1["caption"]
+    assert rows["gaze"]["fgd_local/avg"] == rows["w1"]["fgd_local/avg"]
+    assert rows["audio"]["fgd_local/avg"] not in (rows["all"]["fgd_local/avg"],
+                                                  rows["w1"]["fgd_local/avg"])
+    assert "guiding agent_audio, user_audio only" in captions["audio"]
+    assert "guiding" not in captions["all"]
+    with pytest.raises(SystemExit) as exit_:
+        main(eval_args(tiny, tmp_path / "bad", "--guide", "user_head,elbows"))
+    assert exit_.value.code == 2
+
+
 def test_noise_scale_reaches_the_model_and_the_caption(tiny, tmp_path):
     """--noise-scale: the model row samples at that temperature, which the caption and the
     settings name; the paper's 1 is not named."""

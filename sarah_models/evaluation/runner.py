@@ -46,8 +46,8 @@ from sarah_data.atomic import atomic_write_text
 from sarah_data.constants import FPS
 from sarah_data.skeleton import MotionLayout
 
-from ..config import (CFG_SCALE, HISTORY_TOKENS, IMPUTATIONS, NOISE_SCALE, SOLVER_STEPS, STRIDE, WINDOW,
-                      check_gaze, check_noise_scale)
+from ..config import (CFG_SCALE, HISTORY_TOKENS, IMPUTATIONS, NOISE_SCALE, SOLVER_STEPS, STRIDE,
+                      WINDOW, StreamConfig, check_gaze, check_noise_scale)
 from .metrics import (
     FrechetRidgeWarning,
     MetricsConfig,
@@ -100,6 +100,8 @@ class EvalConfig:
     history_tokens: int | None = HISTORY_TOKENS
     protocol: str = "stream"  # what users run; "offline" is the paper's fps protocol
     imputation: str = "final"  # a stream's history (StreamConfig.imputation; "final": the paper)
+    # modalities guidance's unconditional pass drops (StreamConfig.guide; all four: the paper)
+    guide: tuple[str, ...] = StreamConfig.guide
     library_size: int = 2048  # NN library and Random pool of training windows
     train_split: str = "train"
     # The shards the Random pool and NN library are drawn from (default: the evaluated ones).
@@ -117,6 +119,10 @@ class EvalConfig:
                             f"{', '.join(METHODS)}")
         if self.protocol not in PROTOCOLS:
             raise EvalError(f"unknown protocol {self.protocol!r}; choose offline or stream")
+        try:
+            StreamConfig(guide=tuple(self.guide))
+        except ValueError as error:
+            raise EvalError(f"--guide: {error}") from None
         if self.imputation not in IMPUTATIONS:
             raise EvalError(f"unknown imputation {self.imputation!r}; choose from "
                             f"{', '.join(IMPUTATIONS)}")
@@ -209,7 +215,6 @@ def _window_seed(seed: int, index: int) -> int:
 def window_generator(models, config: EvalConfig, gaze: float | None):
     """A function (window item, its index) -> the model's ``generation.outputs.Result`` for that
     window, generated as the model's Table 1 row is (``config.protocol``, steps, cfg, seed)."""
-    from ..config import StreamConfig
     from ..generation.inputs import Inputs
     from ..generation.run import generate
     from ..sampling.stream import IDENTITY
@@ -225,7 +230,7 @@ def window_generator(models, config: EvalConfig, gaze: float | None):
         stream = StreamConfig(steps=config.steps, cfg_scale=config.cfg_scale, gaze=gaze,
                               noise_scale=config.noise_scale,
                               history_tokens=config.history_tokens,
-                              imputation=config.imputation,
+                              imputation=config.imputation, guide=config.guide,
                               seed=_window_seed(config.seed, index))
         return generate(models, inputs, stream, offline=config.protocol == "offline")
 
@@ -435,7 +440,14 @@ def _caption1(ev: Evaluation, config: EvalConfig, shards: Path) -> str:
             f"FGD_acc in (cm/s²)² shown ÷{scale['fgd_acc']:g}, Wrist Var = mean wrist speed in "
             f"cm/s. FGD Avg = mean over batches of {config.batch_clips} clips; NS/S pooled. "
             f"Model: {config.protocol} protocol{_history_note(config)}, {config.steps} midpoint "
-            f"steps, cfg {config.cfg_scale:g}{_noise_note(config)}, seed {config.seed}.")
+            f"steps, cfg {config.cfg_scale:g}{_guide_note(config)}{_noise_note(config)}, seed "
+            f"{config.seed}.")
+
+
+def _guide_note(config: EvalConfig) -> str:
+    if tuple(config.guide) == StreamConfig.guide:
+        return ""
+    return f" (guiding {', '.join(config.guide)} only)"
 
 
 def _noise_note(config: EvalConfig) -> str:
