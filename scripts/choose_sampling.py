@@ -4,7 +4,7 @@ before the results are read (docs/results.md, thirty-seventh run):
     python scripts/choose_sampling.py tune/*/ --flags-to sampling.txt
 
 Each folder is one `sarah-eval --methods gt,model` run on the same tuning windows at one
-(--noise-scale, --cfg). The chosen setting is the one whose paired wrist speed and Head Ang.
+(--noise-scale, --cfg[, --guide]). The chosen setting is the one whose paired wrist speed and Head Ang.
 (the "Beside GT" table) lie nearest GT in units of issue #16's tolerances, the larger of
 |wrists / GT - 1| / 0.20 and |Head Ang. - GT| / 0.05, among the settings that keep #16's other
 item-2 figures (foot slide, bone length, frame-0 offset) within theirs. Prints every setting's
@@ -24,12 +24,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from sarah_data.atomic import atomic_write_text
+from sarah_models.nn.flow import MODALITIES
 
 WRIST_TOLERANCE = 0.20  # #16 item 2: wrist speed within 20 % of GT's
 HEAD_TOLERANCE = 0.05  # #16 item 3: Head Ang. (g = none) within 0.05 of GT's
 FOOT_SLIDE_MARGIN = 0.01  # #16 item 2: foot slide <= GT's + 0.01
 BONE_LENGTH_MAX = 2.0  # #16 item 2: bone-length error <= 2 % (p95)
 FRAME0_MAX = 5.0  # #16 item 2: frame-0 pelvis offset <= 5 cm
+ALL_MODALITIES = MODALITIES  # sarah-eval's --guide all
 
 
 @dataclass(frozen=True)
@@ -38,6 +40,7 @@ class Setting:
 
     noise_scale: float
     cfg: float
+    guide: tuple[str, ...]  # what guidance's unconditional pass drops
     windows: tuple[str, str, int]  # shards, split, how many windows: settings compare on one
     wrists: tuple[float, float, float]  # ratio to GT, its paired 95 % interval
     head: tuple[float, float, float]  # difference to GT, its paired 95 % interval
@@ -49,6 +52,16 @@ class Setting:
     def distance(self) -> float:
         """How far from GT in tolerances: <= 1 meets items 2-3's wrists and head (point values)."""
         return max(abs(self.wrists[0] - 1) / WRIST_TOLERANCE, abs(self.head[0]) / HEAD_TOLERANCE)
+
+    @property
+    def name(self) -> str:
+        guided = "" if set(self.guide) == set(ALL_MODALITIES) else f", guiding {'+'.join(self.guide)}"
+        return f"{self.noise_scale:g}, {self.cfg:g}{guided}"
+
+    @property
+    def flags(self) -> str:
+        guided = "" if set(self.guide) == set(ALL_MODALITIES) else f" --guide {','.join(self.guide)}"
+        return f"--noise-scale {self.noise_scale:g} --cfg {self.cfg:g}{guided}"
 
     @property
     def eligible(self) -> bool:
@@ -85,6 +98,8 @@ def read_setting(folder: Path) -> Setting:
 
     return Setting(noise_scale=float(settings["noise_scale"]),
                    cfg=float(settings["cfg_scale"]),
+                   # tables from before --guide guided every modality
+                   guide=tuple(settings.get("guide", ALL_MODALITIES)),
                    windows=(str(settings["shards"]), str(settings["split"]), count),
                    wrists=triple("wrist_speed", "ratio"), head=triple("head_angle", "gap"),
                    foot_slide_gap=value("foot_slide/gap"), bone_length=value("bone_length/avg"),
@@ -98,11 +113,11 @@ def choose(settings: list[Setting]) -> Setting | None:
 
 
 def markdown(settings: list[Setting], chosen: Setting | None) -> str:
-    lines = ["| noise scale, CFG | wrists ÷ GT (paired) | Head Ang. − GT (paired) | "
+    lines = ["| noise scale, CFG[, guided] | wrists ÷ GT (paired) | Head Ang. − GT (paired) | "
              "distance (≤ 1 meets) | foot slide − GT | bone length % | frame-0 cm |",
              "|---|---|---|---|---|---|---|"]
     for s in settings:
-        name = f"{s.noise_scale:g}, {s.cfg:g}"
+        name = s.name
         if s is chosen:
             name = f"**{name} (chosen)**"
         lines.append(
@@ -114,7 +129,7 @@ def markdown(settings: list[Setting], chosen: Setting | None) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        description="Choose the (noise scale, CFG) whose streamed wrists and head lie nearest GT "
+        description="Choose the (noise scale, CFG[, guided modalities]) whose wrists and head lie nearest GT "
                     "on a tuning corpus, from sarah-eval output folders.")
     parser.add_argument("folders", nargs="+", type=Path,
                         help="sarah-eval --methods gt,model output folders, one per setting")
@@ -141,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
         print("choose_sampling: no setting keeps foot slide, bone length and frame-0 offset "
               "within #16's item 2", file=sys.stderr)
         return 1
-    flags = f"--noise-scale {chosen.noise_scale:g} --cfg {chosen.cfg:g}"
+    flags = chosen.flags
     shards, split, count = chosen.windows
     print(f"chosen on {count} windows of {shards} ({split}): {flags} (distance {chosen.distance:.2f})")
     if args.flags_to is not None:

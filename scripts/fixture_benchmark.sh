@@ -36,9 +36,13 @@ TUNE_SEED=${TUNE_SEED:-3}
 # (noise scale):(CFG) settings tried on the tuning corpus (the thirty-seventh run's grid)
 TUNE_GRID=${TUNE_GRID:-"1.0:1.3 0.7:0.7 0.7:0.6 0.7:0.5 0.6:0.6 0.6:0.5 0.6:0.4 0.5:0.6 0.5:0.5 0.5:0.4"}
 # ... and for streams with trajectory imputation, scored by the offline protocol: the same motion
-# (docs/models.md), in a quarter of the time (the thirty-eighth run's grid)
-TUNE_GRID_TRAJECTORY=${TUNE_GRID_TRAJECTORY:-"1.0:1.3 1.0:0.6 0.7:1.3 0.7:1.0 0.7:0.7 0.6:1.5 0.6:1.3 \
-  0.6:1.2 0.6:1.1 0.6:1.0 0.6:0.8 0.6:0.6 0.6:0.5 0.5:1.5 0.5:1.3 0.5:1.1 0.5:0.5 0.4:1.3"}
+# (docs/models.md), in a quarter of the time (the thirty-eighth run's grid; a third field is
+# sarah-eval's --guide, the modalities guidance drops, else all four)
+TUNE_GRID_TRAJECTORY=${TUNE_GRID_TRAJECTORY:-"1.0:1.3 1.0:0.6 0.7:1.3 0.7:1.0 0.7:0.7 0.6:1.5
+  0.6:1.3 0.6:1.2 0.6:1.1 0.6:1.0 0.6:0.8 0.6:0.6 0.6:0.5 0.5:1.5 0.5:1.3 0.5:1.1 0.5:0.5 0.4:1.3
+  0.7:1.3:agent_audio,user_audio,gaze 0.6:1.3:agent_audio,user_audio,gaze
+  0.7:1.5:user_head,gaze 0.7:1.3:user_head,gaze 0.6:1.5:user_head,gaze 0.6:1.3:user_head,gaze
+  0.6:1.1:user_head,gaze 0.5:1.3:user_head,gaze 0.5:1.1:user_head,gaze"}
 JOBS=${JOBS:-2}                      # prep workers, and evaluations run side by side
 VAE_SHORT_STEPS=${VAE_SHORT_STEPS:-2500}  # on 100-frame windows (~1/7 of a 400-frame step)
 VAE_LONG_STEPS=${VAE_LONG_STEPS:-150}     # then on 400-frame windows
@@ -126,16 +130,17 @@ run_eval() {  # OUT CORPUS ARGS...: in the background, at most JOBS at once
 # The sampling settings: each setting of a grid evaluated (g = none) on the tuning corpus, then
 # the one whose wrists and head lie nearest GT's by a rule fixed beforehand (choose_sampling.py).
 tune_sampling() {  # FLAGS_FILE FOLDER GRID EVAL_FLAGS...
-  local flags=$1 folder=$2 grid=$3 setting noise cfg
+  local flags=$1 folder=$2 grid=$3 setting noise cfg guide out
   shift 3
   [ -f "$flags" ] && return 0
-  stamp "tune $folder: begin ($grid)"
+  stamp "tune $folder: begin ($(echo $grid))"
   local tuned=()
   for setting in $grid; do
-    noise=${setting%%:*} cfg=${setting##*:}
-    tuned+=("$folder/${noise}_${cfg}")
-    run_eval "$folder/${noise}_${cfg}" tune --gaze none --table1-gaze none --methods gt,model \
-      --noise-scale "$noise" --cfg "$cfg" "$@"
+    IFS=: read -r noise cfg guide <<< "$setting"
+    out=$folder/${noise}_${cfg}${guide:+_${guide//,/+}}
+    tuned+=("$out")
+    run_eval "$out" tune --gaze none --table1-gaze none --methods gt,model \
+      --noise-scale "$noise" --cfg "$cfg" --guide "${guide:-all}" "$@"
   done
   wait
   $PYTHON scripts/choose_sampling.py "${tuned[@]}" --flags-to "$flags" | tee "$folder/choice.md"

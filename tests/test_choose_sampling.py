@@ -74,3 +74,23 @@ def test_other_windows_and_unreadable_folders_are_refused(tiny, folders, tmp_pat
     assert len(err) == 4 and str(tmp_path / "broken" / "table1.json") in err[0]
     assert "missing" in err[1]
     assert "not a sarah-eval table1.json" in err[2] and "no setting could be read" in err[3]
+
+
+def test_guided_modalities_are_part_of_a_setting(tiny, folders, tmp_path):  # noqa: F811
+    """A folder evaluated with --guide is a setting of its own: named in the table, and its
+    flags carry --guide; a table from before --guide guided every modality."""
+    guided = choose_sampling.read_setting(
+        _evaluate(tiny, tmp_path / "guided", "1", "1.3", "--guide", "user_head,gaze"))
+    paper = choose_sampling.read_setting(folders[0])
+    assert (guided.noise_scale, guided.cfg, guided.guide) == (1.0, 1.3, ("user_head", "gaze"))
+    assert guided.wrists != paper.wrists
+    assert guided.flags == "--noise-scale 1 --cfg 1.3 --guide user_head,gaze"
+    assert paper.flags == "--noise-scale 1 --cfg 1.3"
+    table = choose_sampling.markdown([paper, guided], chosen=guided)
+    assert "| 1, 1.3 |" in table and "| **1, 1.3, guiding user_head+gaze (chosen)** |" in table
+    old = tmp_path / "old"
+    old.mkdir()
+    t1 = json.loads((folders[0] / "table1.json").read_text())
+    del t1["settings"]["guide"]
+    (old / "table1.json").write_text(json.dumps(t1))
+    assert choose_sampling.read_setting(old).guide == choose_sampling.ALL_MODALITIES
