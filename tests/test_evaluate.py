@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -253,6 +254,8 @@ def test_guide_sets_what_the_unconditional_pass_drops(tiny, tmp_path):
         assert main(eval_args(tiny, out, "--methods", "gt,model", "--gaze", "none", *flags)) == 0
         t1 = json.loads((out / "table1.json").read_text())
         rows[name], captions[name] = t1["rows"][1]["shown"], t1["caption"]
+        # where the windows came from, whatever folder the command ran in
+        assert t1["settings"]["shards"] == str(Path(tiny["shards"]).resolve())
     assert rows["gaze"]["fgd_local/avg"] == rows["w1"]["fgd_local/avg"]
     assert rows["audio"]["fgd_local/avg"] not in (rows["all"]["fgd_local/avg"],
                                                   rows["w1"]["fgd_local/avg"])

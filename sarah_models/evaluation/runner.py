@@ -469,7 +469,8 @@ def write_outputs(out: Path, ev: Evaluation, config: EvalConfig, shards: Path, r
                   features: str, windows: TestWindows, speaking: np.ndarray) -> list[Path]:
     """table1/2 .md and .json, windows.json and the plots."""
     out.mkdir(parents=True, exist_ok=True)
-    settings = {**asdict(config), "run": None if run is None else str(run), "shards": str(shards),
+    settings = {**asdict(config), "run": None if run is None else str(Path(run).resolve()),
+                "shards": str(Path(shards).resolve()),
                 "features": features}
     common = {"window_frames": config.window, "num_windows": ev.num_windows,
               "available_windows": ev.available_windows, "requested_windows": config.windows,
