@@ -22,7 +22,8 @@
 # it on an otherwise idle machine for the training time (2-core AMD EPYC VMs: 27.8 min of
 # training on the AVX2-only one, thirty-fourth run, then 43 min of evaluation; on the one with
 # AVX-512, 12.8 min alone (thirty-seventh run; 15.6 beside an evaluation), then ~42 min for the
-# ten tuning evaluations and 24 min for the test corpus's ten).
+# ten streamed tuning evaluations, ~45 min for the 27 offline ones of trajectory imputation,
+# 24 min for the test corpus's ten and 9 for its five trajectory ones).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -147,7 +148,8 @@ tune_sampling() {  # FLAGS_FILE FOLDER GRID EVAL_FLAGS...
   stamp "tune $folder: end ($(cat "$flags"))"
 }
 tune_sampling "$BENCH/sampling.txt" "$BENCH/tune" "$TUNE_GRID" --protocol stream
-tune_sampling "$BENCH/sampling_trajectory.txt" "$BENCH/tune_trajectory" "$TUNE_GRID_TRAJECTORY" --protocol offline
+tune_sampling "$BENCH/sampling_trajectory.txt" "$BENCH/tune_trajectory" "$TUNE_GRID_TRAJECTORY" \
+  --protocol offline
 [ "$UNTIL" = tune ] && exit 0
 read -r -a SAMPLING < "$BENCH/sampling.txt"
 read -r -a SAMPLING_TRAJECTORY < "$BENCH/sampling_trajectory.txt"
