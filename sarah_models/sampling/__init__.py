@@ -3,7 +3,8 @@ the streaming / offline generators built on them."""
 
 from .guidance import combine, drop_masks, guided, sample_drop_mask
 from .path import interpolate, velocity_from_x1
-from .solver import imputer, integrate, stage_times, time_grid, token_noise
+from .solver import (imputer, integrate, replay_times, replayer, stage_times, time_grid,
+                     token_noise)
 from .stream import (
            IDENTITY,
            StreamingGenerator,
@@ -14,5 +15,5 @@ from .stream import (
 
 __all__ = ["IDENTITY", "StreamingGenerator", "StreamingSession", "combine", "drop_masks",
            "generate_offline", "guided", "imputer", "integrate", "interpolate",
-           "sample_drop_mask", "solve", "stage_times", "time_grid", "token_noise",
-           "velocity_from_x1"]
+           "replay_times", "replayer", "sample_drop_mask", "solve", "stage_times", "time_grid",
+           "token_noise", "velocity_from_x1"]
