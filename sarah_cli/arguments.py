@@ -41,9 +41,13 @@ def guided_modalities(text: str) -> tuple[str, ...]:
     return names
 
 
-GUIDE_HELP = ("modalities the unconditional pass of guidance drops, comma-separated: all (the "
-              "paper: w guides the conditioning as a whole) or some of user_head, agent_audio, "
-              "user_audio, gaze (gaze alone guides only gaze control, a no-op for --gaze none)")
+def guide_help() -> str:
+    """--guide's help, naming the modalities the flow has."""
+    from sarah_models.nn.flow import MODALITIES
+
+    return ("modalities the unconditional pass of guidance drops, comma-separated: all (the "
+            f"paper: w guides the conditioning as a whole) or some of {', '.join(MODALITIES)} "
+            "(gaze alone guides only gaze control, a no-op for --gaze none)")
 
 
 def noise_scale(text: str) -> float:

@@ -6,8 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import (GUIDE_HELP, IMPUTATION_HELP, NOISE_SCALE_HELP, HelpFormatter,
-                                 add_model_arguments, guided_modalities, history_tokens,
+from sarah_cli.arguments import (IMPUTATION_HELP, NOISE_SCALE_HELP, HelpFormatter,
+                                 add_model_arguments, guide_help, guided_modalities, history_tokens,
                                  noise_scale)
 
 EXIT_ERROR = 2
@@ -92,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--history", type=history_tokens, default=d.history_tokens,
                         help="latents of history a stream keeps beside the new one (or 'all'; "
                              "the paper keeps 2; the offline protocol ignores it)")
-    parser.add_argument("--guide", type=guided_modalities, default="all", help=GUIDE_HELP)
+    parser.add_argument("--guide", type=guided_modalities, default="all", help=guide_help())
     parser.add_argument("--imputation", choices=IMPUTATIONS, default=d.imputation,
                         help=IMPUTATION_HELP + "; the offline protocol ignores it")
     parser.add_argument("--protocol", choices=("offline", "stream"), default=d.protocol,

@@ -6,9 +6,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import (GUIDE_HELP, IMPUTATION_HELP, NOISE_SCALE_HELP, HelpFormatter,
-                                 add_model_arguments, guided_modalities, history_tokens,
-                                 noise_scale, positive_int)
+from sarah_cli.arguments import (IMPUTATION_HELP, NOISE_SCALE_HELP, HelpFormatter,
+                                 add_model_arguments, guide_help, guided_modalities,
+                                 history_tokens, noise_scale, positive_int)
 from sarah_models.accel import MODE_HELP, MODES
 
 EXIT_ERROR = 2
@@ -75,7 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help=NOISE_SCALE_HELP)
     parser.add_argument("--history", type=history_tokens, default=d.history_tokens,
                         help="history tokens kept (or 'all')")
-    parser.add_argument("--guide", type=guided_modalities, default="all", help=GUIDE_HELP)
+    parser.add_argument("--guide", type=guided_modalities, default="all", help=guide_help())
     parser.add_argument("--imputation", choices=IMPUTATIONS, default=d.imputation,
                         help=IMPUTATION_HELP)
     parser.add_argument("--seed", type=int, default=d.seed,

@@ -9,8 +9,9 @@ import sys
 from pathlib import Path
 
 from sarah_models.accel import MODE_HELP, MODES
-from sarah_cli.arguments import (GUIDE_HELP, IMPUTATION_HELP, NOISE_SCALE_HELP, HelpFormatter,
-                                 add_model_arguments, guided_modalities, noise_scale, positive_int)
+from sarah_cli.arguments import (IMPUTATION_HELP, NOISE_SCALE_HELP, HelpFormatter,
+                                 add_model_arguments, guide_help, guided_modalities, noise_scale,
+                                 positive_int)
 
 EXIT_ERROR = 2
 
@@ -57,7 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--imputation", choices=IMPUTATIONS, default=d.imputation,
                         help=IMPUTATION_HELP + " (every session's)")
     parser.add_argument("--guide", type=guided_modalities, default="all",
-                        help=GUIDE_HELP + " (every session's)")
+                        help=guide_help() + " (every session's)")
     parser.add_argument("--steps", type=int, default=d.steps, help="default solver steps per chunk")
     parser.add_argument("--cfg", type=float, default=d.cfg_scale, help="default guidance scale w")
     parser.add_argument("--noise-scale", type=noise_scale, default=d.noise_scale,

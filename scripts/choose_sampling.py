@@ -4,8 +4,8 @@ before the results are read (docs/results.md, thirty-seventh run):
     python scripts/choose_sampling.py tune/*/ --flags-to sampling.txt
 
 Each folder is one `sarah-eval --methods gt,model` run on the same tuning windows at one
-(--noise-scale, --cfg[, --guide]). The chosen setting is the one whose paired wrist speed and Head Ang.
-(the "Beside GT" table) lie nearest GT in units of issue #16's tolerances, the larger of
+(--noise-scale, --cfg[, --guide]). The chosen setting is the one whose paired wrist speed and
+Head Ang. (the "Beside GT" table) lie nearest GT in units of issue #16's tolerances, the larger of
 |wrists / GT - 1| / 0.20 and |Head Ang. - GT| / 0.05, among the settings that keep #16's other
 item-2 figures (foot slide, bone length, frame-0 offset) within theirs. Prints every setting's
 figures as a markdown table; with --flags-to, writes the chosen setting as sarah-eval flags.
@@ -54,13 +54,18 @@ class Setting:
         return max(abs(self.wrists[0] - 1) / WRIST_TOLERANCE, abs(self.head[0]) / HEAD_TOLERANCE)
 
     @property
+    def guides_some(self) -> bool:
+        """Guidance drops some modalities only (the default, and the paper, drops all)."""
+        return set(self.guide) != set(ALL_MODALITIES)
+
+    @property
     def name(self) -> str:
-        guided = "" if set(self.guide) == set(ALL_MODALITIES) else f", guiding {'+'.join(self.guide)}"
+        guided = f", guiding {'+'.join(self.guide)}" if self.guides_some else ""
         return f"{self.noise_scale:g}, {self.cfg:g}{guided}"
 
     @property
     def flags(self) -> str:
-        guided = "" if set(self.guide) == set(ALL_MODALITIES) else f" --guide {','.join(self.guide)}"
+        guided = f" --guide {','.join(self.guide)}" if self.guides_some else ""
         return f"--noise-scale {self.noise_scale:g} --cfg {self.cfg:g}{guided}"
 
     @property
@@ -129,8 +134,8 @@ def markdown(settings: list[Setting], chosen: Setting | None) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        description="Choose the (noise scale, CFG[, guided modalities]) whose wrists and head lie nearest GT "
-                    "on a tuning corpus, from sarah-eval output folders.")
+        description="Choose the (noise scale, CFG[, guided modalities]) whose wrists and head lie "
+                    "nearest GT on a tuning corpus, from sarah-eval output folders.")
     parser.add_argument("folders", nargs="+", type=Path,
                         help="sarah-eval --methods gt,model output folders, one per setting")
     parser.add_argument("--flags-to", type=Path, default=None,
@@ -156,11 +161,11 @@ def main(argv: list[str] | None = None) -> int:
         print("choose_sampling: no setting keeps foot slide, bone length and frame-0 offset "
               "within #16's item 2", file=sys.stderr)
         return 1
-    flags = chosen.flags
     shards, split, count = chosen.windows
-    print(f"chosen on {count} windows of {shards} ({split}): {flags} (distance {chosen.distance:.2f})")
+    print(f"chosen on {count} windows of {shards} ({split}): {chosen.flags} "
+          f"(distance {chosen.distance:.2f})")
     if args.flags_to is not None:
-        atomic_write_text(args.flags_to, flags + "\n")
+        atomic_write_text(args.flags_to, chosen.flags + "\n")
     return 0
 
 

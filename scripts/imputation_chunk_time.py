@@ -1,68 +1,54 @@
-"""Chunk time of a stream with the paper's imputation and with trajectory imputation, side by
-side (four rounds, the two alternating), for the shipped fixture-tiny and a random paper-size
-model through the int8 fast path (sarah-bench's default). Prints p50 / p99 per chunk in ms and
-the ratio of the medians with a 95 % bootstrap interval (docs/performance.md, 2026-11-28 12:52).
+"""What trajectory imputation costs a streamed chunk: sarah-bench's streaming measurement
+(``bench_streaming``: raw audio through causal log-mel, int8 fast path) with the paper's
+imputation and with trajectory imputation, rounds alternating, for the shipped fixture-tiny and
+a random paper-size model (docs/performance.md, 2026-11-28).
 
-    python scripts/imputation_chunk_time.py [THREADS]
+    python scripts/imputation_chunk_time.py [THREADS] [ROUNDS]
+
+Prints each imputation's chunk p50 / p99 in ms (the median over rounds) and the ratio of the
+rounds' p50s (median and range).
 """
 
 from __future__ import annotations
 
 import sys
-import time
 
 import numpy as np
 import torch
 
+from sarah_bench.bench import bench_streaming, load_shipped
+from sarah_data.features import get_extractor
 from sarah_models.accel import optimize_for_inference
 from sarah_models.config import IMPUTATIONS, StreamConfig
-from sarah_models.pretrained import model_path
-from sarah_models.sampling.stream import StreamingGenerator
-from sarah_models.testing import random_models
-from sarah_models.training.model_file import load_model_file
+from sarah_models.testing import random_models, synthetic_inputs
 
-CHUNKS, WARM_UP, ROUNDS = 100, 5, 4
+FRAMES = 400  # 100 chunks per stream: one window of T frames
 
 
-def chunk_ms(models, config: StreamConfig, rng: np.random.Generator) -> np.ndarray:
-    """Milliseconds of each of CHUNKS streamed chunks after the first WARM_UP."""
-    vae, flow, normalizer = (models.vae, models.flow, models.normalizer) \
-        if hasattr(models, "vae") else models
-    generator = StreamingGenerator(vae, flow, normalizer, config)
-    frames = CHUNKS * generator.stride
-    head = rng.normal(0.0, 1.0, (frames, 2)).astype(np.float32)
-    agent, user = (rng.normal(-8.0, 4.0, (frames, generator.audio_dim)).astype(np.float32)
-                   for _ in range(2))
-    times = []
-    for start in range(0, frames, generator.stride):
-        block = slice(start, start + generator.stride)
-        begin = time.perf_counter()
-        generator.step(head[block], agent[block], user[block])
-        times.append(time.perf_counter() - begin)
-    return 1000.0 * np.array(times[WARM_UP:])
-
-
-def main(threads: int) -> None:
+def main(threads: int, rounds: int) -> None:
     torch.set_num_threads(threads)
-    rng = np.random.default_rng(0)
-    named = {"fixture-tiny": lambda: load_model_file(model_path("fixture-tiny")),
-             "paper (random weights)": lambda: random_models("paper")}
-    for name, load in named.items():
-        models = optimize_for_inference(load(), "int8")
-        times = {imputation: [] for imputation in IMPUTATIONS}
-        for round_ in range(ROUNDS):
+    extractor = get_extractor("logmel")
+    inputs = synthetic_inputs(FRAMES, 0)
+    models = {"shipped fixture-tiny": load_shipped(),
+              "paper size (random weights)": random_models("paper", audio_dim=extractor.dim)}
+    for name, plain in models.items():
+        fast = optimize_for_inference(plain, "int8")
+        fast = (fast.vae, fast.flow, fast.normalizer) if hasattr(fast, "vae") else fast
+        latency = {imputation: [] for imputation in IMPUTATIONS}
+        for round_ in range(rounds):
             for imputation in IMPUTATIONS:
                 config = StreamConfig(imputation=imputation, seed=round_)
-                times[imputation].append(chunk_ms(models, config, rng))
-        final, trajectory = (np.concatenate(times[i]) for i in ("final", "trajectory"))
-        ratios = [np.median(rng.choice(trajectory, trajectory.size))
-                  / np.median(rng.choice(final, final.size)) for _ in range(2000)]
-        print(f"{name}, {threads} thread(s), {final.size} chunks each: final p50 "
-              f"{np.median(final):.2f} ms, p99 {np.percentile(final, 99):.2f}; trajectory p50 "
-              f"{np.median(trajectory):.2f} ms, p99 {np.percentile(trajectory, 99):.2f}; "
-              f"p50 ratio {np.median(trajectory) / np.median(final):.3f} "
-              f"({np.percentile(ratios, 2.5):.3f}-{np.percentile(ratios, 97.5):.3f})", flush=True)
+                figures = bench_streaming(fast, FRAMES, inputs, extractor, config)
+                latency[imputation].append(figures["latency_ms"])
+        p50, p99 = ({i: np.array([r[q] for r in latency[i]]) for i in IMPUTATIONS}
+                    for q in ("p50", "p99"))
+        ratios = p50["trajectory"] / p50["final"]
+        print(f"{name}, {threads} thread(s), {rounds} rounds of {FRAMES // 4} chunks: "
+              + "; ".join(f"{i} p50 {np.median(p50[i]):.2f} ms, p99 {np.median(p99[i]):.2f}"
+                          for i in IMPUTATIONS)
+              + f"; p50 ratio {np.median(ratios):.3f} ({ratios.min():.3f}-{ratios.max():.3f})",
+              flush=True)
 
 
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 1)
+    main(int(sys.argv[1]) if len(sys.argv) > 1 else 1, int(sys.argv[2]) if len(sys.argv) > 2 else 6)

@@ -16,6 +16,7 @@ token's start to its end.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Iterator
 
 import torch
@@ -40,10 +41,11 @@ def time_grid(steps: int, solver: str) -> list[float]:
     return [t for tau, _, mid in stage_times(steps, solver) for t in (tau, mid) if t is not None]
 
 
-def replay_times(steps: int, solver: str) -> list[float]:
+@functools.cache
+def replay_times(steps: int, solver: str) -> tuple[float, ...]:
     """The flow times of a token's recorded trajectory: every evaluation's, then 1 (its final
     latent)."""
-    return [*time_grid(steps, solver), 1.0]
+    return (*time_grid(steps, solver), 1.0)
 
 
 def token_noise(generator: torch.Generator, latent_dim: int, scale: float) -> Tensor:
@@ -70,12 +72,12 @@ def replayer(states: Tensor | None, config) -> Impute:
     when it was solved. states (..., m, len(replay_times), Dz), the times in ``replay_times``
     order (a stream axis may lead); None or m = 0 imputes nothing."""
     m = 0 if states is None else states.shape[-3]
-    index = {t: i for i, t in enumerate(replay_times(config.steps, config.solver))}
+    times = replay_times(config.steps, config.solver)
 
     def impute(z: Tensor, tau: float) -> Tensor:
         if m == 0:
             return z
-        return torch.cat((states.select(-2, index[tau]), z[..., m:, :]), dim=-2)
+        return torch.cat((states.select(-2, times.index(tau)), z[..., m:, :]), dim=-2)
     return impute
 
 
