@@ -99,7 +99,7 @@ class EvalConfig:
     # Streamed latents kept as history (None: all). The offline protocol has none to drop.
     history_tokens: int | None = HISTORY_TOKENS
     protocol: str = "stream"  # what users run; "offline" is the paper's fps protocol
-    imputation: str = "final"  # a stream's history (StreamConfig.imputation; "final": the paper)
+    imputation: str = StreamConfig.imputation  # a stream's history ("final": the paper's eq. 4)
     # modalities guidance's unconditional pass drops (StreamConfig.guide; all four: the paper)
     guide: tuple[str, ...] = StreamConfig.guide
     library_size: int = 2048  # NN library and Random pool of training windows

@@ -3,7 +3,7 @@
 imputation and with trajectory imputation, rounds alternating, for the shipped fixture-tiny and
 a random paper-size model (docs/performance.md, 2026-11-28).
 
-    python scripts/imputation_chunk_time.py [THREADS] [ROUNDS]
+    python -m sarah_bench.imputation [THREADS] [ROUNDS]
 
 Prints each imputation's chunk p50 / p99 in ms (the median over rounds) and the ratio of the
 rounds' p50s (median and range).
@@ -16,11 +16,12 @@ import sys
 import numpy as np
 import torch
 
-from sarah_bench.bench import bench_streaming, load_shipped
 from sarah_data.features import get_extractor
 from sarah_models.accel import optimize_for_inference
 from sarah_models.config import IMPUTATIONS, StreamConfig
 from sarah_models.testing import random_models, synthetic_inputs
+
+from .bench import bench_streaming, load_shipped
 
 FRAMES = 400  # 100 chunks per stream: one window of T frames
 
