@@ -69,10 +69,6 @@ def from_dict(cls: type[T], data: Mapping[str, Any]) -> T:
 
 VELOCITY_WEIGHT_TINY = 10.0
 RECON_UNITS = ("standardized", "metres")
-# How the VAE turns frames into tokens: "interleaved" (eq. 2: a token per frame, plus mu and
-# sigma tokens per block in the encoder and s query tokens per block in the decoder) or
-# "blocks" (one token per latent block, its s frames through one linear map; nn/vae.py).
-TOKEN_LAYOUTS = ("interleaved", "blocks")
 
 
 @dataclass(frozen=True)
@@ -130,12 +126,6 @@ class VAEConfig:
     # recon_units="metres" the root's points then weigh as much as all points together: their
     # error is where the whole body stands.
     root_relative: bool = False
-    # "interleaved" (the paper's eq. 2) or "blocks" (not in the paper): one token per latent
-    # block in and out, its s frames joined by a linear map. The same causal dependencies, a
-    # sixth of the encoder's tokens and a fifth of the decoder's at s = 4, so a CPU step is
-    # cheaper; and a block's frames are mapped together, where interleaved frame tokens meet
-    # only through attention (docs/models.md).
-    token_layout: str = "interleaved"
     # Not in the paper (0 = the paper): how the generators decode, not how the VAE trains. At the
     # first frame of every latent block each decoded point is offset to continue its last
     # position and velocity, and the offset decays by this factor per frame, as a critically
@@ -166,9 +156,6 @@ class VAEConfig:
         for name in ("foot_lock", "root_hold"):
             if getattr(self, name) < 0:
                 raise ValueError(f"VAEConfig.{name} (metres) must be >= 0, got {getattr(self, name)}")
-        if self.token_layout not in TOKEN_LAYOUTS:
-            raise ValueError(f"VAEConfig.token_layout must be one of {TOKEN_LAYOUTS}, got "
-                             f"{self.token_layout!r}")
         if self.recon_units not in RECON_UNITS:
             raise ValueError(f"VAEConfig.recon_units must be one of {RECON_UNITS}, got "
                              f"{self.recon_units!r}")

@@ -30,15 +30,7 @@ mu_k); decoded frames of block k depend on z_1..z_k only. The posterior of block
 depends on x_1..x_ks: encoding then decoding looks ahead at most s-1 frames, the streaming
 latency of one block.
 
-``token_layout="blocks"`` (not in the paper) gives each latent block one token instead: the
-encoder's token k is a linear map of block k's s frames side by side, and mu_k and sigma_k are
-read from it; the decoder's token k is z_k, and a linear map of its output gives block k's s
-frames. The masks are the lower triangle over blocks, so every dependency above holds unchanged
-(mu_k sees x_1..x_ks, block k decodes from z_1..z_k); a block's frames meet in one linear map
-rather than through attention between frame tokens, and a step attends over K tokens rather
-than K*(s+2) and K*(s+1).
-
-Positions: RoPE over the index of each token in its sequence. The loss is the mean
+Positions: RoPE over the index of each token in its interleaved sequence. The loss is the mean
 squared error per motion element plus beta times the KL per latent element (both means, so
 beta = 1e-4 keeps its paper meaning of "a small KL weight" independent of T, Dx and Dz), plus
 ``velocity_weight`` times the mean squared error of frame-to-frame differences and
@@ -99,37 +91,23 @@ class CausalVAE(nn.Module):
             return nn.ModuleList(TransformerBlock(h, config.heads, config.mlp_ratio,
                                                   config.rope_base) for _ in range(n))
 
-        # One token per block: a block's s frames enter and leave through one linear map.
-        per_block = config.token_layout == "blocks"
-        frame_width = s * motion_dim if per_block else motion_dim
-        self.frame_in = nn.Linear(frame_width, h)
-        if not per_block:
-            self.mu_token = nn.Parameter(torch.randn(h) * 0.02)
-            self.sigma_token = nn.Parameter(torch.randn(h) * 0.02)
+        self.frame_in = nn.Linear(motion_dim, h)
+        self.mu_token = nn.Parameter(torch.randn(h) * 0.02)
+        self.sigma_token = nn.Parameter(torch.randn(h) * 0.02)
         self.encoder = blocks(config.encoder_layers)
         self.encoder_norm = nn.LayerNorm(h)
         self.mu_out = nn.Linear(h, config.latent_dim)
         self.logvar_out = nn.Linear(h, config.latent_dim)
 
         self.latent_in = nn.Linear(config.latent_dim, h)
-        if not per_block:
-            self.queries = nn.Parameter(torch.randn(s, h) * 0.02)
+        self.queries = nn.Parameter(torch.randn(s, h) * 0.02)
         self.decoder = blocks(config.decoder_layers)
         self.decoder_norm = nn.LayerNorm(h)
-        self.frame_out = nn.Linear(h, frame_width)
+        self.frame_out = nn.Linear(h, motion_dim)
 
     @property
     def stride(self) -> int:
         return self.config.stride
-
-    @property
-    def per_block(self) -> bool:
-        return self.config.token_layout == "blocks"
-
-    @property
-    def decoder_tokens_per_block(self) -> int:
-        """Decoder tokens per latent block: z_k and its s queries, or z_k alone."""
-        return 1 if self.per_block else self.stride + 1
 
     def num_blocks(self, num_frames: int) -> int:
         if num_frames % self.stride:
@@ -141,45 +119,33 @@ class CausalVAE(nn.Module):
         """x (B, T, Dx) standardized motion -> mu, logvar (B, K, Dz)."""
         b, t, _ = x.shape
         k, s, h = self.num_blocks(t), self.stride, self.config.hidden
-        if self.per_block:
-            tokens = self.frame_in(x.reshape(b, k, s * self.motion_dim))
-        else:
-            frames = self.frame_in(x).view(b, k, s, h)
-            latent = torch.stack((self.mu_token, self.sigma_token)).to(frames.dtype)
-            tokens = torch.cat((frames, latent.expand(b, k, 2, h)), dim=2).reshape(b, k * (s + 2), h)
+        frames = self.frame_in(x).view(b, k, s, h)
+        latent = torch.stack((self.mu_token, self.sigma_token)).to(frames.dtype)
+        tokens = torch.cat((frames, latent.expand(b, k, 2, h)), dim=2).reshape(b, k * (s + 2), h)
         n = tokens.shape[1]
         mask, positions = causal_mask(n, device=x.device), torch.arange(n, device=x.device)
         for block in self.encoder:
             tokens = block(tokens, mask, positions)
-        out = self.encoder_norm(tokens)
-        if self.per_block:
-            mu_in = sigma_in = out
-        else:
-            out = out.view(b, k, s + 2, h)
-            mu_in, sigma_in = out[:, :, s], out[:, :, s + 1]
-        logvar = self.logvar_out(sigma_in).clamp(-30.0, 20.0)
-        return self.mu_out(mu_in), logvar
+        out = self.encoder_norm(tokens).view(b, k, s + 2, h)
+        logvar = self.logvar_out(out[:, :, s + 1]).clamp(-30.0, 20.0)
+        return self.mu_out(out[:, :, s]), logvar
 
     def encoder_modules(self) -> list[nn.Module | nn.Parameter]:
         """Everything ``encode`` uses (frozen by ``train.freeze_encoder``)."""
-        tokens = [] if self.per_block else [self.mu_token, self.sigma_token]
-        return [self.frame_in, *tokens, self.encoder, self.encoder_norm, self.mu_out,
-                self.logvar_out]
+        return [self.frame_in, self.mu_token, self.sigma_token, self.encoder, self.encoder_norm,
+                self.mu_out, self.logvar_out]
 
     def _decoder_tokens(self, z: Tensor) -> Tensor:
         b, k, _ = z.shape
         s, h = self.stride, self.config.hidden
-        latent = self.latent_in(z)
-        if self.per_block:
-            return latent
+        latent = self.latent_in(z)[:, :, None]
         queries = self.queries.to(latent.dtype).expand(b, k, s, h)
-        return torch.cat((latent[:, :, None], queries), dim=2).reshape(b, k * (s + 1), h)
+        return torch.cat((latent, queries), dim=2).reshape(b, k * (s + 1), h)
 
     def _decoder_frames(self, tokens: Tensor) -> Tensor:
         b, n, h = tokens.shape
-        out = self.decoder_norm(tokens)
-        if not self.per_block:
-            out = out.view(b, n // (self.stride + 1), self.stride + 1, h)[:, :, 1:]
+        s = self.stride
+        out = self.decoder_norm(tokens).view(b, n // (s + 1), s + 1, h)[:, :, 1:]
         return self.frame_out(out).reshape(b, -1, self.motion_dim)
 
     def decode(self, z: Tensor) -> Tensor:
@@ -194,7 +160,7 @@ class CausalVAE(nn.Module):
     def new_decoder_cache(self, max_blocks: int | None = None) -> DecoderCache:
         """A fresh streaming-decoder state. ``max_blocks`` bounds memory by attending only to the
         latest blocks (outputs then differ from ``decode`` once older blocks are dropped)."""
-        max_tokens = None if max_blocks is None else max_blocks * self.decoder_tokens_per_block
+        max_tokens = None if max_blocks is None else max_blocks * (self.stride + 1)
         return DecoderCache([KVCache(max_tokens) for _ in self.decoder])
 
     def decoder_step(self, z_k: Tensor, cache: DecoderCache) -> Tensor:
