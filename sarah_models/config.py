@@ -126,10 +126,6 @@ class VAEConfig:
     # recon_units="metres" the root's points then weigh as much as all points together: their
     # error is where the whole body stands.
     root_relative: bool = False
-    # Not in the paper (False = the paper), with root_relative: the other points' floor offsets
-    # also turned by minus the root's heading (``nn.normalizer``), so a gesture reads the same
-    # whichever way the body faces and a turn moves the root's points, not every channel.
-    root_heading: bool = False
     # Not in the paper (0 = the paper): how the generators decode, not how the VAE trains. At the
     # first frame of every latent block each decoded point is offset to continue its last
     # position and velocity, and the offset decays by this factor per frame, as a critically
@@ -160,8 +156,6 @@ class VAEConfig:
         for name in ("foot_lock", "root_hold"):
             if getattr(self, name) < 0:
                 raise ValueError(f"VAEConfig.{name} (metres) must be >= 0, got {getattr(self, name)}")
-        if self.root_heading and not self.root_relative:
-            raise ValueError("VAEConfig.root_heading needs root_relative=True")
         if self.recon_units not in RECON_UNITS:
             raise ValueError(f"VAEConfig.recon_units must be one of {RECON_UNITS}, got "
                              f"{self.recon_units!r}")

@@ -953,50 +953,6 @@ def test_root_relative_standardization_is_exact_both_ways_and_travels_with_the_n
         norm.set_root_relative([])
 
 
-def test_heading_relative_standardization_is_exact_and_reads_a_gesture_the_same_facing_any_way():
-    """vae.root_heading: the other points' floor offsets turned by minus the root's heading, read
-    from the root icosahedron; denormalize(normalize(x)) is x, and a body turned as a whole about
-    its root changes only the root's own channels."""
-    from sarah_data import icosahedron
-    from sarah_models.nn.normalizer import Normalizer
-
-    points, root = 20, list(range(4, 16))  # the root's icosahedron, template order
-    rng = np.random.default_rng(1)
-    stats = {"motion": (rng.normal(0, 1, 3 * points), rng.uniform(0.1, 2, 3 * points))}
-    norm = Normalizer(stats)
-    norm.set_root_relative(root, heading=True)
-
-    def body(yaw: float, at: np.ndarray, others: np.ndarray) -> torch.Tensor:
-        turn = np.array([[np.cos(yaw), 0, np.sin(yaw)], [0, 1, 0], [-np.sin(yaw), 0, np.cos(yaw)]])
-        x = np.empty((points, 3))
-        x[root] = icosahedron.TEMPLATE / np.linalg.norm(icosahedron.TEMPLATE[0]) * 0.1 @ turn.T + at
-        x[[p for p in range(points) if p not in root]] = others @ turn.T + at
-        return torch.from_numpy(x.reshape(-1)).float()
-
-    for _ in range(5):
-        pose, at = rng.normal(0, 0.5, (points - len(root), 3)), rng.normal(0, 2, 3)
-        a, b = body(0.3, at, pose), body(0.3 + rng.uniform(0.5, 5.5), at + [1.0, 0, -2.0], pose)
-        both = torch.stack((a, b))
-        assert torch.allclose(norm.denormalize("motion", norm.normalize("motion", both)), both,
-                              atol=1e-5)
-        moved = (norm.normalize("motion", b) - norm.normalize("motion", a)).unflatten(-1, (points, 3))
-        others = [p for p in range(points) if p not in root]
-        assert moved[others].abs().max() < 1e-4  # the pose reads the same, facing any way
-        assert moved[root].abs().max() > 0.1  # the root's points carry the turn and the walk
-        x = torch.from_numpy(rng.normal(0, 3, (3, 3 * points))).float()  # any motion at all
-        assert torch.allclose(norm.denormalize("motion", norm.normalize("motion", x)), x, atol=1e-4)
-        # the training loss's space: metres, less the root's floor position, not turned
-        assert torch.allclose(norm.unturned(norm.normalize("motion", both)),
-                              both - norm.root_offset(both), atol=1e-5)
-    copy = Normalizer.from_state_dict(norm.state_dict())
-    assert copy.root_heading and torch.equal(copy.normalize("motion", x), norm.normalize("motion", x))
-    plain = Normalizer(stats)
-    plain.set_root_relative(root)
-    assert not plain.root_heading
-    with pytest.raises(ValueError, match="12 icosahedron points"):
-        plain.set_root_relative([2, 3], heading=True)
-
-
 def test_root_weighted_counts_the_root_once_per_point_of_the_body():
     from sarah_models.training.objectives import root_weighted
 

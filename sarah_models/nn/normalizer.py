@@ -16,14 +16,6 @@ an absolute x/z channel's std is ~1 m and a head turn's 10 cm offsets are a tent
 among channels that move together; relative to the root they are most of their channel's range.
 The motion's statistics are then the root-relative channels' (fitted on the first training
 batches by ``training.stages``).
-
-Heading-relative motion (``set_root_relative(..., heading=True)``; ``vae.root_heading``, not in
-the paper): the other points' floor offsets from the root are also turned by minus the root's
-heading (its facing axis on the floor, read linearly from the root's icosahedron,
-``sarah_data.icosahedron.axis``), so a pose reads the same whichever way the body faces. The
-root's points stay absolute and carry the heading, so the inverse reads it back from them and
-the map stays exact both ways. Without it, the same gesture made facing two ways is two
-unrelated vectors, and a turn of the body moves every channel at once.
 """
 
 from __future__ import annotations
@@ -33,12 +25,6 @@ from typing import Mapping
 import numpy as np
 import torch
 from torch import Tensor, nn
-
-from sarah_data import icosahedron
-from sarah_data.gaze import FACING_AXIS
-
-# The icosahedron vertex opposite the first (TEMPLATE[3] = -TEMPLATE[0]).
-ANTIPODE = int(np.flatnonzero(np.all(np.isclose(icosahedron.TEMPLATE, -icosahedron.TEMPLATE[0]), 1))[0])
 
 # Batch key -> candidate statistics keys, first present wins.
 BATCH_STATS = {
@@ -95,91 +81,27 @@ class Normalizer(nn.Module):
         mean, std = self._stats(key, x)
         x = x * std + mean
         if key == "motion" and self.root_relative:
-            # the root's own points are absolute in both forms
-            x = self._turn(self._unpack_root(x), inverse=True)
-            x = x + self.root_offset(x)
+            x = x + self.root_offset(x)  # the root's own points are absolute in both forms
         return x
 
     @property
     def root_relative(self) -> bool:
         return hasattr(self, "motion_root")
 
-    @property
-    def root_heading(self) -> bool:
-        return hasattr(self, "motion_root_heading")
-
-    def set_root_relative(self, root_points: Tensor | np.ndarray | list[int],
-                          heading: bool = False) -> None:
+    def set_root_relative(self, root_points: Tensor | np.ndarray | list[int]) -> None:
         """Standardize ``motion`` root-relative from now on, the root being the mean of these
-        points (indices of 3-channel points in the motion vector); with ``heading``, turned to
-        the root's heading too, the root points being its icosahedron's 12 in template order.
-        The motion statistics must then be the relative channels'."""
+        points (indices of 3-channel points in the motion vector). The motion statistics must
+        then be the root-relative channels'."""
         points = torch.as_tensor(np.asarray(root_points, dtype=np.int64)).reshape(-1)
         if points.numel() == 0 or bool((points < 0).any()):
             raise ValueError(f"root points must be non-negative point indices, got {points.tolist()}")
-        if heading and points.numel() != len(icosahedron.TEMPLATE):
-            raise ValueError(f"heading-relative motion reads the root's heading from its "
-                             f"{len(icosahedron.TEMPLATE)} icosahedron points, got {points.numel()}")
         device = next(self.buffers(), points).device
         self.register_buffer("motion_root", points.to(device))
-        if heading:
-            self.register_buffer("motion_root_heading", torch.ones((), dtype=torch.bool,
-                                                                   device=device))
 
     def relative_motion(self, x: Tensor) -> Tensor:
-        """Motion (..., 3P) as this normalizer standardizes it: root-relative (and turned to the
-        root's heading) where it is so, else as given (what its statistics describe)."""
-        if not self.root_relative:
-            return x
-        return self._pack_root(self._turn(x - self.root_offset(x)))
-
-    def unturned(self, x: Tensor) -> Tensor:
-        """Standardized motion -> metres, root-relative but not turned to the root's heading: a
-        heading error there moves every point by its distance from the root, as it does in the
-        absolute motion, where in the turned channels it moves only the root's 12 points."""
-        mean, std = self._stats("motion", x)
-        return self._turn(self._unpack_root(x * std + mean), inverse=True)
-
-    def _pack_root(self, x: Tensor) -> Tensor:
-        """Heading-relative only: the root's first point becomes the midpoint of it and its
-        antipode (the centroid, for a rigid icosahedron), the other 11 their offsets from that
-        midpoint: 10 cm offsets that turn with the body, where the heading is visible (as
-        absolute points they are a tenth of a channel that walks metres)."""
-        if not self.root_heading:
-            return x
-        points = x.unflatten(-1, (-1, 3))
-        root = points[..., self.motion_root, :]
-        centre = 0.5 * (root[..., :1, :] + root[..., ANTIPODE:ANTIPODE + 1, :])
-        packed = torch.cat((centre, root[..., 1:, :] - centre), dim=-2)
-        return points.index_copy(-2, self.motion_root, packed).flatten(-2)
-
-    def _unpack_root(self, x: Tensor) -> Tensor:
-        """The inverse of ``_pack_root``: the first root point is its antipode mirrored through
-        the stored midpoint, so its error is one point's, not the sum of eleven offsets'."""
-        if not self.root_heading:
-            return x
-        points = x.unflatten(-1, (-1, 3))
-        stored = points[..., self.motion_root, :]
-        centre, others = stored[..., :1, :], stored[..., 1:, :] + stored[..., :1, :]
-        first = 2.0 * centre - others[..., ANTIPODE - 1:ANTIPODE, :]
-        return points.index_copy(-2, self.motion_root, torch.cat((first, others), -2)).flatten(-2)
-
-    def _turn(self, x: Tensor, inverse: bool = False) -> Tensor:
-        """Turn every point but the root's about the vertical by minus the root's heading
-        (``inverse``: by plus it); the identity unless the motion is heading-relative."""
-        if not self.root_heading:
-            return x
-        points = x.unflatten(-1, (-1, 3))
-        facing = icosahedron.axis(points[..., self.motion_root, :], FACING_AXIS)  # (..., 3)
-        length = facing[..., [0, 2]].norm(dim=-1, keepdim=True).clamp_min(1e-9)
-        sin, cos = facing[..., [0]] / length, facing[..., [2]] / length  # (..., 1)
-        if inverse:
-            sin = -sin
-        px, py, pz = points.unbind(-1)
-        turned = torch.stack((px * cos - pz * sin, py, px * sin + pz * cos), dim=-1)
-        others = torch.ones(points.shape[-2], 1, dtype=torch.bool, device=x.device)
-        others[self.motion_root] = False
-        return torch.where(others, turned, points).flatten(-2)
+        """Motion (..., 3P) as this normalizer standardizes it: root-relative where it is so, else
+        as given (what its statistics describe)."""
+        return x - self.root_offset(x) if self.root_relative else x
 
     def root_offset(self, x: Tensor) -> Tensor:
         """(..., 3P) -> the (..., 3P) offset that is the root's (x, 0, z) on every point but the
@@ -220,6 +142,5 @@ class Normalizer(nn.Module):
             norm.register_buffer(f"{key}_mean", state[f"{key}_mean"].clone())
             norm.register_buffer(f"{key}_std", state[f"{key}_std"].clone())
         if "motion_root" in state:
-            norm.set_root_relative(state["motion_root"].clone(),
-                                   heading=bool(state.get("motion_root_heading", False)))
+            norm.set_root_relative(state["motion_root"].clone())
         return norm

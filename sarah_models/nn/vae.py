@@ -45,7 +45,6 @@ motion layout and metres, so the training objective adds them (``training.object
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable
 
 import torch
 from torch import Tensor, nn
@@ -184,12 +183,9 @@ class CausalVAE(nn.Module):
         return 0.5 * (mu.square() + logvar.exp() - 1.0 - logvar).mean()
 
     def forward(self, x: Tensor, generator: torch.Generator | None = None,
-                channel_weight: Tensor | None = None,
-                loss_space: Callable[[Tensor], Tensor] | None = None) -> dict[str, Tensor]:
+                channel_weight: Tensor | None = None) -> dict[str, Tensor]:
         """Reconstruct x through a sampled latent; returns loss, recon, kl, x_hat, mu, logvar.
-        ``channel_weight`` (Dx,) weights each channel's squared error (see ``loss_terms``);
-        ``loss_space`` maps decoded and true motion to where the errors are measured (default:
-        the standardized channels themselves)."""
+        ``channel_weight`` (Dx,) weights each channel's squared error (see ``loss_terms``)."""
         mu, logvar = self.encode(x)
         noise = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
         z = mu + noise * (0.5 * logvar).exp()
@@ -198,10 +194,7 @@ class CausalVAE(nn.Module):
             z = z + self.config.latent_noise * spread * torch.randn(
                 mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
         x_hat = self.decode(z)
-        if loss_space is None:
-            terms = self.loss_terms(x_hat, x, channel_weight)
-        else:
-            terms = self.loss_terms(loss_space(x_hat), loss_space(x), channel_weight)
+        terms = self.loss_terms(x_hat, x, channel_weight)
         kl = self.kl(mu.float(), logvar.float())
         cfg = self.config
         loss = (terms["recon"] + cfg.beta * kl + cfg.velocity_weight * terms["velocity"]

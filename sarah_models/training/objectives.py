@@ -37,20 +37,12 @@ class VAEObjective(nn.Module):
         self.vae, self.normalizer = vae, normalizer
         self.contact = PlantedFeet(vae.motion_dim) if vae.config.contact_weight > 0 else None
         self.head = HeadFacing(vae.motion_dim) if vae.config.head_weight > 0 else None
-        weight, self.loss_space = None, None
+        weight = None
         if vae.config.recon_units == "metres":
             variance = normalizer.motion_std.float().square()
             if normalizer.root_relative:
                 variance = root_weighted(variance, normalizer.motion_root)
-            if normalizer.root_heading:
-                # Heading-relative channels are scored unturned, so a heading error counts at
-                # every point as it does in the absolute motion; the errors are then in metres
-                # already, each channel counting the same at a standardized loss's scale.
-                self.loss_space = normalizer.unturned
-                weight = root_weighted(torch.ones_like(variance), normalizer.motion_root)
-                weight = weight / variance.mean()
-            else:
-                weight = variance / variance.mean()
+            weight = variance / variance.mean()
         self.register_buffer("channel_weight", weight, persistent=False)
 
     @property
@@ -60,7 +52,7 @@ class VAEObjective(nn.Module):
     def forward(self, batch: Mapping[str, Tensor], generator: torch.Generator | None = None):
         device = self.normalizer.motion_mean.device
         motion = self.normalizer.normalize_batch({"motion": batch["motion"]}, device)["motion"]
-        out = self.vae(motion, generator, self.channel_weight, self.loss_space)
+        out = self.vae(motion, generator, self.channel_weight)
         if self.contact is None and self.head is None:
             return out
         decoded = self.normalizer.denormalize("motion", out["x_hat"].float())

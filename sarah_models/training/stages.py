@@ -272,8 +272,7 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
         else:
             normalizer = Normalizer(stats)
             if config.vae.root_relative:
-                _fit_root_relative_stats(normalizer, dataset, tcfg, dims["motion"],
-                                         heading=config.vae.root_heading)
+                _fit_root_relative_stats(normalizer, dataset, tcfg, dims["motion"])
         vae, _ = build_models(config, dims)
         if previous is not None:
             vae.load_state_dict(previous["vae"])
@@ -429,14 +428,13 @@ def _short_windows(config: TrainConfig, total: int, shards_dir: str | Path | Non
 
 @torch.no_grad()
 def _fit_root_relative_stats(normalizer: Normalizer, dataset: Dataset, config: TrainConfig,
-                             motion_width: int, heading: bool = False) -> None:
-    """Make ``normalizer`` standardize motion root-relative (``vae.root_relative``; turned to the
-    root's heading with ``vae.root_heading``): the root
+                             motion_width: int) -> None:
+    """Make ``normalizer`` standardize motion root-relative (``vae.root_relative``): the root
     joint's icosahedron points, then per-channel mean/std of the root-relative motion over the
     first ``latent_stats_batches`` batches of a fixed order (every rank reads the same ones)."""
     layout = MotionLayout.from_width(motion_width)
     start = layout.joint(ROOT) * ICOSAHEDRON_POINTS
-    normalizer.set_root_relative(torch.arange(start, start + ICOSAHEDRON_POINTS), heading=heading)
+    normalizer.set_root_relative(torch.arange(start, start + ICOSAHEDRON_POINTS))
     loader = EpochBatches(dataset, config, DistInfo(0, 1, 0, torch.device("cpu")), seed_offset=2)
     batches = zip(range(config.latent_stats_batches), loader)
     mean, std = _channel_stats(normalizer.relative_motion(batch["motion"].double())
