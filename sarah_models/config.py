@@ -93,10 +93,6 @@ class VAEConfig:
     # fixtures' hands and steps come back with a fraction of their acceleration, and FGD_acc
     # scores exactly that (docs/results.md, nineteenth run).
     acceleration_weight: float = 0.0
-    # Not in the paper (0 = the paper): the velocity term again, on the step between two latent
-    # blocks only (one step in s), where the decoder's new token starts and raw decoded motion
-    # jumps; the steps inside a block keep velocity_weight alone.
-    seam_weight: float = 0.0
     # Not in the paper (0 = the paper): weight of the planted-foot term, the squared error of
     # the decoded feet's horizontal step on the frames where the true foot is planted (by the
     # foot-slide metric's own thresholds), in units of that metric's slide threshold. The

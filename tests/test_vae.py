@@ -71,29 +71,6 @@ def test_acceleration_term_is_the_error_of_second_differences():
     assert VAEConfig.paper().acceleration_weight == 0.0
 
 
-def test_seam_term_is_the_velocity_error_between_blocks_only():
-    """Not in the paper: the MSE of the error's step from each block's last frame to the next
-    block's first; a jump between blocks costs there, the same jump inside a block does not."""
-    torch.manual_seed(0)
-    config = replace(VAEConfig.tiny(), seam_weight=30.0)
-    vae = CausalVAE(config, DX).eval()
-    s = config.stride
-    x = torch.randn(1, 4 * s, DX)
-    out = vae(x, torch.Generator().manual_seed(0))
-    error = out["x_hat"].detach() - x
-    seams = [k * s - 1 for k in range(1, 4)]
-    torch.testing.assert_close(out["seam"], (error[:, [i + 1 for i in seams]]
-                                             - error[:, seams]).square().mean())
-    torch.testing.assert_close(out["loss"], out["recon"] + config.beta * out["kl"]
-                               + config.velocity_weight * out["velocity"] + 30.0 * out["seam"])
-    at_seam, inside = x.clone(), x.clone()
-    at_seam[:, s:] += 1.0  # the body jumps where block 2 starts
-    inside[:, s + 1:] += 1.0  # ... or one frame later, inside block 2
-    assert vae.loss_terms(x, at_seam, stride=s)["seam"] > 0.3
-    assert vae.loss_terms(x, inside, stride=s)["seam"] < 1e-10
-    assert VAEConfig.paper().seam_weight == 0.0
-
-
 def test_rejects_length_not_multiple_of_stride(vae):
     with pytest.raises(ValueError, match="stride"):
         vae.encode(torch.randn(1, CFG.stride * 3 + 1, DX))

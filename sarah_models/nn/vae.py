@@ -194,16 +194,16 @@ class CausalVAE(nn.Module):
             z = z + self.config.latent_noise * spread * torch.randn(
                 mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
         x_hat = self.decode(z)
-        terms = self.loss_terms(x_hat, x, channel_weight, self.stride)
+        terms = self.loss_terms(x_hat, x, channel_weight)
         kl = self.kl(mu.float(), logvar.float())
         cfg = self.config
         loss = (terms["recon"] + cfg.beta * kl + cfg.velocity_weight * terms["velocity"]
-                + cfg.acceleration_weight * terms["acceleration"] + cfg.seam_weight * terms["seam"])
+                + cfg.acceleration_weight * terms["acceleration"])
         return {"loss": loss, **terms, "kl": kl, "x_hat": x_hat, "mu": mu, "logvar": logvar}
 
     @staticmethod
-    def loss_terms(x_hat: Tensor, x: Tensor, channel_weight: Tensor | None = None,
-                   stride: int | None = None) -> dict[str, Tensor]:
+    def loss_terms(x_hat: Tensor, x: Tensor, channel_weight: Tensor | None = None
+                   ) -> dict[str, Tensor]:
         """Reconstruction MSE and the MSEs of the error's first and second frame differences
         (velocity and acceleration errors), each channel's squared error times ``channel_weight``
         when given (mean 1 keeps the scale)."""
@@ -211,11 +211,5 @@ class CausalVAE(nn.Module):
         step = error[:, 1:] - error[:, :-1]
         bend = step[:, 1:] - step[:, :-1]
         weight = 1.0 if channel_weight is None else channel_weight
-        terms = {name: (value.square() * weight).mean()
-                 for name, value in (("recon", error), ("velocity", step), ("acceleration", bend))}
-        if stride is not None:
-            # the frame-to-frame step from a block's last frame to the next block's first, where
-            # the decoder's new token starts (step[i] is from frame i to i + 1)
-            seams = torch.arange(stride - 1, x.shape[1] - 1, stride, device=x.device)
-            terms["seam"] = (step[:, seams].square() * weight).mean() if len(seams) else step.sum() * 0
-        return terms
+        return {name: (value.square() * weight).mean()
+                for name, value in (("recon", error), ("velocity", step), ("acceleration", bend))}

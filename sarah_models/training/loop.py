@@ -114,7 +114,7 @@ def train_loop(objective: nn.Module, batches: Iterable[Mapping[str, Tensor]],
 
 
 # positive losses, drawn on a log scale
-PLOTTED = ("loss", "recon", "velocity", "acceleration", "seam", "difference", "contact", "kl")
+PLOTTED = ("loss", "recon", "velocity", "acceleration", "difference", "contact", "kl")
 
 
 class RunLog:

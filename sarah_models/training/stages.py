@@ -164,7 +164,7 @@ def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
 # Fields a fine-tune may change: they shape the loss, the decoding or which tokens attend to
 # which (flow.attention_window and flow.streamed_context: masks, no weight), not the weights.
 FINE_TUNE_FIELDS = {
-    "vae": ("beta", "velocity_weight", "acceleration_weight", "seam_weight", "contact_weight", "head_weight",
+    "vae": ("beta", "velocity_weight", "acceleration_weight", "contact_weight", "head_weight",
             "latent_noise", "recon_units", *DECODING_FIELDS["vae"]),
     "flow": ("drop_prob", "min_denominator", "difference_weight", "attention_window",
              "streamed_context")}
