@@ -78,6 +78,14 @@ def bench_offline(models, frames: int, inputs: dict[str, np.ndarray], features: 
     return frames / best
 
 
+def model_parts(models) -> tuple:
+    """(vae, flow, normalizer) of a ``LoadedModels`` (what ``load_model_file`` gives) or of such
+    a tuple, which is what the bench's measurements take."""
+    if hasattr(models, "vae"):
+        return models.vae, models.flow, models.normalizer
+    return tuple(models)
+
+
 def bench_streaming(models, frames: int, inputs: dict[str, np.ndarray], extractor,
                     config: StreamConfig = StreamConfig(),
                     max_seconds: float = float("inf"),
@@ -86,7 +94,7 @@ def bench_streaming(models, frames: int, inputs: dict[str, np.ndarray], extracto
     mode and ``StreamingGenerator``; fps, per-chunk latency and its split by stage. Stops
     early once ``max_seconds`` have passed (``frames`` then says how many were streamed).
     ``policy`` picks the threads before each chunk (its cost counts in the chunk's time)."""
-    vae, flow, normalizer = models
+    vae, flow, normalizer = model_parts(models)
     generator = StreamingGenerator(vae, flow, normalizer, config)
     s = generator.stride
     n = s * SAMPLES_PER_FRAME
@@ -264,8 +272,8 @@ class SizeBench:
         --pretrained fixture-tiny`` serves, with the decoding chain (seams, root hold, rigid
         skeleton, foot lock) that random weights' configs leave off; built once."""
         if self._shipped is None:
-            fast = optimize_for_inference(load_shipped(), self.cfg.mode, decoder=self.cfg.decoder)
-            self._shipped = (fast.vae, fast.flow, fast.normalizer)
+            self._shipped = model_parts(optimize_for_inference(load_shipped(), self.cfg.mode,
+                                                               decoder=self.cfg.decoder))
         return self._shipped
 
     def offline(self, naive: bool) -> dict[str, Any]:

@@ -34,7 +34,6 @@ def main(threads: int, rounds: int) -> None:
               "paper size (random weights)": random_models("paper", audio_dim=extractor.dim)}
     for name, plain in models.items():
         fast = optimize_for_inference(plain, "int8")
-        fast = (fast.vae, fast.flow, fast.normalizer) if hasattr(fast, "vae") else fast
         latency = {imputation: [] for imputation in IMPUTATIONS}
         for round_ in range(rounds):
             for imputation in IMPUTATIONS:

@@ -28,16 +28,19 @@ def history_tokens(text: str) -> int | None:
 
 def guided_modalities(text: str) -> tuple[str, ...]:
     """--guide: the modalities the unconditional pass drops, comma-separated, or 'all'."""
+    from sarah_models.config import StreamConfig
     from sarah_models.nn.flow import MODALITIES
 
     if text.strip().lower() == "all":
         return MODALITIES
     names = tuple(part.strip() for part in text.split(",") if part.strip())
-    unknown = [name for name in names if name not in MODALITIES]
-    if unknown or not names:
-        raise argparse.ArgumentTypeError(
-            f"unknown modalities {unknown or '(none given)'}; give 'all' or some of "
-            f"{', '.join(MODALITIES)}")
+    if not names:
+        raise argparse.ArgumentTypeError(f"no modalities given; give 'all' or some of "
+                                         f"{', '.join(MODALITIES)}")
+    try:
+        StreamConfig(guide=names)  # the config owns which names are modalities
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"{error}, or 'all'") from None
     return names
 
 

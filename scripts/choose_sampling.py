@@ -31,7 +31,6 @@ HEAD_TOLERANCE = 0.05  # #16 item 3: Head Ang. (g = none) within 0.05 of GT's
 FOOT_SLIDE_MARGIN = 0.01  # #16 item 2: foot slide <= GT's + 0.01
 BONE_LENGTH_MAX = 2.0  # #16 item 2: bone-length error <= 2 % (p95)
 FRAME0_MAX = 5.0  # #16 item 2: frame-0 pelvis offset <= 5 cm
-ALL_MODALITIES = MODALITIES  # sarah-eval's --guide all
 
 
 @dataclass(frozen=True)
@@ -56,7 +55,7 @@ class Setting:
     @property
     def guides_some(self) -> bool:
         """Guidance drops some modalities only (the default, and the paper, drops all)."""
-        return set(self.guide) != set(ALL_MODALITIES)
+        return set(self.guide) != set(MODALITIES)
 
     @property
     def name(self) -> str:
@@ -104,7 +103,7 @@ def read_setting(folder: Path) -> Setting:
     return Setting(noise_scale=float(settings["noise_scale"]),
                    cfg=float(settings["cfg_scale"]),
                    # tables from before --guide guided every modality
-                   guide=tuple(settings.get("guide", ALL_MODALITIES)),
+                   guide=tuple(settings.get("guide", MODALITIES)),
                    windows=(str(settings["shards"]), str(settings["split"]), count),
                    wrists=triple("wrist_speed", "ratio"), head=triple("head_angle", "gap"),
                    foot_slide_gap=value("foot_slide/gap"), bone_length=value("bone_length/avg"),

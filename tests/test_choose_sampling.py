@@ -93,4 +93,4 @@ def test_guided_modalities_are_part_of_a_setting(tiny, folders, tmp_path):  # no
     t1 = json.loads((folders[0] / "table1.json").read_text())
     del t1["settings"]["guide"]
     (old / "table1.json").write_text(json.dumps(t1))
-    assert choose_sampling.read_setting(old).guide == choose_sampling.ALL_MODALITIES
+    assert choose_sampling.read_setting(old).guide == choose_sampling.MODALITIES

@@ -445,7 +445,7 @@ def _caption1(ev: Evaluation, config: EvalConfig, shards: Path) -> str:
 
 
 def _guide_note(config: EvalConfig) -> str:
-    if tuple(config.guide) == StreamConfig.guide:
+    if set(config.guide) == set(StreamConfig.guide):  # all four, in any order
         return ""
     return f" (guiding {', '.join(config.guide)} only)"
 
