@@ -66,7 +66,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="comma-separated subset of gt,real,random,nn,model (the paper's "
                              "Table 1 and the real-vs-real floor: other windows' ground truth) and vae (the run's VAE reconstructing the ground truth: the "
                              "floor under any flow sample; needs only vae.pt; adds "
-                             "reconstruction.md, its error per body part in mm), blur and jitter "
+                             "reconstruction.md, its error per body part in mm), decoded (the ground "
+                             "truth through the run's decoding chain: the chain's own floor), "
+                             "blur and jitter "
                              "(calibration: the ground truth through a moving average of "
                              "--blur-frames frames, or plus --jitter-mm of i.i.d. noise: what a "
                              "metric's value looks like)")

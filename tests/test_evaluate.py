@@ -396,3 +396,26 @@ def test_one_line_errors(tiny, tmp_path, capsys):
                                                                         "--blur-frames", "0"))
     assert "no manifest" in _error(capsys, eval_args(dict(tiny, shards=tmp_path), out))
     assert not out.exists()
+
+
+def test_decoded_row_is_the_chains_own_floor(tiny, tmp_path):
+    """GT through the run's decoding chain: nothing when the chain is off (the paper's config),
+    accelerations the ground truth has not when its seam inertia is on."""
+    out = tmp_path / "off"
+    assert main(eval_args(tiny, out, "--methods", "gt,decoded", "--gaze", "none",
+                          "--windows", "4")) == 0
+    rows = {r["key"]: r for r in json.loads((out / "table1.json").read_text())["rows"]}
+    assert list(rows) == ["gt", "decoded"] and rows["decoded"]["fps"] is None
+    assert rows["decoded"]["method"] == "GT, decoded (the run's chain)"
+    assert rows["decoded"]["shown"]["fgd_acc/avg"] == pytest.approx(0, abs=1e-6)
+
+    seams = tmp_path / "seams"
+    seams.mkdir()
+    payload = load_checkpoint(tiny["run"] / "flow.pt")
+    payload["config"]["vae"]["boundary_inertia"] = 0.7
+    save_checkpoint(seams / "flow.pt", payload)
+    on = tmp_path / "on"
+    assert main(eval_args(dict(tiny, run=seams), on, "--methods", "gt,decoded", "--gaze", "none",
+                          "--windows", "4")) == 0
+    decoded = json.loads((on / "table1.json").read_text())["rows"][1]["shown"]
+    assert decoded["fgd_acc/avg"] > 0

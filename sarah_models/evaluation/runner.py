@@ -14,6 +14,9 @@ Methods, each producing one (T, Dx) motion per window in its window frame:
           default (what users run), or the offline protocol (all T frames denoised at once
           under the causal mask, as the paper times FPS)
   vae     the run's VAE reconstructing the window (opt-in)
+  decoded the window's own motion through the run's decoding chain (``sampling.decoding``: seam
+          inertia, root hold, rigid skeleton, foot lock, as its VAE config asks; opt-in): the
+          chain's own floor, what it does to real motion, which no flow or VAE can get under
   blur    calibration: the window's own motion through a centred moving average (opt-in)
   jitter  calibration: the window's own motion plus i.i.d. noise of a few mm (opt-in)
 
@@ -71,7 +74,7 @@ from .degradations import BLUR_FRAMES, JITTER_MM, blurred, jittered
 from .reconstruction import ReconstructionErrors, summary_markdown
 from .windows import MethodClips, TestWindows, gt_clips, select_windows
 
-METHODS = ("gt", "real", "random", "nn", "model", "vae", "blur", "jitter")
+METHODS = ("gt", "real", "random", "nn", "model", "vae", "decoded", "blur", "jitter")
 # Table 1's rows: the paper's four and the real-vs-real floor; "vae" and the calibration rows
 # (``degradations``: the ground truth blurred or jittered by a known amount) are opt-in
 PAPER_METHODS = ("gt", "real", "random", "nn", "model")
@@ -259,15 +262,27 @@ def _vae_producer(models):
     return produce
 
 
+def _decoded_producer(models):
+    """The ground truth through the run's decoding chain, as a stream's decoded motion goes
+    through it: what the chain alone does to real motion."""
+    from ..sampling.decoding import stream_decoding
+
+    def produce(item: dict, index: int) -> np.ndarray:
+        motion = item["motion"].double().cpu().numpy()
+        return stream_decoding(models.vae, models.normalizer)(motion).astype(np.float32)
+
+    return produce
+
+
 def _load_model(run: Path | None, config: EvalConfig, method: str = "model"):
-    """The run's flow-stage models; for "vae" alone, its VAE checkpoint will do."""
+    """The run's flow-stage models; for "vae" or "decoded" alone, its VAE checkpoint will do."""
     from ..generation.run import GenerateError, load_run
 
     if run is None:
         raise EvalError(f"--run is required to evaluate the {method} (or leave {method!r} out "
                         "of --methods)")
     checkpoint = None
-    if method == "vae" and run.is_dir() and not (run / "flow.pt").is_file():
+    if method in ("vae", "decoded") and run.is_dir() and not (run / "flow.pt").is_file():
         checkpoint = run / "vae.pt"
         if not checkpoint.is_file():
             raise EvalError(f"{run}: no vae.pt or flow.pt (train the VAE stage first)")
@@ -291,8 +306,9 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
     run = None if run is None else Path(run)
     models = _load_model(run, config) if "model" in config.methods else None
     vae_models = None
-    if "vae" in config.methods:
-        vae_models = models if models is not None else _load_model(run, config, "vae")
+    if "vae" in config.methods or "decoded" in config.methods:
+        method = "vae" if "vae" in config.methods else "decoded"
+        vae_models = models if models is not None else _load_model(run, config, method)
     loaded = models or vae_models
     features = loaded.features if loaded is not None else (config.features or "logmel")
     if loaded is not None and config.window % loaded.vae.stride:
@@ -407,7 +423,7 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
                               label=f"Model ({config.protocol}, g = "
                                     f"{gaze_label(config.table1_gaze)})"))
     reconstruction = None
-    if vae_models is not None:
+    if "vae" in config.methods:
         errors = ReconstructionErrors(MotionLayout.from_width(dataset.motion_dim))
         with torch.inference_mode():
             table1.append(score("vae", "VAE (reconstruction)",
@@ -416,6 +432,9 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
         for group, row in reconstruction.items():
             echo(f"VAE reconstruction, {group}: position {row['position']:.1f} mm"
                  + (f", orientation {row['orientation']:.1f} mm" if "orientation" in row else ""))
+    if "decoded" in config.methods:
+        table1.append(score("decoded", "GT, decoded (the run's chain)",
+                            _decoded_producer(vae_models), True, timed=False))
     table2 = [sweep[g] for g in config.gaze] if models is not None else []
 
     result = Evaluation(table1, table2, len(windows), len(dataset), int(speaking.sum()),
