@@ -13,7 +13,7 @@ from sarah_data.dataset import WindowDataset
 from sarah_data.skeleton import MotionLayout, bone_lengths
 from sarah_data.stats import load_stats
 from sarah_models.evaluation.metrics import foot_slide
-from sarah_models.sampling.foot_lock import FREE_HEIGHT, LIFT, SWING_FRAMES, FootLock
+from sarah_models.sampling.foot_lock import FREE_HEIGHT, LIFT, RELEASE, SWING_FRAMES, FootLock
 from sarah_models.sampling.rigid_skeleton import RigidSkeleton, ShellFollow
 
 FEET = [JOINT["left_foot"], JOINT["right_foot"]]
@@ -255,6 +255,59 @@ def test_a_step_rises_as_high_as_the_datas_steps(prepared_shards):
             rises += [feet[a:b + 1, side, 1].max() - feet[max(a - 1, 0), side, 1] for a, b in steps]
     assert len(rises) >= 10
     assert abs(np.median(rises) - LIFT) < 0.01
+
+
+def test_real_steps_pass_the_lock_as_they_came(prepared_shards, skeleton):
+    """Real feet lift before they travel, so the lock lets them step on their own: fixture
+    motion with its steps comes out of the rigid skeleton and the lock with every foot within a
+    centimetre of where it went in (the fixtures' feet slide ~1.5 cm on the floor in the two
+    frames before they lift, which the lock holds and then fades out). The lock used to start its own arc 10 cm into each real
+    step, and the chain put the ground truth's FGD_acc at 3,838 (docs/results.md, fortieth run)."""
+    from sarah_models.evaluation.metrics import foot_steps
+
+    long_windows = WindowDataset(prepared_shards, "train", extractor="logmel", window=300, seed=0,
+                                 length=8)
+    layout = MotionLayout.from_width(long_windows.motion_dim)
+    steps = 0
+    for i in range(len(long_windows)):
+        real = long_windows[i]["motion"].numpy().astype(np.float64)
+        rigid = RigidSkeleton(layout, skeleton)(real)
+        feet = joints_of(rigid, layout)[:, FEET]
+        steps += sum(len(s) for s in foot_steps(feet))
+        locked = joints_of(FootLock(layout, skeleton, radius=0.1)(rigid), layout)[:, FEET]
+        assert np.abs(locked - feet).max() < 0.01
+    assert steps >= 10  # the windows walk: the property is about steps, not standing
+
+
+def test_a_foot_the_decoder_lifts_steps_where_the_decoder_takes_it(windows, skeleton):
+    """A planted foot lifted past RELEASE follows the decoder, its planted offset fading out, and
+    is planted again where it comes down."""
+    layout = MotionLayout.from_width(windows.motion_dim)
+    body = next(b for b in (standing(windows[i], layout) for i in range(len(windows)))
+                if joints_of(b, layout)[0, FEET, 1].max() < 0.05)  # both feet on the floor
+    frames = len(body)
+    lengths = bone_lengths(joints_of(body, layout), layout.bones)[0]
+    shifts = np.zeros((frames, 55, 3))
+    t = np.arange(frames)
+    # frames 0-9 planted with 3 mm of glide, 10-19 a step 6 cm high and 30 cm long that lifts
+    # before it travels, as people step, then planted
+    up = (t >= 10) & (t < 20)
+    glide = np.where(t < 10, 0.0003 * t, 0.0)
+    travel = np.clip((t - 12) / 6, 0, 1) * 0.3
+    for j in (FEET[0], FEET[0] - 3):
+        shifts[:, j, 0] = glide + travel
+        shifts[:, j, 1] = np.where(up, 0.06 * np.sin(np.pi * (t - 10) / 10), 0.0)
+    decoded = shift_joints(body, layout, shifts)
+    before = joints_of(decoded, layout)[:, FEET[0]]
+    after = joints_of(FootLock(layout, lengths, radius=0.1)(decoded), layout)[:, FEET[0]]
+    assert np.abs(after[:10, [0, 2]] - before[0, [0, 2]]).max() < 1e-9  # planted: the glide is gone
+    lifted = np.flatnonzero(before[:, 1] > before[0, 1] + RELEASE)
+    # released: the decoded foot plus an offset that fades (here 2.7 mm), then the decoder's own
+    assert np.abs(after[lifted] - before[lifted]).max() < 0.003
+    np.testing.assert_allclose(after[lifted[-1]], before[lifted[-1]], atol=1e-9)  # faded out
+    assert np.ptp(after[21:], axis=0).max() < 1e-9  # planted where it came down...
+    # ...as far as the leg reaches (this decoder moved the foot and ankle only, 30 cm)
+    assert after[-1, 0] - after[0, 0] > 0.25
 
 
 def test_a_body_the_decoder_sank_into_the_floor_stands_and_steps_on_it(windows, skeleton):
