@@ -777,8 +777,8 @@ def test_stage_model_rewrites_decoding_settings_and_nothing_else(tmp_path, capsy
                 assert after["config"][section][key] == value, (section, key)
     assert main(["--stage", "model", "--init-from", str(source), "--out", str(tmp_path / "no"),
                  "--set", "vae.hidden=64"]) == 2
-    assert ("only decoding settings (vae.boundary_inertia, vae.root_inertia, vae.rigid_bones, "
-            "vae.foot_lock, vae.root_hold)") in capsys.readouterr().err
+    assert ("only decoding settings (vae.boundary_inertia, vae.root_inertia, vae.seam_mode, "
+            "vae.rigid_bones, vae.foot_lock, vae.root_hold)") in capsys.readouterr().err
     assert not (tmp_path / "no").exists()
 
 
@@ -794,7 +794,10 @@ def test_stage_model_copies_the_decoding_settings_of_another_model(tmp_path, cap
         config = read_model_file(Path(run) / "model.safetensors")["config"]
         return {name: config["vae"][name.split(".")[1]] for name in decoding_settings()}
 
-    shipped = read_model_file(model_path("fixture-tiny"))["config"]["vae"]
+    # read as every loader reads it: a field the file predates (vae.seam_mode) at its default
+    shipped = RunConfig.from_dict(read_model_file(model_path("fixture-tiny"))["config"]).to_dict()["vae"]
+    assert "seam_mode" not in read_model_file(model_path("fixture-tiny"))["config"]["vae"]
+    assert shipped["seam_mode"] == "velocity"
     plain = tmp_path / "plain"  # the shipped weights with every decoding setting at its default
     defaults = RunConfig.preset("tiny").to_dict()["vae"]
     assert main(["--stage", "model", "--init-from", str(model_path("fixture-tiny")), "--out", str(plain)]
@@ -802,6 +805,11 @@ def test_stage_model_copies_the_decoding_settings_of_another_model(tmp_path, cap
                    ("--set", f"{name}={defaults[name.split('.')[1]]}")]) == 0
     wanted = {name: shipped[name.split(".")[1]] for name in decoding_settings()}
     assert decoding(plain) != wanted
+    # the defaults come back as they went (vae.root_inertia None, booleans, strings)
+    assert decoding(plain)["vae.root_inertia"] is None
+    assert main(["--stage", "model", "--init-from", str(plain), "--out", str(tmp_path / "again"),
+                 "--decoding-from", str(plain)]) == 0
+    assert decoding(tmp_path / "again") == decoding(plain)
     assert main(["--stage", "model", "--init-from", str(plain), "--out", str(tmp_path / "same"),
                  "--decoding-from", "fixture-tiny"]) == 0
     assert decoding(tmp_path / "same") == wanted

@@ -85,9 +85,19 @@ def decoding_of(source: str | Path) -> list[str]:
     """The decoding settings (DECODING_FIELDS) a model file, flow checkpoint or run folder was
     written with, as ``--set`` strings: another run's model file decodes the same way without
     spelling them again."""
-    config = read_weights(flow_source(source))["config"]
-    return [f"{section}.{name}={json.dumps(config[section][name])}"
+    # Through RunConfig, so that a file written before a field existed reads its default.
+    config = RunConfig.from_dict(read_weights(flow_source(source))["config"])
+    return [f"{section}.{name}={_set_text(getattr(getattr(config, section), name))}"
             for section, names in DECODING_FIELDS.items() for name in names]
+
+
+def _set_text(value) -> str:
+    """A config value as ``--set`` reads it back (``config._parse_value``)."""
+    if value is None:
+        return "none"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return str(value)
 
 
 def skeleton_statistics(shards: str | Path) -> dict[str, torch.Tensor]:
