@@ -68,6 +68,43 @@ def test_it_removes_the_seams_and_stays_near_the_decoder():
     np.testing.assert_array_equal(out[:S], (motion + seams)[:S])  # the first block has no seam
 
 
+def accelerating_body(frames: int, seed: int = 0) -> np.ndarray:
+    """(frames, Dx): a random rigid pose at constant acceleration, each point its own."""
+    rng = np.random.default_rng(seed)
+    pose = rng.normal(scale=0.3, size=(LAYOUT.width // 3, 3))
+    accel = rng.normal(scale=0.002, size=(LAYOUT.width // 3, 3))
+    t = np.arange(frames)[:, None, None]
+    return (pose[None] + 0.01 * t + 0.5 * accel[None] * t**2).reshape(frames, -1)
+
+
+def test_the_position_mode_lets_accelerating_motion_pass_and_removes_jumps():
+    """The velocity mode damps every acceleration at a seam, real ones too (the fixtures' ground
+    truth through it alone: FGD_acc 194, docs/results.md, fortieth run); the position mode reads
+    the jump against both sides' velocities, so motion without one passes as it came, and a
+    jump is sprung out with the block's own velocity kept."""
+    frames = 80
+    motion = accelerating_body(frames)
+    np.testing.assert_allclose(SeamInertia(S, 0.8, mode="position")(motion), motion, atol=1e-12)
+    assert np.abs(SeamInertia(S, 0.8)(motion) - motion).max() > 1e-3
+    jumps = np.zeros((frames // S, 1, LAYOUT.width))
+    jumps[:] = np.random.default_rng(3).normal(scale=0.03, size=jumps.shape)
+    jumpy = motion + np.broadcast_to(jumps, (frames // S, S, LAYOUT.width)).reshape(frames, -1)
+    out = SeamInertia(S, 0.8, mode="position")(jumpy)
+    centre = np.arange(1, frames - 1)
+    at_seam = (centre % S == S - 1) | (centre % S == 0)
+    assert acceleration(jumpy)[at_seam].mean() > 4 * acceleration(out)[at_seam].mean()
+    # the first frame of every block continues the last position
+    p = out.reshape(frames, -1, 3)
+    gap = np.linalg.norm(p[S::S] - p[S - 1:-1:S], axis=-1).mean()
+    step = np.linalg.norm(motion.reshape(frames, -1, 3)[1:] - motion.reshape(frames, -1, 3)[:-1],
+                          axis=-1).mean()
+    assert gap < 1.5 * step
+    with pytest.raises(ValueError, match="mode"):
+        SeamInertia(S, 0.8, mode="jerk")
+    with pytest.raises(ValueError, match="seam_mode"):
+        VAEConfig(seam_mode="jerk")
+
+
 def test_the_root_has_its_own_spring():
     """vae.root_inertia acts on what the whole body shares (the root's translation) and
     vae.boundary_inertia on the rest: seams that only move the whole body follow the root's

@@ -53,7 +53,7 @@ def stream_decoding(vae, normalizer) -> StreamDecoding:
     layout = MotionLayout.from_width(vae.motion_dim)
     channels = layout.joint_slice(ROOT)
     filters: list = [SeamInertia(vae.stride, cfg.boundary_inertia, cfg.root_inertia,
-                                 slice(channels.start // 3, channels.stop // 3))]
+                                 slice(channels.start // 3, channels.stop // 3), cfg.seam_mode)]
     if cfg.root_hold:
         filters.append(RootHold(layout, cfg.root_hold))
     if cfg.rigid_bones or cfg.foot_lock:
