@@ -175,7 +175,7 @@ table1_and_sweep() {  # SUFFIX METHODS SAMPLING_FLAGS...
 }
 table1_and_sweep _trajectory gt,model --imputation trajectory "${SAMPLING_TRAJECTORY[@]}"
 table1_and_sweep _tuned gt,model "${SAMPLING[@]}"
-table1_and_sweep "" gt,real,random,nn,model,vae
+table1_and_sweep "" gt,real,random,nn,model,vae,decoded
 wait
 stamp "eval: end"
 missing=0
