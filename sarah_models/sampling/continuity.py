@@ -37,6 +37,7 @@ import numpy as np
 
 from ..config import SEAM_MODES
 
+
 class SeamInertia:
     """Causal filter of one stream's decoded motion; call it on whole blocks, in order.
 

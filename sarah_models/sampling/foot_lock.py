@@ -22,9 +22,10 @@ does that, causally, per foot:
   is planted where it is then. Real feet lift before they travel (the fixtures' 3.5 cm in a
   step's first frame, with 0 % of its travel), so real motion passes the lock as it came: on the
   fixture benchmark the rigid skeleton and the lock took the ground truth's FGD_acc from 0 to
-  3,827 before, 34 now (docs/results.md, fortieth run). A foot in the air where none is planted yet (a stream that starts mid-step)
-  steps on its own too, until it is down (under the foot slide's contact height). The tiny
-  decoders' feet never lift that far: their feet glide, and step by the arc above;
+  3,827 before, 34 now (docs/results.md, fortieth run). A foot in the air where none is planted
+  yet (a stream that starts mid-step) steps on its own too, until it is down (under the foot
+  slide's contact height). The tiny decoders' feet never lift that far: their feet glide, and
+  step by the arc above;
 - **free**: a decoded foot higher than ``FREE_HEIGHT`` above the floor (a raised leg) follows the
   decoder.
 
