@@ -399,6 +399,15 @@ def name_in(config: Any, name: str) -> bool:
     return any(f.name == name for f in fields(config))
 
 
+def set_text(value: Any) -> str:
+    """A config value as ``--set`` writes it, so that ``_parse_value`` reads it back."""
+    if value is None:
+        return "none"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return str(value)
+
+
 def _parse_value(current: Any, raw: str, text: str) -> Any:
     try:
         if raw.lower() == "none":

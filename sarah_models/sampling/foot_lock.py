@@ -88,8 +88,9 @@ class FootLock:
         # (start, frame, (velocity, beyond), placed): where the swing left, its frame, the
         # decoded foot's velocity then, how far beyond it lands and where it is
         self._swing: list[tuple | None] = [None] * len(self.legs)
-        # (planted height, horizontal offset, frame): a foot the decoder lifted to step, where it
-        # was planted and for how many frames it has followed the decoder
+        # (landing height, horizontal offset, frame): a foot the decoder lifted to step, the
+        # height under which it is down again, its planted spot's offset and for how many
+        # frames it has followed the decoder
         self._lifted: list[tuple | None] = [None] * len(self.legs)
         self._previous: list[np.ndarray | None] = [None] * len(self.legs)  # decoded foot
 
@@ -129,11 +130,12 @@ class FootLock:
         if planted is None and self._swing[side] is None and foot[1] > FOOT_MAX_HEIGHT:
             # In the air where nothing is planted yet (a stream that starts mid-step, a raised
             # leg coming down): stepping, until it is down where the foot slide counts contact.
-            self._lifted[side] = (FOOT_MAX_HEIGHT - 0.5 * RELEASE, np.zeros(3), 0)
+            self._lifted[side] = (FOOT_MAX_HEIGHT, np.zeros(3), 0)
             return None
         if planted is not None and self._swing[side] is None and foot[1] > planted[1] + RELEASE:
             self._planted[side] = None
-            self._lifted[side] = (planted[1], (planted - foot) * np.array([1.0, 0.0, 1.0]), 0)
+            self._lifted[side] = (planted[1] + 0.5 * RELEASE,
+                                  (planted - foot) * np.array([1.0, 0.0, 1.0]), 0)
             return foot + self._lifted[side][1]
         swing = self._swing[side]
         if swing is not None:
@@ -174,14 +176,14 @@ class FootLock:
     def _follow_lifted(self, side: int, foot: np.ndarray) -> np.ndarray | None:
         """A foot the decoder lifted: the decoded foot plus what is left of the planted offset;
         planted again where it comes down."""
-        ground, offset, frame = self._lifted[side]
+        landing, offset, frame = self._lifted[side]
         frame += 1
         target = foot + offset * max(0.0, 1.0 - frame / RELEASE_FADE)
-        if foot[1] < ground + 0.5 * RELEASE or frame >= self.swing_frames:
+        if foot[1] < landing or frame >= self.swing_frames:
             # down, or in the air for as long as a step swings: planted where it is
             self._lifted[side], self._planted[side] = None, target.copy()
         else:
-            self._lifted[side] = (ground, offset, frame)
+            self._lifted[side] = (landing, offset, frame)
         return target if frame < RELEASE_FADE else None
 
     def _reach(self, joints: np.ndarray, leg: tuple, foot_target: np.ndarray) -> np.ndarray:

@@ -25,7 +25,7 @@ from safetensors.torch import load_file, safe_open, save
 
 from sarah_data.atomic import atomic_path
 
-from ..config import DECODING_FIELDS, RunConfig, decoding_settings
+from ..config import DECODING_FIELDS, RunConfig, decoding_settings, set_text
 from ..nn.normalizer import Normalizer
 from .checkpoint import LoadedModels, build_models, load_checkpoint
 
@@ -87,17 +87,9 @@ def decoding_of(source: str | Path) -> list[str]:
     spelling them again."""
     # Through RunConfig, so that a file written before a field existed reads its default.
     config = RunConfig.from_dict(read_weights(flow_source(source))["config"])
-    return [f"{section}.{name}={_set_text(getattr(getattr(config, section), name))}"
+    return [f"{section}.{name}={set_text(getattr(getattr(config, section), name))}"
             for section, names in DECODING_FIELDS.items() for name in names]
 
-
-def _set_text(value) -> str:
-    """A config value as ``--set`` reads it back (``config._parse_value``)."""
-    if value is None:
-        return "none"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    return str(value)
 
 
 def skeleton_statistics(shards: str | Path) -> dict[str, torch.Tensor]:
