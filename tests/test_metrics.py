@@ -187,6 +187,22 @@ def test_wrist_speed_of_constant_velocity_wrists():
     assert wrist_speed(_still_pose(31)[0]) == 0.0
 
 
+def test_pelvis_speed_counts_floor_motion_of_the_whole_body_only():
+    from sarah_models.evaluation.metrics.pelvis_speed import pelvis_speed
+
+    positions, _ = _still_pose(31)
+    assert pelvis_speed(positions) == 0.0
+    t = np.arange(31) / FPS
+    walking = positions + np.outer(t, [0.6, 0.0, 0.8])[:, None]  # 1 m/s over the floor
+    assert pelvis_speed(walking) == pytest.approx(1.0)
+    bobbing = positions.copy()
+    bobbing[:, :, 1] += 0.05 * np.sin(t * 10)[:, None]  # up and down only: not walking
+    assert pelvis_speed(bobbing) == pytest.approx(0.0)
+    gesturing = positions.copy()
+    gesturing[:, JOINT["left_wrist"]] += np.outer(t, [2.0, 0.0, 0.0])
+    assert pelvis_speed(gesturing) == 0.0
+
+
 def _user_ahead_of_back(head_xz, facing, bearing, distance=2.0):
     """A user `distance` from the back of the head, `bearing` radians off the facing direction."""
     back = head_xz - HEAD_HALF_DEPTH * np.array([np.sin(facing), np.cos(facing)])

@@ -26,6 +26,7 @@ from sarah_data.skeleton import FEET, HEAD, ROOT, WRISTS
 from ...config import STRIDE
 
 
+ARROWS = {"lower": "↓", "higher": "↑", "gt": "≈GT"}
 FOOT_MAX_HEIGHT = 0.05  # m: "near the ground (<5 cm)" (paper, foot slide)
 FOOT_MIN_SPEED = 0.03  # m/s: "moving horizontally (>3 cm/s)"
 
@@ -41,7 +42,7 @@ class Metric:
     length_power: int = 0  # raw value ~ length^power
     scale: float = 1.0  # tables show raw / scale ("FGD (x10^1)")
     decimals: int = 2
-    better: str = "lower"  # "lower" or "higher": the table's arrow
+    better: str = "lower"  # "lower", "higher" or "gt" (closest to GT's): the table's arrow
     value_range: str = ""  # shown in the header, e.g. " ∈ [0, 1]"
     window_frame: bool = False  # defined for clips in their window frame only (not world clips)
     # A per-clip magnitude that reads as a share of GT's ("wrists at 1.2x GT's speed"); others
@@ -51,12 +52,12 @@ class Metric:
     def __post_init__(self) -> None:
         if self.kind not in ("frechet", "clip"):
             raise ValueError(f"metric {self.name}: kind must be 'frechet' or 'clip', got {self.kind!r}")
-        if self.better not in ("lower", "higher"):
-            raise ValueError(f"metric {self.name}: better must be 'lower' or 'higher'")
+        if self.better not in ARROWS:
+            raise ValueError(f"metric {self.name}: better must be one of {sorted(ARROWS)}")
 
     @property
     def arrow(self) -> str:
-        return "↓" if self.better == "lower" else "↑"
+        return ARROWS[self.better]
 
 
 @functools.cache
