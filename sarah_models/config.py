@@ -222,6 +222,13 @@ class FlowConfig:
     # latents change ~2x as much from one token to the next as the encoder's (docs/results.md,
     # twentieth run), and that jitter is what a position error barely sees.
     difference_weight: float = 0.0
+    # Not in the paper (False = the paper): the user's head velocity inside each block (the
+    # differences of its s positions, in standardized units per second) beside the positions the
+    # user_head encoder reads. It is a linear function of those positions, so it adds no
+    # information; it adds scale: a walking user's head moves ~0.03 standardized units a frame,
+    # a difference the encoder's first Linear has to learn to amplify ~30x before it can tell a
+    # walking user from a standing one (docs/results.md, forty-first run).
+    head_velocity: bool = False
 
     def __post_init__(self) -> None:
         if self.difference_weight < 0:

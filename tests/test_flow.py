@@ -211,3 +211,28 @@ def test_streamed_context_trains_a_share_of_batches_with_the_streaming_window():
     assert torch.equal(losses[1], losses[2]) and not torch.allclose(losses[0], losses[1])
     with pytest.raises(ValueError, match="streamed_context"):
         FlowConfig(streamed_context=1.5)
+
+
+def test_head_velocity_reads_each_block_alone():
+    """flow.head_velocity: each block's encoding depends on that block's head positions only
+    (a streamed block sees what the same block sees offline), and the velocity half reads the
+    head's motion inside the block, not where it stands."""
+    torch.manual_seed(0)
+    config = FlowConfig(**{**FlowConfig.tiny().__dict__, "head_velocity": True})
+    model = trained_weights(FlowModel(config, DZ, S, DA))
+    assert model.encoders["user_head"][0].in_features == S * 2 + (S - 1) * 2
+    g = torch.Generator().manual_seed(7)
+    cond = make_cond(1, g)
+    whole = model.encode_condition(cond, positions=torch.arange(K))
+    for k in range(K):
+        block = {name: value[:, k * S:(k + 1) * S] for name, value in cond.items()}
+        torch.testing.assert_close(model.encode_condition(block, first_token=k), whole[:, k:k + 1])
+    stacked = model._stack("user_head", cond["user_head"], K)
+    shifted = model._stack("user_head", cond["user_head"] + 2.0, K)
+    torch.testing.assert_close(shifted[..., S * 2:], stacked[..., S * 2:])
+    walking = cond["user_head"].clone()
+    walking[:, 1::S] += 0.1
+    moved = model._stack("user_head", walking, K)
+    assert not torch.allclose(moved[..., S * 2:], stacked[..., S * 2:])
+    plain = FlowModel(FlowConfig.tiny(), DZ, S, DA)
+    assert plain.encoders["user_head"][0].in_features == S * 2

@@ -47,6 +47,8 @@ from typing import Mapping
 import torch
 from torch import Tensor, nn
 
+from sarah_data.constants import FPS
+
 from ..config import FlowConfig
 from .layers import (
     AdaLNZeroBlock,
@@ -79,9 +81,12 @@ class FlowModel(nn.Module):
         self.latent_dim, self.stride, self.audio_dim = latent_dim, stride, audio_dim
         h, c = config.hidden, config.cond_dim
         self.dims = modality_dims(audio_dim)
+        widths = {name: stride * d for name, d in self.dims.items()}
+        if config.head_velocity:
+            widths["user_head"] += (stride - 1) * self.dims["user_head"]
         self.encoders = nn.ModuleDict({
-            name: nn.Sequential(nn.Linear(stride * d, c), nn.SiLU(), nn.Linear(c, c))
-            for name, d in self.dims.items()})
+            name: nn.Sequential(nn.Linear(width, c), nn.SiLU(), nn.Linear(c, c))
+            for name, width in widths.items()})
         self.nulls = nn.ParameterDict({name: nn.Parameter(torch.randn(c) * 0.02)
                                        for name in MODALITIES})
         self.cond_in = nn.Linear(len(MODALITIES) * c, h)
@@ -113,7 +118,13 @@ class FlowModel(nn.Module):
         if t % self.stride or (num_blocks is not None and t != num_blocks * self.stride):
             raise ValueError(f"condition {name!r} has {t} frames; expected "
                              f"{'a multiple of ' + str(self.stride) if num_blocks is None else num_blocks * self.stride}")
-        return value.reshape(b, t // self.stride, self.stride * d)
+        blocks = value.reshape(b, t // self.stride, self.stride, d)
+        stacked = blocks.flatten(2)
+        if name == "user_head" and self.config.head_velocity:
+            # within the block only, so a streamed block and the same block offline see the same
+            velocity = torch.diff(blocks, dim=2) * FPS
+            stacked = torch.cat([stacked, velocity.flatten(2)], dim=-1)
+        return stacked
 
     def encode_condition(self, cond: Mapping[str, Tensor], drop_mask: Tensor | None = None,
                          num_blocks: int | None = None, first_token: int = 0,
