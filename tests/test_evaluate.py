@@ -181,7 +181,7 @@ def test_end_to_end_tables_plots_and_determinism(tiny, tmp_path, capsys):
     listing = json.loads((out / "windows.json").read_text())["windows"]
     assert len(listing) == 6 and {w["start"] for w in listing} <= {0, 16}
     assert sum(w["speaking"] for w in listing) == t1["num_speaking"]
-    for name in [f"metric_{m}.png" for m in METRICS] + ["gaze_control.png"]:
+    for name in [f"metric_{m}.png" for m in METRICS] + ["gaze_control.png", "paths.png"]:
         with Image.open(out / "plots" / name) as png:
             assert png.format == "PNG" and png.size[0] > 200
     assert not [p for p in out.rglob(".*")]  # no temporary files left
@@ -419,3 +419,22 @@ def test_decoded_row_is_the_chains_own_floor(tiny, tmp_path):
                           "--windows", "4")) == 0
     decoded = json.loads((on / "table1.json").read_text())["rows"][1]["shown"]
     assert decoded["fgd_acc/avg"] > 0
+
+
+def test_paths_pick_the_windows_where_the_user_walks_most_and_least_and_record_the_pelvis():
+    from sarah_data.skeleton import ROOT, MotionLayout
+    from sarah_models.evaluation.paths import PathRecorder, floor_path_length, pick_windows
+
+    assert pick_windows([3.0, 0.1, 9.0, 5.0, 0.0, 2.0], each=2) == [2, 3, 4, 1]
+    assert pick_windows([1.0, 2.0], each=3) == [1, 0]  # none twice
+    assert floor_path_length(np.array([[0, 0], [3, 4], [3, 0]])) == pytest.approx(9.0)
+    layout = MotionLayout(shell_points=3)
+    rng = np.random.default_rng(0)
+    motions = {i: rng.normal(size=(5, layout.width)).astype(np.float32) for i in range(4)}
+    recorder = PathRecorder([1, 3], layout)
+    produce = recorder.wrap("model", lambda item, index: motions[index])
+    for i in range(4):
+        assert produce(None, i) is motions[i]  # the method's motion passes unchanged
+    assert sorted(recorder.paths["model"]) == [1, 3]
+    expected = layout.joint_positions(motions[3].astype(np.float64), [ROOT])[:, 0, [0, 2]]
+    np.testing.assert_array_equal(recorder.paths["model"][3], expected)

@@ -29,7 +29,8 @@ in one go and then dividing the total time taken by 400"; the median ignores war
 (real-time) is FPS >= 30, the motion's frame rate; C (causal) is a property of the method.
 
 Outputs in ``out``: table1.md/.json, table2.md/.json, windows.json (the windows evaluated and
-their S/NS flags), plots/metric_<name>.png (bars across methods) and plots/gaze_control.png;
+their S/NS flags), plots/metric_<name>.png (bars across methods), plots/gaze_control.png and
+plots/paths.png (top views of where each method's agent walks, ``paths.py``);
 with the "vae" method also reconstruction.md/.json, its error per body part in mm
 (``reconstruction.py``).
 Memory stays at a few clips: clips are produced lazily while the metrics read them.
@@ -71,6 +72,7 @@ from .tables import (
     write_json,
 )
 from .degradations import BLUR_FRAMES, JITTER_MM, blurred, jittered
+from .paths import PathRecorder, floor_path_length, pick_windows, plot_paths
 from .reconstruction import ReconstructionErrors, summary_markdown
 from .windows import MethodClips, TestWindows, gt_clips, select_windows
 
@@ -328,10 +330,14 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
         speaking_config = SpeakingConfig(**speaking_settings)
     except TypeError as exc:
         raise EvalError(f"{shards}: unreadable speaking settings in the manifest ({exc})") from None
-    speaking = np.array([clip_is_speaking(windows[i]["agent_speaking"].numpy() > 0.5,
-                                          speaking_config)
-                         for i in tqdm(range(len(windows)), desc="S/NS labels", unit="window",
-                                       disable=not progress, leave=False)], dtype=bool)
+    speaking, user_travel = np.zeros(len(windows), dtype=bool), np.zeros(len(windows))
+    for i in tqdm(range(len(windows)), desc="S/NS labels", unit="window",
+                  disable=not progress, leave=False):
+        item = windows[i]
+        speaking[i] = clip_is_speaking(item["agent_speaking"].numpy() > 0.5, speaking_config)
+        user_travel[i] = floor_path_length(item["user_head"].numpy())
+    drawn = pick_windows(user_travel)
+    paths = PathRecorder(drawn, MotionLayout.from_width(dataset.motion_dim))
     echo(f"{len(windows)} of {len(dataset)} {config.window}-frame windows of split "
          f"{config.split!r} ({int(speaking.sum())} S, {int((~speaking).sum())} NS), features "
          f"{features!r}")
@@ -353,7 +359,7 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
         nonlocal gt_values
         with tqdm(total=len(windows), desc=label, unit="window", disable=not progress,
                   leave=False) as bar:
-            clips = MethodClips(windows, produce, bar)
+            clips = MethodClips(windows, paths.wrap(key, produce), bar)
             if reference:  # its per-clip values are every later row's paired comparison
                 gt_values = clip_values(clips, metrics_config)
                 table = reference_table(clips, speaking, metrics_config, gt_values)
@@ -440,6 +446,14 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
     result = Evaluation(table1, table2, len(windows), len(dataset), int(speaking.sum()),
                         reconstruction)
     result.paths = write_outputs(out, result, config, shards, run, features, windows, speaking)
+    # the rows that show this window's own motion (Real and the degradations show others')
+    recorded = {"model": f"model@{gaze_label(config.table1_gaze)}"}
+    drawn_rows = [(row.label, paths.paths[recorded.get(row.key, row.key)]) for row in table1
+                  if row.key not in ("real", "blur", "jitter")]
+    if drawn_rows:
+        result.paths.append(plot_paths(out / "plots" / "paths.png",
+                                       {i: windows[i]["user_head"].numpy() for i in drawn},
+                                       drawn_rows))
     return result
 
 
