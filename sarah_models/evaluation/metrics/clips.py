@@ -22,6 +22,15 @@ def as_numpy(x) -> np.ndarray:
     return np.asarray(x)
 
 
+def mean_speed(points, fps: float = FPS, name: str = "mean_speed") -> float:
+    """Mean speed over all frame steps and all points of ``points`` (T, ..., D) in units/s;
+    ValueError naming ``name`` (the metric asking) for fewer than 2 frames."""
+    p = np.asarray(as_numpy(points), dtype=np.float64)
+    if len(p) < 2:
+        raise ValueError(f"{name} needs at least 2 frames, got {len(p)}")
+    return float(np.mean(np.linalg.norm(np.diff(p, axis=0), axis=-1)) * fps)
+
+
 def accelerations(points, fps: float = FPS) -> np.ndarray:
     """Second finite difference over time times fps^2: (T,...) -> (T-2,...), units/s^2."""
     p = np.asarray(as_numpy(points), dtype=np.float64)

@@ -9,20 +9,16 @@ GT's, paired by window: the closer the better.
 
 from __future__ import annotations
 
-import numpy as np
-
 from sarah_data.constants import FPS, JOINT
 
-from .clips import as_numpy
+from .clips import as_numpy, mean_speed
 from .spec import Metric
 
 
 def pelvis_speed(joint_positions, fps: float = FPS, root_joint: str = "pelvis") -> float:
     """Mean horizontal (x, z) speed of the root joint over all frame steps, m/s."""
-    p = np.asarray(as_numpy(joint_positions), dtype=np.float64)[:, JOINT[root_joint]][:, [0, 2]]
-    if len(p) < 2:
-        raise ValueError(f"pelvis_speed needs at least 2 frames, got {len(p)}")
-    return float(np.mean(np.linalg.norm(np.diff(p, axis=0), axis=-1)) * fps)
+    floor = as_numpy(joint_positions)[:, JOINT[root_joint]][:, [0, 2]]
+    return mean_speed(floor, fps, "pelvis_speed")
 
 
 METRIC = Metric(name="pelvis_speed", label="Pelvis Speed", kind="clip", order=45, unit="{u}/s",

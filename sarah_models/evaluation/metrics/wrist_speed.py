@@ -4,21 +4,17 @@ from __future__ import annotations
 
 from typing import Sequence
 
-import numpy as np
-
 from sarah_data.constants import FPS, JOINT
 from sarah_data.skeleton import WRISTS
 
-from .clips import as_numpy
+from .clips import as_numpy, mean_speed
 from .spec import Metric
 
 
 def wrist_speed(joint_positions, fps: float = FPS, wrist_joints: Sequence[str] = WRISTS) -> float:
     """Mean 3D speed of the wrists over all frame steps and both wrists, in m/s."""
-    p = np.asarray(as_numpy(joint_positions), dtype=np.float64)[:, [JOINT[n] for n in wrist_joints]]
-    if len(p) < 2:
-        raise ValueError(f"wrist_speed needs at least 2 frames, got {len(p)}")
-    return float(np.mean(np.linalg.norm(np.diff(p, axis=0), axis=-1)) * fps)
+    wrists = as_numpy(joint_positions)[:, [JOINT[n] for n in wrist_joints]]
+    return mean_speed(wrists, fps, "wrist_speed")
 
 
 METRIC = Metric(name="wrist_speed", label="Wrist Var", kind="clip", order=40, unit="{u}/s",
