@@ -423,7 +423,7 @@ def test_decoded_row_is_the_chains_own_floor(tiny, tmp_path):
 
 def test_paths_pick_the_windows_where_the_user_walks_most_and_least_and_record_the_pelvis():
     from sarah_data.skeleton import ROOT, MotionLayout
-    from sarah_models.evaluation.paths import PathRecorder, floor_path_length, pick_windows
+    from sarah_models.evaluation.paths import floor_path_length, pick_windows, recording
 
     assert pick_windows([3.0, 0.1, 9.0, 5.0, 0.0, 2.0], each=2) == [2, 3, 4, 1]
     assert pick_windows([1.0, 2.0], each=3) == [1, 0]  # none twice
@@ -431,10 +431,9 @@ def test_paths_pick_the_windows_where_the_user_walks_most_and_least_and_record_t
     layout = MotionLayout(shell_points=3)
     rng = np.random.default_rng(0)
     motions = {i: rng.normal(size=(5, layout.width)).astype(np.float32) for i in range(4)}
-    recorder = PathRecorder([1, 3], layout)
-    produce = recorder.wrap("model", lambda item, index: motions[index])
+    produce, paths = recording(lambda item, index: motions[index], [1, 3], layout)
     for i in range(4):
         assert produce(None, i) is motions[i]  # the method's motion passes unchanged
-    assert sorted(recorder.paths["model"]) == [1, 3]
+    assert sorted(paths) == [1, 3]
     expected = layout.joint_positions(motions[3].astype(np.float64), [ROOT])[:, 0, [0, 2]]
-    np.testing.assert_array_equal(recorder.paths["model"][3], expected)
+    np.testing.assert_array_equal(paths[3], expected)

@@ -16,12 +16,12 @@ import numpy as np
 from sarah_data.skeleton import ROOT, MotionLayout
 
 from ..generation.plots import save_figure
-from .metrics.clips import as_numpy
+from .metrics.clips import as_numpy, step_lengths
 
 
 def floor_path_length(xz: np.ndarray) -> float:
     """Length of a floor path (T, 2), in its units."""
-    return float(np.linalg.norm(np.diff(np.asarray(xz, np.float64), axis=0), axis=-1).sum())
+    return float(step_lengths(xz).sum())
 
 
 def pick_windows(user_travel: Sequence[float], each: int = 3) -> list[int]:
@@ -33,26 +33,21 @@ def pick_windows(user_travel: Sequence[float], each: int = 3) -> list[int]:
     return most + least
 
 
-class PathRecorder:
-    """Records the pelvis floor path (T, 2) of the chosen windows as a method produces them."""
+def recording(produce: Callable, indices: Sequence[int], layout: MotionLayout
+              ) -> tuple[Callable, dict[int, np.ndarray]]:
+    """``produce(item, index) -> motion`` wrapped to keep the pelvis floor path (T, 2) of the
+    windows in ``indices`` as the method produces them, and the dict (window index -> path) it
+    fills."""
+    chosen, paths = set(int(i) for i in indices), {}
 
-    def __init__(self, indices: Sequence[int], layout: MotionLayout) -> None:
-        self.indices, self.layout = set(int(i) for i in indices), layout
-        self.paths: dict[str, dict[int, np.ndarray]] = {}
+    def recorded(item, index: int):
+        motion = produce(item, index)
+        if index in chosen:
+            joints = layout.joint_positions(np.asarray(as_numpy(motion), np.float64), [ROOT])
+            paths[index] = joints[:, 0, [0, 2]]
+        return motion
 
-    def wrap(self, key: str, produce: Callable) -> Callable:
-        """``produce(item, index) -> motion`` that also records the chosen windows' paths."""
-        paths = self.paths.setdefault(key, {})
-
-        def recorded(item, index: int):
-            motion = produce(item, index)
-            if index in self.indices:
-                joints = self.layout.joint_positions(
-                    np.asarray(as_numpy(motion), np.float64), [ROOT])
-                paths[index] = joints[:, 0, [0, 2]]
-            return motion
-
-        return recorded
+    return recorded, paths
 
 
 def plot_paths(path: Path, user_heads: Mapping[int, np.ndarray],

@@ -72,7 +72,7 @@ from .tables import (
     write_json,
 )
 from .degradations import BLUR_FRAMES, JITTER_MM, blurred, jittered
-from .paths import PathRecorder, floor_path_length, pick_windows, plot_paths
+from .paths import floor_path_length, pick_windows, plot_paths, recording
 from .reconstruction import ReconstructionErrors, summary_markdown
 from .windows import MethodClips, TestWindows, gt_clips, select_windows
 
@@ -337,7 +337,7 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
         speaking[i] = clip_is_speaking(item["agent_speaking"].numpy() > 0.5, speaking_config)
         user_travel[i] = floor_path_length(item["user_head"].numpy())
     drawn = pick_windows(user_travel)
-    paths = PathRecorder(drawn, MotionLayout.from_width(dataset.motion_dim))
+    layout = MotionLayout.from_width(dataset.motion_dim)
     echo(f"{len(windows)} of {len(dataset)} {config.window}-frame windows of split "
          f"{config.split!r} ({int(speaking.sum())} S, {int((~speaking).sum())} NS), features "
          f"{features!r}")
@@ -355,11 +355,13 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
     gt_values: dict[str, np.ndarray] | None = None  # the GT row's clip_values, once scored
 
     def score(key: str, label: str, produce, causal: bool | None, gaze=None,
-              reference: bool = False, timed: bool = True, pooled: bool = True) -> MethodResult:
+              reference: bool = False, timed: bool = True, pooled: bool = True,
+              draw: bool = True) -> MethodResult:
         nonlocal gt_values
+        produce, floor_paths = recording(produce, drawn if draw else (), layout)
         with tqdm(total=len(windows), desc=label, unit="window", disable=not progress,
                   leave=False) as bar:
-            clips = MethodClips(windows, paths.wrap(key, produce), bar)
+            clips = MethodClips(windows, produce, bar)
             if reference:  # its per-clip values are every later row's paired comparison
                 gt_values = clip_values(clips, metrics_config)
                 table = reference_table(clips, speaking, metrics_config, gt_values)
@@ -381,7 +383,7 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
                     values = table.values[metric.name]
                     values.pooled = values.pooled_low = values.pooled_high = math.nan
         fps = fps_of(clips.seconds, config.window) if timed and not reference else None
-        result = MethodResult(key, label, causal, fps, table, gaze, reference)
+        result = MethodResult(key, label, causal, fps, table, gaze, reference, floor_paths)
         shown = result.shown()
         echo(f"{label}: " + ", ".join(f"{m.label} {number(shown[f'{m.name}/avg'], m.decimals)}"
                                       for m in registered())
@@ -396,17 +398,20 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
         # every figure has the value two disjoint sets of real clips give.
         half = len(windows) // 2
         # Pooled over all windows, "other windows" are the same set permuted: 0 by design.
+        # Not drawn in paths.png: its path is another window's, and the degradations' below are
+        # GT's own, nearly unchanged.
         table1.append(score("real", "Real (other windows)",
                             lambda _, i: windows[(i + half) % len(windows)]["motion"], None,
-                            timed=False, pooled=False))
+                            timed=False, pooled=False, draw=False))
     if "blur" in config.methods:
         table1.append(score("blur", f"GT, blurred ({config.blur_frames} frames)",
                             lambda item, _: blurred(item["motion"], config.blur_frames), None,
-                            timed=False))
+                            timed=False, draw=False))
     if "jitter" in config.methods:
         table1.append(score("jitter", f"GT + {config.jitter_mm:g} mm jitter",
                             lambda item, i: jittered(item["motion"], config.jitter_mm,
-                                                     config.seed, i), None, timed=False))
+                                                     config.seed, i), None, timed=False,
+                            draw=False))
     if "random" in config.methods:
         from .baselines import RandomBaseline
 
@@ -446,10 +451,7 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
     result = Evaluation(table1, table2, len(windows), len(dataset), int(speaking.sum()),
                         reconstruction)
     result.paths = write_outputs(out, result, config, shards, run, features, windows, speaking)
-    # the rows that show this window's own motion (Real and the degradations show others')
-    recorded = {"model": f"model@{gaze_label(config.table1_gaze)}"}
-    drawn_rows = [(row.label, paths.paths[recorded.get(row.key, row.key)]) for row in table1
-                  if row.key not in ("real", "blur", "jitter")]
+    drawn_rows = [(row.label, row.floor_paths) for row in table1 if row.floor_paths]
     if drawn_rows:
         result.paths.append(plot_paths(out / "plots" / "paths.png",
                                        {i: windows[i]["user_head"].numpy() for i in drawn},

@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 import math
 import statistics
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -33,6 +33,9 @@ class MethodResult:
     table: MetricsTable
     gaze: float | None = None
     reference: bool = False  # GT: FGD is "-"
+    # pelvis floor paths (T, 2) of the windows plots/paths.png draws, by window index; empty for
+    # a row that is not drawn (``paths.py``)
+    floor_paths: dict[int, np.ndarray] = field(default_factory=dict)
 
     @property
     def realtime(self) -> bool | None:

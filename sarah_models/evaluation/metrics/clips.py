@@ -22,13 +22,17 @@ def as_numpy(x) -> np.ndarray:
     return np.asarray(x)
 
 
+def step_lengths(points) -> np.ndarray:
+    """How far each point moves in each frame step: (T, ..., D) -> (T-1, ...), in its units."""
+    return np.linalg.norm(np.diff(np.asarray(as_numpy(points), dtype=np.float64), axis=0), axis=-1)
+
+
 def mean_speed(points, fps: float = FPS, name: str = "mean_speed") -> float:
     """Mean speed over all frame steps and all points of ``points`` (T, ..., D) in units/s;
     ValueError naming ``name`` (the metric asking) for fewer than 2 frames."""
-    p = np.asarray(as_numpy(points), dtype=np.float64)
-    if len(p) < 2:
-        raise ValueError(f"{name} needs at least 2 frames, got {len(p)}")
-    return float(np.mean(np.linalg.norm(np.diff(p, axis=0), axis=-1)) * fps)
+    if len(points) < 2:
+        raise ValueError(f"{name} needs at least 2 frames, got {len(points)}")
+    return float(np.mean(step_lengths(points)) * fps)
 
 
 def accelerations(points, fps: float = FPS) -> np.ndarray:
