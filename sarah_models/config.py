@@ -110,6 +110,15 @@ class VAEConfig:
     # VAE trained without it reconstructed the gaze score with correlation 0.65 to the truth
     # (docs/models.md), and a flow cannot be steered by gaze through latents that lose it.
     head_weight: float = 0.0
+    # Not in the paper (0 = the paper): weight of the acceleration-spectrum term, the distance
+    # between the short-time spectra of the decoded and true accelerations, magnitudes only
+    # (``training.objectives.AccelerationSpectrum``). Squared errors of positions, velocities or
+    # accelerations are all minimised, where the latent leaves a step's or a beat's phase open,
+    # by its conditional mean: no beat; a magnitude has no phase to average away, so it asks for
+    # the data's energy in every band, and costs a young decoder's frame-to-frame jitter too.
+    # At the fixture benchmark's CPU budget it took the jitter out and added no steps or beats
+    # (docs/results.md, forty-second run): 0 in both presets.
+    spectral_weight: float = 0.0
     # Not in the paper (0 = the paper): Gaussian noise added to the decoder's latent input in
     # training, as a fraction of the batch's per-channel latent std. The decoder then maps a
     # neighbourhood of each latent to the same motion, so a flow sample that is slightly off

@@ -165,7 +165,7 @@ def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
 # which (flow.attention_window and flow.streamed_context: masks, no weight), not the weights.
 FINE_TUNE_FIELDS = {
     "vae": ("beta", "velocity_weight", "acceleration_weight", "contact_weight", "head_weight",
-            "latent_noise", "recon_units", *DECODING_FIELDS["vae"]),
+            "spectral_weight", "latent_noise", "recon_units", *DECODING_FIELDS["vae"]),
     "flow": ("drop_prob", "min_denominator", "difference_weight", "attention_window",
              "streamed_context")}
 
