@@ -203,6 +203,25 @@ def test_pelvis_speed_counts_floor_motion_of_the_whole_body_only():
     assert pelvis_speed(gesturing) == 0.0
 
 
+def test_acceleration_rms_tells_smooth_from_jittery_motion():
+    from sarah_models.evaluation.metrics.acceleration_rms import acceleration_rms
+
+    t = np.arange(61) / FPS
+    shell = np.zeros((61, 4, 3))
+    assert acceleration_rms(shell) == 0.0
+    walking = shell + np.outer(t, [1.0, 0.0, 0.0])[:, None]  # constant velocity: no acceleration
+    assert acceleration_rms(walking) == pytest.approx(0.0, abs=1e-9)
+    swinging = shell.copy()
+    swinging[:, :, 0] = 0.1 * np.sin(2 * np.pi * t)[:, None]  # a(t) = -0.1 (2 pi)^2 sin(2 pi t)
+    expected = 0.1 * (2 * np.pi) ** 2 / np.sqrt(2)
+    assert acceleration_rms(swinging) == pytest.approx(expected, rel=0.02)
+    assert acceleration_rms(swinging.reshape(61, -1)) == acceleration_rms(swinging)
+    jitter = swinging + 0.002 * np.random.default_rng(0).standard_normal(swinging.shape)
+    assert acceleration_rms(jitter) > 1.5 * acceleration_rms(swinging)  # 2 mm of noise
+    with pytest.raises(ValueError, match="at least 3 frames"):
+        acceleration_rms(shell[:2])
+
+
 def _user_ahead_of_back(head_xz, facing, bearing, distance=2.0):
     """A user `distance` from the back of the head, `bearing` radians off the facing direction."""
     back = head_xz - HEAD_HALF_DEPTH * np.array([np.sin(facing), np.cos(facing)])
