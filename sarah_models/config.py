@@ -160,6 +160,11 @@ class VAEConfig:
     # Not in the paper (0 = off): lock planted feet, stepping when the decoded foot has moved
     # this many metres away (``sampling.foot_lock``); decoded feet glide and jitter.
     foot_lock: float = 0.0
+    # Not in the paper: frames a locked foot's step takes from lift-off to landing
+    # (``sampling.foot_lock``). 12 (0.4 s, as people walk) is the slowest of the fixtures' steps;
+    # theirs take 6-7 frames, but a body that walks twice their path needs slower steps to keep
+    # its leg energy near theirs (docs/results.md, twenty-sixth and forty-second runs).
+    foot_swing_frames: int = 12
     # Not in the paper (0 = off): the body holds its place on the floor until the decoded pelvis
     # has moved this many metres away, then follows, no faster than the data's people walk
     # (``sampling.root_hold``); the decoded pelvis wanders where people stand.
@@ -170,6 +175,9 @@ class VAEConfig:
             value = getattr(self, name)
             if value is not None and not 0.0 <= value < 1.0:
                 raise ValueError(f"VAEConfig.{name} must be in [0, 1), got {value}")
+        if self.foot_swing_frames < 4:
+            raise ValueError(f"VAEConfig.foot_swing_frames must be >= 4 (a step lifts, travels and "
+                             f"lands), got {self.foot_swing_frames}")
         for name in ("foot_lock", "root_hold"):
             if getattr(self, name) < 0:
                 raise ValueError(f"VAEConfig.{name} (metres) must be >= 0, got {getattr(self, name)}")
@@ -268,7 +276,7 @@ class FlowConfig:
 # again with other values, nothing trained (``sarah-train --stage model``), and a fine-tune may
 # change them.
 DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "seam_mode", "rigid_bones",
-                           "foot_lock", "root_hold")}
+                           "foot_lock", "foot_swing_frames", "root_hold")}
 
 
 def decoding_settings() -> list[str]:

@@ -239,6 +239,33 @@ def test_a_gliding_body_steps_and_a_stream_gets_the_frames_at_once_gets(windows,
     np.testing.assert_array_equal(blocks, out)
 
 
+def test_the_steps_take_the_configured_frames(windows, skeleton):
+    """vae.foot_swing_frames reaches the lock: a gliding body's steps, from lift-off to landing,
+    take that many frames."""
+    from sarah_models.sampling.decoding import stream_decoding
+    from sarah_models.testing import random_models
+
+    layout = MotionLayout.from_width(windows.motion_dim)
+    body = standing(windows[4], layout)
+    glide = np.zeros((len(body), layout.width // 3, 3))
+    glide[:, :, 0] = 0.5 / 30 * np.arange(len(body))[:, None]
+    decoded = body + glide.reshape(len(body), -1)
+    lengths = bone_lengths(joints_of(body, layout), layout.bones)[0]
+    vae, _, normalizer = random_models("tiny")
+    normalizer.set("bone_length", lengths, np.zeros_like(lengths))
+    for frames in (6, SWING_FRAMES):
+        vae.config = dataclasses.replace(vae.config, foot_lock=0.1, foot_swing_frames=frames)
+        lock = stream_decoding(vae, normalizer).filters[-1]
+        assert isinstance(lock, FootLock) and lock.swing_frames == frames
+        feet = joints_of(lock(decoded), layout)[:, FEET]
+        lifted = (feet[..., 1] - joints_of(decoded, layout)[:, FEET, 1] > 1e-6)[:, 0]
+        edges = np.flatnonzero(np.diff(lifted.astype(int)))  # the frames before each change
+        runs = np.diff(edges)[::2] if lifted[edges[0] + 1] else np.diff(edges)[1::2]
+        assert len(runs) >= 2 and np.all(runs == frames - 1)  # in the air between lift and landing
+    with pytest.raises(ValueError, match="foot_swing_frames must be >= 4"):
+        dataclasses.replace(vae.config, foot_swing_frames=3)
+
+
 def test_a_step_rises_as_high_as_the_datas_steps(prepared_shards):
     """The foot lock's swing rises as the ground truth's steps do (7.8 cm on the fixtures); the
     10 cm it rose before was higher than any fixture step, and its vertical acceleration

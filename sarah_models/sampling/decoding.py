@@ -61,5 +61,5 @@ def stream_decoding(vae, normalizer) -> StreamDecoding:
         if cfg.rigid_bones:
             filters.append(RigidSkeleton(layout, lengths))
         if cfg.foot_lock:
-            filters.append(FootLock(layout, lengths, cfg.foot_lock))
+            filters.append(FootLock(layout, lengths, cfg.foot_lock, cfg.foot_swing_frames))
     return StreamDecoding(filters)

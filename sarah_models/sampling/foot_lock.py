@@ -51,11 +51,12 @@ import numpy as np
 from sarah_data.constants import FLOOR_HEIGHT
 from sarah_data.skeleton import MotionLayout
 
+from ..config import VAEConfig
 from ..evaluation.metrics.spec import FOOT_MAX_HEIGHT
 
 from .rigid_skeleton import ShellFollow, finish, legs, two_bone_ik
 
-SWING_FRAMES = 12  # a step's swing, 0.4 s at 30 fps, as people walk
+SWING_FRAMES = VAEConfig.foot_swing_frames  # a step's swing by default, 0.4 s at 30 fps
 # m: the swing arc's height above the decoded foot (or the floor). The fixtures' steps rise 7.8 cm
 # (median and 90th percentile of the 2,021 steps of the 104 seed-7 test windows). A 10 cm arc
 # rose higher than any of them, and the shipped model's FGD_acc with it was 10 % (streamed) and
