@@ -79,6 +79,15 @@ def root_weighted(variance: Tensor, root_points: Tensor) -> Tensor:
     return points.flatten()
 
 
+def term_layout(motion_dim: int, setting: str) -> MotionLayout:
+    """The motion layout a loss term reads joints from; ValueError naming the ``setting`` that
+    asked for the term when the motion is not icosahedra and shell points."""
+    try:
+        return MotionLayout.from_width(motion_dim)
+    except ValueError as error:
+        raise ValueError(f"{setting} needs the icosahedron motion layout: {error}") from None
+
+
 class PlantedFeet(nn.Module):
     """Squared error of the decoded feet's horizontal step while the true foot is planted.
 
@@ -91,10 +100,7 @@ class PlantedFeet(nn.Module):
         super().__init__()
         from ..evaluation.metrics import MetricsConfig
 
-        try:
-            self.layout = MotionLayout.from_width(motion_dim)
-        except ValueError as error:
-            raise ValueError(f"vae.contact_weight needs the icosahedron motion layout: {error}") from None
+        self.layout = term_layout(motion_dim, "vae.contact_weight")
         metric = MetricsConfig()
         self.max_height, self.step = metric.foot_max_height, metric.foot_min_speed / FPS
 
@@ -121,10 +127,7 @@ class HeadFacing(nn.Module):
 
     def __init__(self, motion_dim: int) -> None:
         super().__init__()
-        try:
-            self.channels = MotionLayout.from_width(motion_dim).joint_slice(HEAD)
-        except ValueError as error:
-            raise ValueError(f"vae.head_weight needs the icosahedron motion layout: {error}") from None
+        self.channels = term_layout(motion_dim, "vae.head_weight").joint_slice(HEAD)
 
     def facing(self, motion: Tensor) -> Tensor:
         points = motion[..., self.channels].unflatten(-1, (ICOSAHEDRON_POINTS, 3))
@@ -156,10 +159,7 @@ class AccelerationSpectrum(nn.Module):
 
     def __init__(self, motion_dim: int) -> None:
         super().__init__()
-        try:
-            self.layout = MotionLayout.from_width(motion_dim)
-        except ValueError as error:
-            raise ValueError(f"vae.spectral_weight needs the icosahedron motion layout: {error}") from None
+        self.layout = term_layout(motion_dim, "vae.spectral_weight")
 
     def points(self, motion: Tensor) -> Tensor:
         """(B, T, D) -> (B, T, 3 P): the body joints' and shell points' coordinates."""
