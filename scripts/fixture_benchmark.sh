@@ -17,7 +17,9 @@
 # stage starts over). Every step is seeded (train.seed 0): the same code on the same thread count
 # and the same kind of CPU gives the same model file, whose sha256 is printed (another instruction
 # set rounds differently: 21b0e4c7... on an AVX2-only AMD EPYC, 9b8b0958... on one with
-# AVX-512). Settings can be overridden through the environment, e.g. FLOW_STEPS=3000
+# AVX-512; the file carries the whole config, so a config field added since changes the bytes and
+# not the weights: those weights written with vae.seam_mode, flow.head_velocity,
+# vae.spectral_weight and vae.foot_swing_frames at their defaults are d862baba...). Settings can be overridden through the environment, e.g. FLOW_STEPS=3000
 # scripts/fixture_benchmark.sh. Wall-clock times of every stage go to BENCH_DIR/timings.txt; run
 # it on an otherwise idle machine for the training time (2-core AMD EPYC VMs: 27.8 min of
 # training on the AVX2-only one, thirty-fourth run, then 43 min of evaluation; on the one with
