@@ -69,6 +69,7 @@ def from_dict(cls: type[T], data: Mapping[str, Any]) -> T:
 
 VELOCITY_WEIGHT_TINY = 10.0
 RECON_UNITS = ("standardized", "metres")
+MIN_SWING_FRAMES = 4  # a foot-lock step lifts off, travels and is set down (``sampling.foot_lock``)
 SEAM_MODES = ("velocity", "position")  # VAEConfig.seam_mode: what a seam's spring continues
 
 
@@ -175,9 +176,9 @@ class VAEConfig:
             value = getattr(self, name)
             if value is not None and not 0.0 <= value < 1.0:
                 raise ValueError(f"VAEConfig.{name} must be in [0, 1), got {value}")
-        if self.foot_swing_frames < 4:
-            raise ValueError(f"VAEConfig.foot_swing_frames must be >= 4 (a step lifts, travels and "
-                             f"lands), got {self.foot_swing_frames}")
+        if self.foot_swing_frames < MIN_SWING_FRAMES:
+            raise ValueError(f"VAEConfig.foot_swing_frames must be >= {MIN_SWING_FRAMES} (a step "
+                             f"lifts, travels and lands), got {self.foot_swing_frames}")
         for name in ("foot_lock", "root_hold"):
             if getattr(self, name) < 0:
                 raise ValueError(f"VAEConfig.{name} (metres) must be >= 0, got {getattr(self, name)}")

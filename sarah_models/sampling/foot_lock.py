@@ -51,7 +51,7 @@ import numpy as np
 from sarah_data.constants import FLOOR_HEIGHT
 from sarah_data.skeleton import MotionLayout
 
-from ..config import VAEConfig
+from ..config import MIN_SWING_FRAMES, VAEConfig
 from ..evaluation.metrics.spec import FOOT_MAX_HEIGHT
 
 from .rigid_skeleton import ShellFollow, finish, legs, two_bone_ik
@@ -75,8 +75,8 @@ class FootLock:
                  swing_frames: int = SWING_FRAMES, lift: float = LIFT) -> None:
         if not radius > 0:
             raise ValueError(f"foot lock radius must be positive, got {radius}")
-        if swing_frames < 4:
-            raise ValueError(f"a step needs at least 4 swing frames, got {swing_frames}")
+        if swing_frames < MIN_SWING_FRAMES:
+            raise ValueError(f"a step needs at least {MIN_SWING_FRAMES} swing frames, got {swing_frames}")
         self.layout, self.radius, self.swing_frames, self.lift = layout, radius, swing_frames, lift
         self.legs = legs(layout, lengths)
         if not self.legs:

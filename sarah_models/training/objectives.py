@@ -163,17 +163,24 @@ class AccelerationSpectrum(nn.Module):
 
     def points(self, motion: Tensor) -> Tensor:
         """(B, T, D) -> (B, T, 3 P): the body joints' and shell points' coordinates."""
-        joints = self.layout.split(motion)[0][..., :BODY_JOINTS, :, :].mean(-2)
-        return torch.cat([joints.flatten(-2), self.layout.split(motion)[1].flatten(-2)], dim=-1)
+        icosahedra, shell = self.layout.split(motion)
+        joints = icosahedra[..., :BODY_JOINTS, :, :].mean(-2)
+        return torch.cat([joints.flatten(-2), shell.flatten(-2)], dim=-1)
 
-    def spectra(self, acceleration: Tensor, window: int) -> Tensor:
-        """(B, T, D) -> magnitudes (B, frames, D, bins): a real DFT as one matmul over the
-        windowed frames, several times faster on a CPU than ``torch.stft`` over B * D series."""
-        frames = acceleration.unfold(1, window, window // 4)  # (B, frames, D, window)
-        n = torch.arange(window, device=acceleration.device, dtype=acceleration.dtype)
+    @staticmethod
+    def dft_basis(window: int, like: Tensor) -> Tensor:
+        """(window, 2 * bins): the Hann-windowed cosines, then sines, of a real DFT."""
+        n = torch.arange(window, device=like.device, dtype=like.dtype)
         angle = 2 * torch.pi * n[:, None] * torch.arange(window // 2 + 1, device=n.device) / window
         hann = torch.hann_window(window, device=n.device, dtype=n.dtype)[:, None]
-        basis = torch.cat([hann * angle.cos(), hann * angle.sin()], dim=1)  # (window, 2 * bins)
+        return torch.cat([hann * angle.cos(), hann * angle.sin()], dim=1)
+
+    def spectra(self, acceleration: Tensor, window: int, basis: Tensor | None = None) -> Tensor:
+        """(B, T, D) -> magnitudes (B, frames, D, bins): a real DFT as one matmul over the
+        windowed frames, several times faster on a CPU than ``torch.stft`` over B * D series."""
+        if basis is None:
+            basis = self.dft_basis(window, acceleration)
+        frames = acceleration.unfold(1, window, window // 4)  # (B, frames, D, window)
         real, imag = (frames @ basis).chunk(2, dim=-1)
         return (real.square() + imag.square() + 1e-12).sqrt()
 
@@ -184,7 +191,8 @@ class AccelerationSpectrum(nn.Module):
         for window in self.windows:
             if acc[1].shape[1] < window:
                 continue
-            pred, gt = (self.spectra(a, window) for a in acc)
+            basis = self.dft_basis(window, acc[1])  # one basis for both spectra
+            pred, gt = (self.spectra(a, window, basis) for a in acc)
             eps = self.floor * gt.square().mean().sqrt().detach()
             convergence = (pred - gt).norm() / gt.norm().clamp_min(1e-12)
             log_distance = ((pred + eps).log() - (gt + eps).log()).abs().mean()
