@@ -24,9 +24,10 @@
 # overridden through the environment, e.g. FLOW_STEPS=3000 scripts/fixture_benchmark.sh.
 # Wall-clock times of every stage go to BENCH_DIR/timings.txt; run it on an otherwise idle
 # machine for the training time (2-core AMD EPYC VMs: 27.8 min of training on the AVX2-only one,
-# thirty-fourth run; 12.8 min on the one with AVX-512, thirty-seventh run), then ~45 min for the
-# 27 offline tuning evaluations of trajectory imputation, ~42 min for the ten streamed ones of
-# the paper's imputation, and ~35 min for the test corpus's fifteen.
+# thirty-fourth run; 11.7 min on the one with AVX-512, forty-third run), then ~50 min for the
+# 29 offline tuning evaluations of trajectory imputation, ~10 min for its five test ones, ~42 min
+# for the ten streamed tuning evaluations of the paper's imputation and ~25 min for its ten
+# test ones (thirty-seventh run).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
