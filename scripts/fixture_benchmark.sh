@@ -8,15 +8,17 @@
 #
 #   scripts/fixture_benchmark.sh [BENCH_DIR]          (default: bench/)
 #
-# The recipe is the forty-third run's (docs/results.md): the VAE root-relative with its loss in
+# The recipe is the thirty-fourth run's (docs/results.md): the VAE root-relative with its loss in
 # metres, on 100-frame windows then 400; its decoder alone on noised latents (the encoder, so the
-# latents, frozen); the flow on those latents, each token attending to the 17 before it and
-# conditioned on the user's head velocity as well as its position; then the model file with the
-# decoding settings (rigid skeleton, foot lock, root hold; docs/models.md) copied from the shipped
-# model's, whose own script (pretrained_fixture_model.sh) owns their values, except that the
-# seams get no springs and a foot swings for at least 8 frames (the forty-second run measured
-# both on this flow: FGD_acc 12 % lower with Head Ang. kept). Stages are skipped once
-# their folder has a .done marker, so an interrupted run resumes at the stage it stopped in (that
+# latents, frozen); the flow on those latents, each token attending to the 2 before it; then the
+# model file with the decoding settings (seam springs, rigid skeleton, foot lock, root hold;
+# docs/models.md) copied from the shipped model's, whose own script (pretrained_fixture_model.sh)
+# owns their values. FLOW_SETTINGS and DECODING_SETTINGS change the flow's and the decoding's
+# (the forty-third run's variant, a window of 17 with the user's head velocity, no seam springs
+# and 8-frame steps: FLOW_SETTINGS="--set flow.attention_window=17 --set flow.head_velocity=true"
+# DECODING_SETTINGS="--set vae.boundary_inertia=0 --set vae.root_inertia=0
+# --set vae.foot_swing_frames=8"; not the default, docs/results.md says why). Stages are skipped
+# once their folder has a .done marker, so an interrupted run resumes at the stage it stopped in (that
 # stage starts over). Every step is seeded (train.seed 0): the same code on the same thread count
 # and the same kind of CPU gives the same model file, whose sha256 is printed (another instruction
 # set rounds differently; the file carries the whole config, so a config field added since
@@ -24,7 +26,8 @@
 # overridden through the environment, e.g. FLOW_STEPS=3000 scripts/fixture_benchmark.sh.
 # Wall-clock times of every stage go to BENCH_DIR/timings.txt; run it on an otherwise idle
 # machine for the training time (2-core AMD EPYC VMs: 27.8 min of training on the AVX2-only one,
-# thirty-fourth run; 11.7 min on the one with AVX-512, forty-third run), then ~50 min for the
+# thirty-fourth run; 12.8 min on the one with AVX-512, thirty-seventh run; 11.7 with the
+# forty-third run's variant), then ~50 min for the
 # 29 offline tuning evaluations of trajectory imputation, ~10 min for its five test ones, ~42 min
 # for the ten streamed tuning evaluations of the paper's imputation and ~25 min for its ten
 # test ones (thirty-seventh run).
@@ -54,6 +57,8 @@ VAE_SHORT_STEPS=${VAE_SHORT_STEPS:-2500}  # on 100-frame windows (~1/7 of a 400-
 VAE_LONG_STEPS=${VAE_LONG_STEPS:-150}     # then on 400-frame windows
 DECODER_STEPS=${DECODER_STEPS:-190}
 FLOW_STEPS=${FLOW_STEPS:-3600}
+FLOW_SETTINGS=${FLOW_SETTINGS:-"--set flow.attention_window=3"}  # more sarah-train --set for the flow
+DECODING_SETTINGS=${DECODING_SETTINGS:-}  # ... and for the model file's decoding
 SWEEP_WINDOWS=${SWEEP_WINDOWS:-104}  # the gaze sweep's windows, evenly spaced over the same split
 UNTIL=${UNTIL:-eval}                 # stop after this stage: prep, train, trajectory (its tuning
                                      # and test) or eval
@@ -104,13 +109,13 @@ train encoder vae --set train.vae_short_window=100 --set "train.vae_short_steps=
   --set "train.vae_steps=$((VAE_SHORT_STEPS + VAE_LONG_STEPS))"
 train model vae --init-from "$RUN/encoder/vae.pt" --set "train.vae_steps=$DECODER_STEPS" \
   --set train.freeze_encoder=true --set vae.latent_noise=0.2
-train model flow --set flow.attention_window=17 --set flow.head_velocity=true \
-  --set "train.flow_steps=$FLOW_STEPS" --set train.flow_echo=8
+read -r -a FLOW_SET <<< "$FLOW_SETTINGS"
+read -r -a DECODING_SET <<< "$DECODING_SETTINGS"
+train model flow "${FLOW_SET[@]}" --set "train.flow_steps=$FLOW_STEPS" --set train.flow_echo=8
 MODEL=$RUN/model/model.safetensors
 if [ ! -f "$RUN/model/model.done" ]; then
   $PYTHON -m sarah_cli.train --stage model --init-from "$RUN/model" --out "$RUN/model" \
-    --shards "$BENCH/train_shards" --decoding-from fixture-tiny --set vae.boundary_inertia=0 \
-    --set vae.root_inertia=0 --set vae.foot_swing_frames=8
+    --shards "$BENCH/train_shards" --decoding-from fixture-tiny ${DECODING_SET[@]+"${DECODING_SET[@]}"}
   touch "$RUN/model/model.done"
 fi
 stamp "model: $MODEL sha256 $(sha256sum "$MODEL" | cut -d' ' -f1)"
