@@ -9,7 +9,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_models.config import PRESETS, RunConfig, decoding_settings
+from sarah_models.config import PRESETS, RunConfig, decoding_settings, preset_values
 from sarah_cli.arguments import HelpFormatter, model_or_name
 
 EXIT_ERROR = 2
@@ -22,7 +22,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "(causal flow matcher on the frozen VAE's latents), or `all` for both. "
                     "Writes OUT/config.json, OUT/vae.pt, OUT/flow.pt, *_log.jsonl and *_loss.png. "
                     "Under torchrun (WORLD_SIZE > 1) every process trains on its own data slice "
-                    "(DDP; nccl on CUDA, gloo on CPU) and rank 0 writes the files.")
+                    "(DDP; nccl on CUDA, gloo on CPU) and rank 0 writes the files.",
+        epilog="config fields for --set, with the paper preset's value (|the tiny preset's where "
+               "it differs): " + " ".join(preset_values()))
     parser.add_argument("--stage", choices=("vae", "flow", "all", "model"), default="all",
                         help="what to train; flow needs OUT/vae.pt; model trains nothing: it "
                              "writes OUT/model.safetensors from --init-from's weights with the "

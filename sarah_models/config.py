@@ -424,6 +424,18 @@ class RunConfig:
         return RunConfig(**sections)  # type: ignore[arg-type]
 
 
+def preset_values() -> list[str]:
+    """Every RunConfig field as ``section.field=value`` the way ``--set`` reads it, the paper
+    preset's value first and the tiny preset's after a ``|`` where they differ (for --help)."""
+    paper, tiny = (RunConfig.preset(name).to_dict() for name in ("paper", "tiny"))
+    values = []
+    for section, names in paper.items():
+        for name, value in names.items():
+            text, small = set_text(value), set_text(tiny[section][name])
+            values.append(f"{section}.{name}={text}" + ("" if small == text else f"|{small}"))
+    return values
+
+
 def name_in(config: Any, name: str) -> bool:
     return any(f.name == name for f in fields(config))
 
@@ -434,6 +446,8 @@ def set_text(value: Any) -> str:
         return "none"
     if isinstance(value, bool):
         return "true" if value else "false"
+    if isinstance(value, (tuple, list)):
+        return ",".join(set_text(item) for item in value)
     return str(value)
 
 

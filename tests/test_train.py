@@ -13,7 +13,7 @@ import torch.multiprocessing as mp
 
 from sarah_cli.train import build_parser, main
 from sarah_models.training.checkpoint import (capture_rng_state, load_checkpoint, load_models, restore_rng_state)
-from sarah_models.config import FlowConfig, RunConfig, TrainConfig, VAEConfig
+from sarah_models.config import FlowConfig, RunConfig, TrainConfig, VAEConfig, preset_values
 from sarah_models.training.batches import EpochBatches
 from sarah_models.training.distributed import DistInfo
 from sarah_models.training.loop import lr_at
@@ -664,6 +664,21 @@ def test_cli_help_lists_every_option(capsys):
     for option in options:
         assert option in text, option
     assert "(default: paper)" in text and "(default: all)" in text
+    unwrapped = "".join(text.split())  # argparse wraps the epilog at spaces and hyphens
+    for value in preset_values():
+        assert value in unwrapped, value
+
+
+def test_preset_values_read_back_as_both_presets():
+    """What --help lists is what --set reads: each preset rebuilt from its listed values."""
+    listed = [value.partition("|") for value in preset_values()]
+    paper = [f"{key_value}" for key_value, _, _ in listed]
+    tiny = [key_value if not sep else f"{key_value.split('=')[0]}={small}"
+            for key_value, sep, small in listed]
+    assert len(listed) == sum(len(section) for section in RunConfig().to_dict().values())
+    assert RunConfig.preset("tiny").with_overrides(paper) == RunConfig.preset("paper")
+    assert RunConfig.preset("paper").with_overrides(tiny) == RunConfig.preset("tiny")
+    assert any(sep for _, sep, _ in listed) and "train.adam_betas=0.9,0.999" in paper
 
 
 def test_cli_reports_bad_input_clearly(tmp_path, capsys):
