@@ -251,6 +251,36 @@ def test_trajectory_imputation_with_unbounded_attention_keeps_what_it_is_told():
         StreamConfig(imputation="straight")
 
 
+def test_two_frame_tokens_stream_causally_and_as_the_offline_solve():
+    """At stride 2 (the fixture benchmark's forty-fourth run, docs/results.md) a chunk is 2
+    frames: the first chunks ignore later inputs, and with trajectory imputation the stream is
+    the offline solve, past the position embedding's last index too."""
+    models = random_models("tiny", 8, SHELL, 0, motion_std=0.02, init_std=0.05,
+                           audio_mean=0.0, audio_std=1.0, latent_mean_std=0.1,
+                           overrides=("vae.stride=2", "flow.attention_window=6"))
+    vae, flow, _ = models
+    s = vae.stride
+    assert s == 2 and flow.config.position_tokens == 32 and flow.context_tokens == 11
+    inputs = make_inputs(s * 36)
+    config = StreamConfig(imputation="trajectory", cfg_scale=1.3, noise_scale=0.6)
+
+    def chunks(x, config):
+        gen = StreamingGenerator(*models, config)
+        return np.concatenate([gen.step(*(v[i:i + s] for v in x)) for i in range(0, len(x[0]), s)])
+
+    streamed = chunks(inputs, config)
+    assert streamed.shape[0] == len(inputs[0])
+    np.testing.assert_allclose(streamed, generate_offline(*models, *inputs, config), atol=1e-5)
+    changed = [x.copy() for x in inputs]
+    for x in changed:
+        x[5 * s:] = np.random.default_rng(1).normal(size=x[5 * s:].shape) * 3
+    for imputation in ("trajectory", "final"):
+        config = StreamConfig(imputation=imputation, steps=2)
+        base, other = chunks(inputs, config), chunks(changed, config)
+        assert np.array_equal(base[:5 * s], other[:5 * s])
+        assert not np.array_equal(base[5 * s:], other[5 * s:])
+
+
 def test_noise_scale_is_the_temperature_of_every_tokens_noise(models):
     """noise_scale multiplies each token's eps, in streaming and offline alike (the one-step
     Euler stream still equals offline), and 1 is the paper's standard normal."""

@@ -103,6 +103,27 @@ def test_incremental_decode_equals_full_decode(vae):
     assert cache.blocks == 9 and cache.position == 9 * (CFG.stride + 1)
 
 
+def test_two_frame_tokens_encode_causally_and_decode_incrementally():
+    """At stride 2 a token is 2 frames: its latent does not see later frames, and the decoder
+    fed one token at a time gives the full decode."""
+    torch.manual_seed(0)
+    vae = CausalVAE(replace(CFG, stride=2), DX).eval()
+    x = torch.randn(1, 2 * 9, DX)
+    later = x.clone()
+    later[:, 10:] += torch.randn(1, 8, DX)
+    with torch.no_grad():
+        mu, _ = vae.encode(x)
+        mu_later, _ = vae.encode(later)
+        assert mu.shape == (1, 9, CFG.latent_dim)
+        torch.testing.assert_close(mu[:, :5], mu_later[:, :5])
+        assert not torch.allclose(mu[:, 5:], mu_later[:, 5:])
+        cache = vae.new_decoder_cache()
+        steps = [vae.decoder_step(mu[:, k], cache) for k in range(9)]
+        full = vae.decode(mu)
+    assert all(s.shape == (1, 2, DX) for s in steps)
+    torch.testing.assert_close(torch.cat(steps, 1), full, atol=1e-5, rtol=1e-5)
+
+
 def test_windowed_decoder_cache_stays_bounded(vae):
     z = torch.randn(1, 12, CFG.latent_dim)
     cache = vae.new_decoder_cache(max_blocks=3)
