@@ -23,9 +23,9 @@ class NaiveStreamer:
     Per chunk it re-encodes the conditioning of the whole window (history + new block), runs
     the conditional and the unconditional pass as two separate network calls at every solver
     evaluation (no batched guidance), and decodes the whole latent history (up to
-    ``decoder_blocks``) from scratch instead of one block through a KV cache. Same noise, same
+    ``decoder_frames``) from scratch instead of one block through a KV cache. Same noise, same
     imputation, same maths: its frames equal ``StreamingGenerator``'s (identity anchor) up to
-    float rounding while the stream is at most ``decoder_blocks`` blocks long.
+    float rounding while the stream is at most ``decoder_frames`` frames long.
     """
 
     def __init__(self, vae: CausalVAE, flow: FlowModel, normalizer: Normalizer,
@@ -74,7 +74,8 @@ class NaiveStreamer:
         self._latents.append(z)
         self._noise.append(eps)
         solved = time.perf_counter()
-        context = self._latents if cfg.decoder_blocks is None else self._latents[-cfg.decoder_blocks:]
+        blocks = cfg.decoder_blocks(self.stride)
+        context = self._latents if blocks is None else self._latents[-blocks:]
         latents = nz.denormalize("latent", torch.stack(context))[None]
         motion = self.vae.decode(latents)[0, -self.stride:]
         out = self._decoding(nz.denormalize("motion", motion).double().numpy()).astype(np.float32)

@@ -494,7 +494,10 @@ class StreamConfig:
     # to guide gaze control only.
     guide: tuple[str, ...] = ("user_head", "agent_audio", "user_audio", "gaze")
     seed: int = 0
-    decoder_blocks: int | None = WINDOW // STRIDE  # decoder attention context in blocks (T / s)
+    # The VAE decoder's attention context in frames (T: one training window), whatever the
+    # stride; None: unbounded. Counted in blocks it saw 200 frames at stride 2, and a stream of
+    # 400 frames parted from the offline decode by 1-2 % (docs/results.md, forty-fourth run).
+    decoder_frames: int | None = WINDOW
 
     def __post_init__(self) -> None:
         from .nn.flow import MODALITIES
@@ -514,8 +517,13 @@ class StreamConfig:
         unknown = [m for m in self.guide if m not in MODALITIES]
         if unknown:
             raise ValueError(f"guide names unknown modalities {unknown}; choose from {MODALITIES}")
-        if self.decoder_blocks is not None and self.decoder_blocks < 1:
-            raise ValueError(f"decoder_blocks must be >= 1 or None, got {self.decoder_blocks}")
+        if self.decoder_frames is not None and self.decoder_frames < 1:
+            raise ValueError(f"decoder_frames must be >= 1 or None, got {self.decoder_frames}")
+
+    def decoder_blocks(self, stride: int) -> int | None:
+        """The decoder's context in latent blocks of ``stride`` frames (enough to cover
+        ``decoder_frames``); None: unbounded."""
+        return None if self.decoder_frames is None else -(-self.decoder_frames // stride)
 
     @property
     def nfe_per_step(self) -> int:

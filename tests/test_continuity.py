@@ -167,7 +167,7 @@ def test_generators_decode_through_it(inert_models):
     rng = np.random.default_rng(0)
     head = rng.normal(size=(24, 2)).astype(np.float32)
     a, b = (rng.normal(size=(24, 8)).astype(np.float32) for _ in range(2))
-    config = StreamConfig(decoder_blocks=100)
+    config = StreamConfig(decoder_frames=400)
     gen, naive = StreamingGenerator(vae, flow, normalizer, config), NaiveStreamer(vae, flow, normalizer, config)
     streamed = np.concatenate([gen.step(head[i:i + S], a[i:i + S], b[i:i + S]) for i in range(0, 24, S)])
     reference = np.concatenate([naive.step(head[i:i + S], a[i:i + S], b[i:i + S]) for i in range(0, 24, S)])

@@ -495,7 +495,7 @@ def test_kv_cache_returns_the_concatenation_of_what_it_keeps(max_tokens, calls):
 def test_naive_reference_computes_what_the_generator_computes(tiny):
     vae, flow, normalizer = tiny
     head, a, b = stream_inputs(24, AUDIO_DIM, seed=3)
-    config = StreamConfig(decoder_blocks=100)
+    config = StreamConfig(decoder_frames=400)
     generator = StreamingGenerator(vae, flow, normalizer, config)
     naive = NaiveStreamer(vae, flow, normalizer, config)
     for i in range(0, 24, 4):

@@ -114,8 +114,8 @@ def test_fused_decoder_attention_matches_the_module_step(models):
     table_decoder_rope(fused_vae, fused=True)
     assert all(isinstance(b.attn, FusedAttention) for b in fused_vae.decoder)
     assert not any(isinstance(b.attn, FusedAttention) for b in fused_vae.encoder)
-    # a stream long enough for the decoder's sliding window (decoder_blocks) to drop blocks
-    config = StreamConfig(decoder_blocks=3)
+    # a stream long enough for the decoder's sliding window (decoder_frames) to drop blocks
+    config = StreamConfig(decoder_frames=12)
     deviation = stream_deviation(models, (fused_vae, flow, normalizer), frames=40, config=config)
     assert deviation.max_joint_mm < 1e-3
     z = torch.randn(1, vae.config.latent_dim)

@@ -254,14 +254,16 @@ def test_trajectory_imputation_with_unbounded_attention_keeps_what_it_is_told():
 def test_two_frame_tokens_stream_causally_and_as_the_offline_solve():
     """At stride 2 (the fixture benchmark's forty-fourth run, docs/results.md) a chunk is 2
     frames: the first chunks ignore later inputs, and with trajectory imputation the stream is
-    the offline solve, past the position embedding's last index too."""
+    the offline solve, past the position embedding's last index and past 100 tokens (the
+    decoder's context is T = 400 frames whatever the stride, 200 tokens here)."""
     models = random_models("tiny", 8, SHELL, 0, motion_std=0.02, init_std=0.05,
                            audio_mean=0.0, audio_std=1.0, latent_mean_std=0.1,
                            overrides=("vae.stride=2", "flow.attention_window=6"))
     vae, flow, _ = models
     s = vae.stride
     assert s == 2 and flow.config.position_tokens == 32 and flow.context_tokens == 11
-    inputs = make_inputs(s * 36)
+    assert StreamConfig().decoder_blocks(s) == 200 and StreamConfig().decoder_blocks(4) == 100
+    inputs = make_inputs(s * 110)
     config = StreamConfig(imputation="trajectory", cfg_scale=1.3, noise_scale=0.6)
 
     def chunks(x, config):

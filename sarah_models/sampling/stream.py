@@ -208,7 +208,7 @@ class StreamingGenerator:
         self._states: deque[Tensor] = deque(maxlen=keep)  # their trajectories ("trajectory")
         window = None if keep is None else keep + 1
         self._cond: deque[Tensor] = deque(maxlen=window)  # per block (2, 1, hidden), padded
-        self._decoder = self._m.vae.new_decoder_cache(cfg.decoder_blocks)
+        self._decoder = self._m.vae.new_decoder_cache(cfg.decoder_blocks(self._m.vae.stride))
         self._decoding = self._m.decoding()
         self.frames_generated = 0
         self.last_latent: Tensor | None = None  # the latest block's standardized latent (Dz,)
