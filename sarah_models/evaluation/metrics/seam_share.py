@@ -7,7 +7,8 @@ differences centred on t-1 and t. Motion without seams spreads its acceleration 
 s phases of a block, so those two phases hold 2 / s of it (0.5 at the paper's s = 4); the
 fixture benchmark's shipped model put 0.95 there before its decoder continued the motion across
 seams (docs/results.md, sixteenth run). FGD_acc counts the same jumps among everything else; this
-column says whether they are seams.
+column says whether they are seams. At s = 2 every second difference is centred on a block's first
+or last frame, so it reads 1 whatever the motion: it tells seams apart from s = 3 on.
 """
 
 from __future__ import annotations
