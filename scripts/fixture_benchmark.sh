@@ -57,7 +57,7 @@ VAE_SHORT_STEPS=${VAE_SHORT_STEPS:-2500}  # on 100-frame windows (~1/7 of a 400-
 VAE_LONG_STEPS=${VAE_LONG_STEPS:-150}     # then on 400-frame windows
 DECODER_STEPS=${DECODER_STEPS:-190}
 FLOW_STEPS=${FLOW_STEPS:-3600}
-STRIDE=${STRIDE:-4}                  # frames per latent token (vae.stride; the paper's 4)
+STRIDE=${STRIDE:-}                   # frames per latent token (vae.stride), if not the preset's
 FLOW_SETTINGS=${FLOW_SETTINGS:-"--set flow.attention_window=3"}  # more sarah-train --set for the flow
 DECODING_SETTINGS=${DECODING_SETTINGS:-}  # ... and for the model file's decoding
 SWEEP_WINDOWS=${SWEEP_WINDOWS:-104}  # the gaze sweep's windows, evenly spaced over the same split
@@ -91,11 +91,11 @@ corpus tune "$TUNE_SESSIONS" "$TUNE_SEED"
 [ "$UNTIL" = prep ] && exit 0
 
 # Settings every stage shares (docs/models.md): the loss in metres, root-relative motion, the
-# head-facing term, the flow's position embedding over one 400-frame window, linear decay.
+# head-facing term, linear decay, 400-frame windows (the flow's position embedding spans one:
+# window / stride tokens, RunConfig.with_overrides).
 COMMON=(--set train.num_workers=0 --set vae.recon_units=metres --set vae.root_relative=true
-        --set vae.head_weight=1.0 --set "vae.stride=$STRIDE" --set "flow.position_tokens=$((400 / STRIDE))"
-        --set train.lr_schedule=linear
-        --set train.final_lr_ratio=0.1 --set train.window=400)
+        --set vae.head_weight=1.0 --set train.lr_schedule=linear
+        --set train.final_lr_ratio=0.1 --set train.window=400 ${STRIDE:+--set "vae.stride=$STRIDE"})
 # train NAME STAGE ARGS...: one sarah-train stage into $RUN/NAME, once.
 train() {
   local name=$1 stage=$2

@@ -59,10 +59,11 @@ def make_inputs(frames: int, seed: int = 0, audio_dim: int = 8):
 
 
 def stream(models, inputs, config: StreamConfig, anchor=None) -> np.ndarray:
+    """``inputs`` streamed one latent block (the VAE's stride) at a time."""
     head, a, b = inputs
-    gen = StreamingGenerator(*models, config, anchor)
-    return np.concatenate([gen.step(head[i:i + S], a[i:i + S], b[i:i + S])
-                           for i in range(0, len(head), S)])
+    gen, s = StreamingGenerator(*models, config, anchor), models[0].stride
+    return np.concatenate([gen.step(head[i:i + s], a[i:i + s], b[i:i + s])
+                           for i in range(0, len(head), s)])
 
 
 def test_output_shape_and_world_frame(models):
@@ -265,12 +266,7 @@ def test_two_frame_tokens_stream_causally_and_as_the_offline_solve():
     assert StreamConfig().decoder_blocks(s) == 200 and StreamConfig().decoder_blocks(4) == 100
     inputs = make_inputs(s * 110)
     config = StreamConfig(imputation="trajectory", cfg_scale=1.3, noise_scale=0.6)
-
-    def chunks(x, config):
-        gen = StreamingGenerator(*models, config)
-        return np.concatenate([gen.step(*(v[i:i + s] for v in x)) for i in range(0, len(x[0]), s)])
-
-    streamed = chunks(inputs, config)
+    streamed = stream(models, inputs, config)
     assert streamed.shape[0] == len(inputs[0])
     np.testing.assert_allclose(streamed, generate_offline(*models, *inputs, config), atol=1e-5)
     changed = [x.copy() for x in inputs]
@@ -278,7 +274,7 @@ def test_two_frame_tokens_stream_causally_and_as_the_offline_solve():
         x[5 * s:] = np.random.default_rng(1).normal(size=x[5 * s:].shape) * 3
     for imputation in ("trajectory", "final"):
         config = StreamConfig(imputation=imputation, steps=2)
-        base, other = chunks(inputs, config), chunks(changed, config)
+        base, other = stream(models, inputs, config), stream(models, changed, config)
         assert np.array_equal(base[:5 * s], other[:5 * s])
         assert not np.array_equal(base[5 * s:], other[5 * s:])
 
