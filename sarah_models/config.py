@@ -170,6 +170,10 @@ class VAEConfig:
     # has moved this many metres away, then follows, no faster than the data's people walk
     # (``sampling.root_hold``); the decoded pelvis wanders where people stand.
     root_hold: float = 0.0
+    # Not in the paper (False = off): the body moves on the floor only as far as its standing
+    # foot carries it, the foot that moved less each frame (``sampling.stance_anchor``): a
+    # decoder that glides the whole body stays put, a body that steps walks. Runs before the hold.
+    stance_anchor: bool = False
 
     def __post_init__(self) -> None:
         for name in ("boundary_inertia", "root_inertia"):
@@ -277,7 +281,8 @@ class FlowConfig:
 # again with other values, nothing trained (``sarah-train --stage model``), and a fine-tune may
 # change them.
 DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "seam_mode", "rigid_bones",
-                           "foot_lock", "foot_swing_frames", "root_hold")}
+                           "foot_lock", "foot_swing_frames", "root_hold",
+                           "stance_anchor")}
 
 
 def decoding_settings() -> list[str]:

@@ -447,3 +447,38 @@ def test_a_body_the_decoder_throws_across_the_room_walks_there_no_faster_than_th
     assert abs(pelvis[-1, 0] - 1.4) < 1e-3  # ...and arrives where the hold puts it
     with pytest.raises(ValueError, match="max_speed"):
         RootHold(layout, radius=0.1, max_speed=0.0)
+
+
+def test_a_stance_anchor_stops_a_gliding_body_and_lets_a_stepping_one_walk(windows):
+    """A walking person moves over a standing foot; a wandering decoder glides the whole body,
+    feet too (sampling.stance_anchor)."""
+    from sarah_data.skeleton import ROOT
+    from sarah_models.sampling.stance_anchor import StanceAnchor
+
+    layout = MotionLayout.from_width(windows.motion_dim)
+    floor = lambda m: layout.joint_positions(m, [ROOT])[:, 0, [0, 2]]  # noqa: E731
+    t = np.arange(len(windows[0]["motion"]))
+    glide = np.stack([0.04 * np.sin(t / 4.0) + 0.004 * t, 0.02 * (np.cos(t / 6.0) - 1.0)], -1)
+    # a body standing still, glided about: it stands where it started, pose and heights as decoded
+    body = standing(windows[0], layout)
+    out = StanceAnchor(layout)(whole_body_moved(body, glide))
+    np.testing.assert_allclose(out, body, atol=1e-6)
+    # the fixtures' people walk on planted feet: the anchor leaves them where they walk, and
+    # takes off what a decoder's glide adds to them
+    travel = [np.linalg.norm(np.diff(floor(w["motion"].numpy()), axis=0), axis=-1).sum()
+              for w in (windows[i] for i in range(len(windows)))]
+    walker = windows[int(np.argmax(travel))]["motion"].numpy().astype(np.float64)
+    assert max(travel) > 0.3  # a window in which the agent walks
+    walked = StanceAnchor(layout)(walker)
+    assert np.abs(floor(walked) - floor(walker)).max() < 0.02
+    # (the glide takes the body 28 cm away; where the swinging foot moves slower than the
+    # glided standing one, that frame's glide stays: a few centimetres of it)
+    glided = StanceAnchor(layout)(whole_body_moved(walker, glide))
+    assert np.abs(floor(whole_body_moved(walker, glide)) - floor(walker)).max() > 0.25
+    assert np.abs(floor(glided) - floor(walker)).max() < 0.03
+    np.testing.assert_allclose(glided[:, 1::3], walker[:, 1::3])  # every height as decoded
+    # causal: a stream fed in chunks gets the frames it gets at once
+    anchor = StanceAnchor(layout)
+    moved = whole_body_moved(walker, glide)
+    chunks = np.concatenate([anchor(moved[i:i + 4]) for i in range(0, len(moved), 4)])
+    np.testing.assert_array_equal(chunks, glided)
