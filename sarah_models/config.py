@@ -170,10 +170,10 @@ class VAEConfig:
     # has moved this many metres away, then follows, no faster than the data's people walk
     # (``sampling.root_hold``); the decoded pelvis wanders where people stand.
     root_hold: float = 0.0
-    # Not in the paper (False = off): the body moves on the floor only as far as its standing
-    # foot carries it, the foot that moved less each frame (``sampling.stance_anchor``): a
-    # decoder that glides the whole body stays put, a body that steps walks. Runs before the hold.
-    stance_anchor: bool = False
+    # Not in the paper (0 = off): the body is moved back on the floor by its standing foot's
+    # glide (the foot that moved less each frame), up to this many m/s (``sampling.stance_anchor``):
+    # a decoder that glides the whole body slower stays put, a body that steps walks. Before the hold.
+    stance_anchor: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("boundary_inertia", "root_inertia"):
@@ -183,9 +183,9 @@ class VAEConfig:
         if self.foot_swing_frames < MIN_SWING_FRAMES:
             raise ValueError(f"VAEConfig.foot_swing_frames must be >= {MIN_SWING_FRAMES} (a step "
                              f"lifts, travels and lands), got {self.foot_swing_frames}")
-        for name in ("foot_lock", "root_hold"):
+        for name in ("foot_lock", "root_hold", "stance_anchor"):
             if getattr(self, name) < 0:
-                raise ValueError(f"VAEConfig.{name} (metres) must be >= 0, got {getattr(self, name)}")
+                raise ValueError(f"VAEConfig.{name} must be >= 0, got {getattr(self, name)}")
         if self.seam_mode not in SEAM_MODES:
             raise ValueError(f"VAEConfig.seam_mode must be one of {SEAM_MODES}, got "
                              f"{self.seam_mode!r}")

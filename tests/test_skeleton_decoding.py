@@ -461,7 +461,7 @@ def test_a_stance_anchor_stops_a_gliding_body_and_lets_a_stepping_one_walk(windo
     glide = np.stack([0.04 * np.sin(t / 4.0) + 0.004 * t, 0.02 * (np.cos(t / 6.0) - 1.0)], -1)
     # a body standing still, glided about: it stands where it started, pose and heights as decoded
     body = standing(windows[0], layout)
-    out = StanceAnchor(layout)(whole_body_moved(body, glide))
+    out = StanceAnchor(layout, max_speed=10.0)(whole_body_moved(body, glide))
     np.testing.assert_allclose(out, body, atol=1e-6)
     # the fixtures' people walk on planted feet: the anchor leaves them where they walk, and
     # takes off what a decoder's glide adds to them
@@ -469,16 +469,24 @@ def test_a_stance_anchor_stops_a_gliding_body_and_lets_a_stepping_one_walk(windo
               for w in (windows[i] for i in range(len(windows)))]
     walker = windows[int(np.argmax(travel))]["motion"].numpy().astype(np.float64)
     assert max(travel) > 0.3  # a window in which the agent walks
-    walked = StanceAnchor(layout)(walker)
+    walked = StanceAnchor(layout, max_speed=10.0)(walker)
     assert np.abs(floor(walked) - floor(walker)).max() < 0.02
     # (the glide takes the body 28 cm away; where the swinging foot moves slower than the
     # glided standing one, that frame's glide stays: a few centimetres of it)
-    glided = StanceAnchor(layout)(whole_body_moved(walker, glide))
+    glided = StanceAnchor(layout, max_speed=10.0)(whole_body_moved(walker, glide))
     assert np.abs(floor(whole_body_moved(walker, glide)) - floor(walker)).max() > 0.25
     assert np.abs(floor(glided) - floor(walker)).max() < 0.03
     np.testing.assert_allclose(glided[:, 1::3], walker[:, 1::3])  # every height as decoded
     # causal: a stream fed in chunks gets the frames it gets at once
-    anchor = StanceAnchor(layout)
+    anchor = StanceAnchor(layout, max_speed=10.0)
     moved = whole_body_moved(walker, glide)
     chunks = np.concatenate([anchor(moved[i:i + 4]) for i in range(0, len(moved), 4)])
     np.testing.assert_array_equal(chunks, glided)
+    # a glide faster than max_speed (a decoder walking the body without a step) goes on, that
+    # much slower: at 2 m/s with a 0.5 m/s anchor the standing body travels 1.5 m/s
+    from sarah_data.constants import FPS
+    run = np.stack([t * 2.0 / FPS, np.zeros(len(t))], axis=-1)
+    out = StanceAnchor(layout, max_speed=0.5)(whole_body_moved(body, run))
+    np.testing.assert_allclose(np.diff(floor(out)[:, 0]), 1.5 / FPS, atol=1e-6)
+    with pytest.raises(ValueError, match="max_speed"):
+        StanceAnchor(layout, max_speed=0.0)

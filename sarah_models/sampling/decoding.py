@@ -57,7 +57,7 @@ def stream_decoding(vae, normalizer) -> StreamDecoding:
     filters: list = [SeamInertia(vae.stride, cfg.boundary_inertia, cfg.root_inertia,
                                  slice(channels.start // 3, channels.stop // 3), cfg.seam_mode)]
     if cfg.stance_anchor:
-        filters.append(StanceAnchor(layout))
+        filters.append(StanceAnchor(layout, cfg.stance_anchor))
     if cfg.root_hold:
         filters.append(RootHold(layout, cfg.root_hold))
     if cfg.rigid_bones or cfg.foot_lock:

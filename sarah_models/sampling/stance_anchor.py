@@ -10,9 +10,11 @@ from 34 without the hold to 1,167 with it (docs/results.md, forty-fourth run).
 ``StanceAnchor`` reads the feet. Each frame the foot that moved less since the previous frame
 stands (for a walking body it does not move; for a gliding one it moves with the body), and the
 whole body is moved back on the floor (x and z of every point; heights stay the decoder's) by
-that foot's horizontal displacement. A body whose feet stand, the ground truth's, passes
-unchanged; a body gliding on both feet stays where it is; a body stepping, one foot standing
-while the other swings, walks over the standing foot as far as the decoder walks it.
+that foot's horizontal displacement, up to ``max_speed``: a glide faster than that (the decoder
+walking the body without stepping) is slowed by ``max_speed`` and goes on, and the foot lock
+steps under it. A body whose feet stand, the ground truth's, passes unchanged; a body gliding on
+both feet slower than ``max_speed`` stays where it is; a body stepping, one foot standing while
+the other swings, walks over the standing foot as far as the decoder walks it.
 
 The body starts with its pelvis at the origin, where the generation frame puts the agent at the
 stream's first frame (``sarah_data.frames``), as ``RootHold``'s does. Causal, frame by frame, so
@@ -23,6 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from sarah_data.constants import FPS
 from sarah_data.skeleton import FEET, ROOT, MotionLayout
 
 
@@ -30,10 +33,12 @@ class StanceAnchor:
     """Causal filter of one stream's motion, in metres with y up; call it on the stream's
     frames in order."""
 
-    def __init__(self, layout: MotionLayout) -> None:
+    def __init__(self, layout: MotionLayout, max_speed: float) -> None:
+        if not max_speed > 0:
+            raise ValueError(f"stance anchor max_speed must be positive, got {max_speed}")
         if not all(name in layout.joint_names for name in FEET):
             raise ValueError(f"stance anchor: the motion's layout has no {' and '.join(FEET)}")
-        self.layout = layout
+        self.layout, self.max_move = layout, max_speed / FPS
         self.reset()
 
     def reset(self) -> None:
@@ -50,7 +55,10 @@ class StanceAnchor:
                 self._shift = -floor[t, 0]
             else:
                 moved = feet - self._previous
-                self._shift = self._shift - moved[np.argmin(np.hypot(*moved.T))]
+                distance = np.hypot(*moved.T)
+                stance = int(np.argmin(distance))
+                taken = min(1.0, self.max_move / distance[stance]) if distance[stance] > 0 else 0.0
+                self._shift = self._shift - moved[stance] * taken
             self._previous = feet
             shift[t, [0, 2]] = self._shift
         points = x.reshape(len(x), -1, 3) + shift[:, None]
