@@ -70,7 +70,8 @@ def from_dict(cls: type[T], data: Mapping[str, Any]) -> T:
 VELOCITY_WEIGHT_TINY = 10.0
 RECON_UNITS = ("standardized", "metres")
 MIN_SWING_FRAMES = 4  # a foot-lock step lifts off, travels and is set down (``sampling.foot_lock``)
-SEAM_MODES = ("velocity", "position")  # VAEConfig.seam_mode: what a seam's spring continues
+SEAM_MODES = ("velocity", "position")
+HOLD_READS = ("pelvis", "feet")  # VAEConfig.root_hold_reads: where the hold sees the body go  # VAEConfig.seam_mode: what a seam's spring continues
 
 
 @dataclass(frozen=True)
@@ -170,6 +171,10 @@ class VAEConfig:
     # has moved this many metres away, then follows, no faster than the data's people walk
     # (``sampling.root_hold``); the decoded pelvis wanders where people stand.
     root_hold: float = 0.0
+    # Not in the paper: what the hold holds (``sampling.root_hold``). "pelvis": where the decoded
+    # pelvis goes; "feet": only how far the whole body glides, the standing foot's own moves (the
+    # foot that moved less each frame); the body's moves over its standing foot pass as decoded.
+    root_hold_reads: str = "pelvis"
     # Not in the paper (0 = off): the body is moved back on the floor by its standing foot's
     # glide (the foot that moved less each frame), up to this many m/s (``sampling.stance_anchor``):
     # a decoder that glides the whole body slower stays put, a body that steps walks. Before the hold.
@@ -186,6 +191,9 @@ class VAEConfig:
         for name in ("foot_lock", "root_hold", "stance_anchor"):
             if getattr(self, name) < 0:
                 raise ValueError(f"VAEConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if self.root_hold_reads not in HOLD_READS:
+            raise ValueError(f"VAEConfig.root_hold_reads must be one of {HOLD_READS}, got "
+                             f"{self.root_hold_reads!r}")
         if self.seam_mode not in SEAM_MODES:
             raise ValueError(f"VAEConfig.seam_mode must be one of {SEAM_MODES}, got "
                              f"{self.seam_mode!r}")
@@ -282,7 +290,7 @@ class FlowConfig:
 # change them.
 DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "seam_mode", "rigid_bones",
                            "foot_lock", "foot_swing_frames", "root_hold",
-                           "stance_anchor")}
+                           "root_hold_reads", "stance_anchor")}
 
 
 def decoding_settings() -> list[str]:

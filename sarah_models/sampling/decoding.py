@@ -59,7 +59,7 @@ def stream_decoding(vae, normalizer) -> StreamDecoding:
     if cfg.stance_anchor:
         filters.append(StanceAnchor(layout, cfg.stance_anchor))
     if cfg.root_hold:
-        filters.append(RootHold(layout, cfg.root_hold))
+        filters.append(RootHold(layout, cfg.root_hold, reads=cfg.root_hold_reads))
     if cfg.rigid_bones or cfg.foot_lock:
         lengths = skeleton_lengths(normalizer)
         if cfg.rigid_bones:

@@ -30,7 +30,9 @@ from __future__ import annotations
 import numpy as np
 
 from sarah_data.constants import FPS
-from sarah_data.skeleton import ROOT, MotionLayout
+from sarah_data.skeleton import FEET, ROOT, MotionLayout
+
+from ..config import HOLD_READS
 
 FOLLOW = 0.2  # of the distance beyond the radius, per frame: a 1 / 0.2 = 5-frame lag
 # m/s: the fastest the body walks, the fastest pelvis of the seed-0 fixture training corpus
@@ -45,30 +47,52 @@ class RootHold:
     frames in order."""
 
     def __init__(self, layout: MotionLayout, radius: float, follow: float = FOLLOW,
-                 max_speed: float = MAX_SPEED) -> None:
+                 max_speed: float = MAX_SPEED, reads: str = "pelvis") -> None:
         if not radius > 0:
             raise ValueError(f"root hold radius must be positive, got {radius}")
         if not 0 < follow <= 1:
             raise ValueError(f"root hold follow must be in (0, 1], got {follow}")
         if not max_speed > 0:
             raise ValueError(f"root hold max_speed must be positive, got {max_speed}")
-        self.layout, self.radius, self.follow = layout, radius, follow
+        if reads not in HOLD_READS:
+            raise ValueError(f"root hold reads one of {HOLD_READS}, got {reads!r}")
+        if reads == "feet" and not all(name in layout.joint_names for name in FEET):
+            raise ValueError(f"root hold: the motion's layout has no {' and '.join(FEET)}")
+        self.layout, self.radius, self.follow, self.reads = layout, radius, follow, reads
         self.max_move = max_speed / FPS
         self.reset()
 
     def reset(self) -> None:
         self._held = np.zeros(2)  # the body's pelvis on the floor (x, z): the frame's origin
+        self._glide: np.ndarray | None = None  # "feet": the pelvis's start plus the feet's glide
+        self._feet: np.ndarray | None = None  # "feet": the previous frame's decoded feet (x, z)
 
     def __call__(self, motion: np.ndarray) -> np.ndarray:
         x = np.asarray(motion, dtype=np.float64)
         decoded = self.layout.joint_positions(x, [ROOT])[:, 0, [0, 2]]
+        path = decoded if self.reads == "pelvis" else self._glide_path(x, decoded[0])
         shift = np.zeros((len(x), 3))
         for t in range(len(x)):
-            away = decoded[t] - self._held
+            away = path[t] - self._held
             distance = float(np.hypot(*away))
             if distance > self.radius:
                 move = min(self.follow * (distance - self.radius), self.max_move)
                 self._held += away * (move / distance)
-            shift[t, [0, 2]] = self._held - decoded[t]
+            shift[t, [0, 2]] = self._held - path[t]
         points = x.reshape(len(x), -1, 3) + shift[:, None]
         return points.reshape(x.shape).astype(motion.dtype)
+
+    def _glide_path(self, x: np.ndarray, first_pelvis: np.ndarray) -> np.ndarray:
+        """(n, 2): where the whole body has glided, the stream's first pelvis plus the sum of
+        each frame's move of the foot that moved less (the standing one)."""
+        feet = self.layout.joint_positions(x, list(FEET))[..., [0, 2]]
+        path = np.zeros((len(x), 2))
+        for t in range(len(x)):
+            if self._glide is None:
+                self._glide = first_pelvis.copy()
+            else:
+                moved = feet[t] - self._feet
+                self._glide = self._glide + moved[np.argmin(np.hypot(*moved.T))]
+            self._feet = feet[t]
+            path[t] = self._glide
+        return path
