@@ -70,8 +70,8 @@ def from_dict(cls: type[T], data: Mapping[str, Any]) -> T:
 VELOCITY_WEIGHT_TINY = 10.0
 RECON_UNITS = ("standardized", "metres")
 MIN_SWING_FRAMES = 4  # a foot-lock step lifts off, travels and is set down (``sampling.foot_lock``)
-SEAM_MODES = ("velocity", "position")
-HOLD_READS = ("pelvis", "feet")  # VAEConfig.root_hold_reads: where the hold sees the body go  # VAEConfig.seam_mode: what a seam's spring continues
+SEAM_MODES = ("velocity", "position")  # VAEConfig.seam_mode: what a seam's spring continues
+HOLD_READS = ("pelvis", "feet")  # VAEConfig.root_hold_reads: where the hold sees the body go
 
 
 @dataclass(frozen=True)
@@ -175,10 +175,6 @@ class VAEConfig:
     # pelvis goes; "feet": only how far the whole body glides, the standing foot's own moves (the
     # foot that moved less each frame); the body's moves over its standing foot pass as decoded.
     root_hold_reads: str = "pelvis"
-    # Not in the paper (0 = off): the body is moved back on the floor by its standing foot's
-    # glide (the foot that moved less each frame), up to this many m/s (``sampling.stance_anchor``):
-    # a decoder that glides the whole body slower stays put, a body that steps walks. Before the hold.
-    stance_anchor: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("boundary_inertia", "root_inertia"):
@@ -188,9 +184,9 @@ class VAEConfig:
         if self.foot_swing_frames < MIN_SWING_FRAMES:
             raise ValueError(f"VAEConfig.foot_swing_frames must be >= {MIN_SWING_FRAMES} (a step "
                              f"lifts, travels and lands), got {self.foot_swing_frames}")
-        for name in ("foot_lock", "root_hold", "stance_anchor"):
+        for name in ("foot_lock", "root_hold"):
             if getattr(self, name) < 0:
-                raise ValueError(f"VAEConfig.{name} must be >= 0, got {getattr(self, name)}")
+                raise ValueError(f"VAEConfig.{name} (metres) must be >= 0, got {getattr(self, name)}")
         if self.root_hold_reads not in HOLD_READS:
             raise ValueError(f"VAEConfig.root_hold_reads must be one of {HOLD_READS}, got "
                              f"{self.root_hold_reads!r}")
@@ -289,8 +285,7 @@ class FlowConfig:
 # again with other values, nothing trained (``sarah-train --stage model``), and a fine-tune may
 # change them.
 DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "seam_mode", "rigid_bones",
-                           "foot_lock", "foot_swing_frames", "root_hold",
-                           "root_hold_reads", "stance_anchor")}
+                           "foot_lock", "foot_swing_frames", "root_hold", "root_hold_reads")}
 
 
 def decoding_settings() -> list[str]:

@@ -449,44 +449,38 @@ def test_a_body_the_decoder_throws_across_the_room_walks_there_no_faster_than_th
         RootHold(layout, radius=0.1, max_speed=0.0)
 
 
-def test_a_stance_anchor_stops_a_gliding_body_and_lets_a_stepping_one_walk(windows):
+def test_a_hold_reading_the_feet_holds_a_gliding_body_and_lets_a_stepping_one_walk(windows):
     """A walking person moves over a standing foot; a wandering decoder glides the whole body,
-    feet too (sampling.stance_anchor)."""
+    feet too. Read on the pelvis, the hold delays both (sampling.root_hold)."""
     from sarah_data.skeleton import ROOT
-    from sarah_models.sampling.stance_anchor import StanceAnchor
+    from sarah_models.sampling.root_hold import RootHold
 
     layout = MotionLayout.from_width(windows.motion_dim)
     floor = lambda m: layout.joint_positions(m, [ROOT])[:, 0, [0, 2]]  # noqa: E731
     t = np.arange(len(windows[0]["motion"]))
-    glide = np.stack([0.04 * np.sin(t / 4.0) + 0.004 * t, 0.02 * (np.cos(t / 6.0) - 1.0)], -1)
-    # a body standing still, glided about: it stands where it started, pose and heights as decoded
+    wander = np.stack([0.03 * np.sin(t / 3.0), 0.015 * (np.cos(t / 5.0) - 1.0)], axis=-1)
+    # a body standing still, glided about within the radius: it stands where it started
     body = standing(windows[0], layout)
-    out = StanceAnchor(layout, max_speed=10.0)(whole_body_moved(body, glide))
+    out = RootHold(layout, radius=0.05, reads="feet")(whole_body_moved(body, wander))
     np.testing.assert_allclose(out, body, atol=1e-6)
-    # the fixtures' people walk on planted feet: the anchor leaves them where they walk, and
-    # takes off what a decoder's glide adds to them
+    # the fixtures' people walk on planted feet: read on the feet, the hold leaves them walking
+    # where they walk, and holds what a decoder's wander adds to them; read on the pelvis, it
+    # holds their first steps back
     travel = [np.linalg.norm(np.diff(floor(w["motion"].numpy()), axis=0), axis=-1).sum()
               for w in (windows[i] for i in range(len(windows)))]
     walker = windows[int(np.argmax(travel))]["motion"].numpy().astype(np.float64)
     assert max(travel) > 0.3  # a window in which the agent walks
-    walked = StanceAnchor(layout, max_speed=10.0)(walker)
-    assert np.abs(floor(walked) - floor(walker)).max() < 0.02
-    # (the glide takes the body 28 cm away; where the swinging foot moves slower than the
-    # glided standing one, that frame's glide stays: a few centimetres of it)
-    glided = StanceAnchor(layout, max_speed=10.0)(whole_body_moved(walker, glide))
-    assert np.abs(floor(whole_body_moved(walker, glide)) - floor(walker)).max() > 0.25
-    assert np.abs(floor(glided) - floor(walker)).max() < 0.03
-    np.testing.assert_allclose(glided[:, 1::3], walker[:, 1::3])  # every height as decoded
+    lag = lambda out: np.abs(floor(out) - floor(walker)).max()  # noqa: E731
+    assert lag(RootHold(layout, radius=0.2, reads="pelvis")(walker)) > 0.2
+    assert lag(RootHold(layout, radius=0.2, reads="feet")(walker)) < 0.02
+    wandering = whole_body_moved(walker, wander)
+    assert np.abs(floor(wandering) - floor(walker)).max() > 0.025
+    held = RootHold(layout, radius=0.2, reads="feet")(wandering)
+    assert lag(held) < 0.02
+    np.testing.assert_allclose(held[:, 1::3], walker[:, 1::3])  # every height as decoded
     # causal: a stream fed in chunks gets the frames it gets at once
-    anchor = StanceAnchor(layout, max_speed=10.0)
-    moved = whole_body_moved(walker, glide)
-    chunks = np.concatenate([anchor(moved[i:i + 4]) for i in range(0, len(moved), 4)])
-    np.testing.assert_array_equal(chunks, glided)
-    # a glide faster than max_speed (a decoder walking the body without a step) goes on, that
-    # much slower: at 2 m/s with a 0.5 m/s anchor the standing body travels 1.5 m/s
-    from sarah_data.constants import FPS
-    run = np.stack([t * 2.0 / FPS, np.zeros(len(t))], axis=-1)
-    out = StanceAnchor(layout, max_speed=0.5)(whole_body_moved(body, run))
-    np.testing.assert_allclose(np.diff(floor(out)[:, 0]), 1.5 / FPS, atol=1e-6)
-    with pytest.raises(ValueError, match="max_speed"):
-        StanceAnchor(layout, max_speed=0.0)
+    hold = RootHold(layout, radius=0.2, reads="feet")
+    chunks = np.concatenate([hold(wandering[i:i + 4]) for i in range(0, len(t), 4)])
+    np.testing.assert_array_equal(chunks, held)
+    with pytest.raises(ValueError, match="reads"):
+        RootHold(layout, radius=0.2, reads="hands")

@@ -1,10 +1,9 @@
 """What a stream's decoded motion goes through before anyone sees it, as its VAE config asks.
 
 In order: ``SeamInertia`` (``vae.boundary_inertia``, ``vae.root_inertia``: the seams between
-latent blocks), ``StanceAnchor`` (``vae.stance_anchor``: the body moves only as its standing
-foot allows), ``RootHold`` (``vae.root_hold``: a body that stands still until the decoder walks
-it), ``RigidSkeleton`` (``vae.rigid_bones``: bones at the training data's lengths) and
-``FootLock`` (``vae.foot_lock``: planted feet, and steps). All five are causal and off in
+latent blocks), ``RootHold`` (``vae.root_hold``: a body that stands still until the decoder
+walks it), ``RigidSkeleton`` (``vae.rigid_bones``: bones at the training data's lengths) and
+``FootLock`` (``vae.foot_lock``: planted feet, and steps). All four are causal and off in
 the paper's config; one ``StreamDecoding`` per stream, fed its frames in order, whole blocks at a
 time; streaming, the offline protocol and sarah-eval's VAE row all decode through it.
 """
@@ -19,7 +18,6 @@ from .continuity import SeamInertia
 from .foot_lock import FootLock
 from .rigid_skeleton import RigidSkeleton
 from .root_hold import RootHold
-from .stance_anchor import StanceAnchor
 
 
 class StreamDecoding:
@@ -56,8 +54,6 @@ def stream_decoding(vae, normalizer) -> StreamDecoding:
     channels = layout.joint_slice(ROOT)
     filters: list = [SeamInertia(vae.stride, cfg.boundary_inertia, cfg.root_inertia,
                                  slice(channels.start // 3, channels.stop // 3), cfg.seam_mode)]
-    if cfg.stance_anchor:
-        filters.append(StanceAnchor(layout, cfg.stance_anchor))
     if cfg.root_hold:
         filters.append(RootHold(layout, cfg.root_hold, reads=cfg.root_hold_reads))
     if cfg.rigid_bones or cfg.foot_lock:

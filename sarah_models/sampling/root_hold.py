@@ -33,6 +33,7 @@ from sarah_data.constants import FPS
 from sarah_data.skeleton import FEET, ROOT, MotionLayout
 
 from ..config import HOLD_READS
+from .foot_lock import RELEASE
 
 FOLLOW = 0.2  # of the distance beyond the radius, per frame: a 1 / 0.2 = 5-frame lag
 # m/s: the fastest the body walks, the fastest pelvis of the seed-0 fixture training corpus
@@ -84,15 +85,22 @@ class RootHold:
 
     def _glide_path(self, x: np.ndarray, first_pelvis: np.ndarray) -> np.ndarray:
         """(n, 2): where the whole body has glided, the stream's first pelvis plus the sum of
-        each frame's move of the foot that moved less (the standing one)."""
-        feet = self.layout.joint_positions(x, list(FEET))[..., [0, 2]]
+        each frame's floor move of the standing foot: the lower one where the other is lifted
+        (a real step's swinging foot may move less, early in its swing), else the one that
+        moved less (decoded feet glide without lifting)."""
+        feet = self.layout.joint_positions(x, list(FEET))
         path = np.zeros((len(x), 2))
         for t in range(len(x)):
             if self._glide is None:
                 self._glide = first_pelvis.copy()
             else:
-                moved = feet[t] - self._feet
-                self._glide = self._glide + moved[np.argmin(np.hypot(*moved.T))]
-            self._feet = feet[t]
+                moved = feet[t, :, [0, 2]].T - self._feet
+                heights = feet[t, :, 1]
+                if abs(heights[0] - heights[1]) > RELEASE:
+                    standing = int(np.argmin(heights))
+                else:
+                    standing = int(np.argmin(np.hypot(*moved.T)))
+                self._glide = self._glide + moved[standing]
+            self._feet = feet[t, :, [0, 2]].T
             path[t] = self._glide
         return path
