@@ -9,14 +9,26 @@ runs). Drawn on the feet, that wander is what the foot lock turns into steps tha
 truth never takes.
 
 ``RootHold`` moves the whole body on the floor (x and z of every point; heights stay the
-decoder's) so that its pelvis holds still while the decoded pelvis stays within ``radius`` of
-it, and follows it beyond that: each frame the held position closes ``FOLLOW`` of the decoded
-pelvis's distance beyond ``radius`` -- a dead zone and a first-order lag, so the body starts and
-stops walking without a jump in velocity and walks ``radius`` plus ``v (1 - FOLLOW) / (fps
-FOLLOW)`` behind the decoded pelvis (33 cm at 1 m/s with the shipped model's 20 cm radius),
-never faster than ``MAX_SPEED``, the fastest the data's people walk: where the decoded pelvis
-jumps, the body walks after it. Causal, frame by frame, so a stream decoded in chunks and the
+decoder's) so that its pelvis holds still while the decoded pelvis (or, reading the feet, the
+body's glide) stays within ``radius`` of it, and follows it beyond that: each frame the held
+position closes ``FOLLOW`` of the decoded pelvis's distance beyond ``radius`` -- a dead zone and
+a first-order lag, so the body starts and stops walking without a jump in velocity and walks
+``radius`` plus ``v (1 - FOLLOW) / (fps FOLLOW)`` behind the decoded pelvis (33 cm at 1 m/s with
+the shipped model's 20 cm radius), never faster than ``MAX_SPEED``, the fastest the data's
+people walk: where the decoded pelvis jumps, the body walks after it. Causal, frame by frame, so a stream decoded in chunks and the
 same frames decoded at once are the same.
+
+What the hold reads (``reads``, ``vae.root_hold_reads``). "pelvis": where the decoded pelvis
+goes. A walking person's pelvis goes there too, and the hold cannot tell the two apart: it holds
+a real body's sways and the first ``radius`` of its walks, its feet then slide with the shift,
+and the foot lock turns that into steps the data did not take (the ground truth through the
+benchmark's chain: FGD_acc 1,167 with the hold, 34 without; docs/results.md, forty-fourth run).
+"feet": only how far the whole body glides. A walking person moves over a standing foot; a
+wandering decoder moves the whole body, feet included. Each frame the standing foot is the lower
+one where the other is lifted (a real step's swinging foot can move less than a glided standing
+one early in its swing), else the one that moved less; the hold holds the sum of its floor
+moves, and the body's moves over its standing foot pass as decoded. Real motion, whose standing
+feet do not move, passes unchanged.
 
 The held position starts at the origin. Decoding runs in the generation frame, which puts the
 agent's pelvis at the origin at the stream's first frame (``sarah_data.frames``, paper 3.1): where
