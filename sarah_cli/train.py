@@ -45,10 +45,11 @@ def build_parser() -> argparse.ArgumentParser:
                              "another config (say, after an upgrade changed a preset) is moved "
                              "to OUT/replaced-<time>/ and trained afresh, its flow too when the "
                              "VAE changed; nothing is deleted (make demo uses it)")
-    parser.add_argument("--init-from", type=Path, default=None, metavar="CKPT",
+    parser.add_argument("--init-from", type=model_or_name, default=None, metavar="CKPT",
                         help="fine-tune: start each trained stage from the weights of CKPT (a "
-                             "checkpoint, a run folder with vae.pt / flow.pt, or a model file such as "
-                             "model.safetensors or a shipped one) with a fresh "
+                             "checkpoint, a run folder with vae.pt / flow.pt, a model file such as "
+                             "model.safetensors, or a shipped model's name such as fixture-tiny) "
+                             "with a fresh "
                              "step count, optimizer and LR schedule; loss weights (e.g. --set "
                              "vae.velocity_weight=100) and train.lr_schedule may differ, sizes "
                              "may not; --stage flow into a folder without vae.pt fine-tunes "

@@ -888,6 +888,10 @@ def test_stage_model_copies_the_decoding_settings_of_another_model(tmp_path, cap
     assert decoding(tmp_path / "again") == decoding(plain)
     assert main(["--stage", "model", "--init-from", str(plain), "--out", str(tmp_path / "same"),
                  "--decoding-from", "fixture-tiny"]) == 0
+    # a shipped model by its name, as --decoding-from takes it: its weights and its settings
+    assert main(["--stage", "model", "--init-from", "fixture-tiny", "--out", str(tmp_path / "named")]) == 0
+    named = RunConfig.from_dict(read_model_file(tmp_path / "named" / "model.safetensors")["config"])
+    assert {name: named.to_dict()["vae"][name.split(".")[1]] for name in decoding_settings()} == wanted
     assert decoding(tmp_path / "same") == wanted
     same, before = (read_model_file(Path(run) / "model.safetensors")["config"]
                     for run in (tmp_path / "same", plain))
