@@ -172,8 +172,8 @@ class VAEConfig:
     # (``sampling.root_hold``); the decoded pelvis wanders where people stand.
     root_hold: float = 0.0
     # Not in the paper: what the hold holds (``sampling.root_hold``). "pelvis": where the decoded
-    # pelvis goes; "feet": only how far the whole body glides, the standing foot's own moves (the
-    # foot that moved less each frame); the body's moves over its standing foot pass as decoded.
+    # pelvis goes; "feet": only how far the whole body glides, the standing foot's own moves; the
+    # body's moves over its standing foot pass as decoded, so real walking is not held back.
     root_hold_reads: str = "pelvis"
 
     def __post_init__(self) -> None:

@@ -15,8 +15,8 @@ position closes ``FOLLOW`` of the decoded pelvis's distance beyond ``radius`` --
 a first-order lag, so the body starts and stops walking without a jump in velocity and walks
 ``radius`` plus ``v (1 - FOLLOW) / (fps FOLLOW)`` behind the decoded pelvis (33 cm at 1 m/s with
 the shipped model's 20 cm radius), never faster than ``MAX_SPEED``, the fastest the data's
-people walk: where the decoded pelvis jumps, the body walks after it. Causal, frame by frame, so a stream decoded in chunks and the
-same frames decoded at once are the same.
+people walk: where the decoded pelvis jumps, the body walks after it. Causal, frame by frame, so
+a stream decoded in chunks and the same frames decoded at once are the same.
 
 What the hold reads (``reads``, ``vae.root_hold_reads``). "pelvis": where the decoded pelvis
 goes. A walking person's pelvis goes there too, and the hold cannot tell the two apart: it holds
@@ -106,13 +106,13 @@ class RootHold:
             if self._glide is None:
                 self._glide = first_pelvis.copy()
             else:
-                moved = feet[t, :, [0, 2]].T - self._feet
+                moved = feet[t][:, [0, 2]] - self._feet
                 heights = feet[t, :, 1]
                 if abs(heights[0] - heights[1]) > RELEASE:
                     standing = int(np.argmin(heights))
                 else:
                     standing = int(np.argmin(np.hypot(*moved.T)))
                 self._glide = self._glide + moved[standing]
-            self._feet = feet[t, :, [0, 2]].T
+            self._feet = feet[t][:, [0, 2]]
             path[t] = self._glide
         return path
