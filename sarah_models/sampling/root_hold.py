@@ -82,8 +82,8 @@ class RootHold:
 
     def __call__(self, motion: np.ndarray) -> np.ndarray:
         x = np.asarray(motion, dtype=np.float64)
-        decoded = self.layout.joint_positions(x, [ROOT])[:, 0, [0, 2]]
-        path = decoded if self.reads == "pelvis" else self._glide_path(x, decoded[0])
+        joints = self.layout.joint_positions(x, [ROOT, *FEET] if self.reads == "feet" else [ROOT])
+        path = joints[:, 0, [0, 2]] if self.reads == "pelvis" else self._glide_path(joints)
         shift = np.zeros((len(x), 3))
         for t in range(len(x)):
             away = path[t] - self._held
@@ -95,24 +95,20 @@ class RootHold:
         points = x.reshape(len(x), -1, 3) + shift[:, None]
         return points.reshape(x.shape).astype(motion.dtype)
 
-    def _glide_path(self, x: np.ndarray, first_pelvis: np.ndarray) -> np.ndarray:
-        """(n, 2): where the whole body has glided, the stream's first pelvis plus the sum of
-        each frame's floor move of the standing foot: the lower one where the other is lifted
-        (a real step's swinging foot may move less, early in its swing), else the one that
-        moved less (decoded feet glide without lifting)."""
-        feet = self.layout.joint_positions(x, list(FEET))
-        path = np.zeros((len(x), 2))
-        for t in range(len(x)):
-            if self._glide is None:
-                self._glide = first_pelvis.copy()
-            else:
-                moved = feet[t][:, [0, 2]] - self._feet
-                heights = feet[t, :, 1]
-                if abs(heights[0] - heights[1]) > RELEASE:
-                    standing = int(np.argmin(heights))
-                else:
-                    standing = int(np.argmin(np.hypot(*moved.T)))
-                self._glide = self._glide + moved[standing]
-            self._feet = feet[t][:, [0, 2]]
-            path[t] = self._glide
+    def _glide_path(self, joints: np.ndarray) -> np.ndarray:
+        """(n, 3 [pelvis, feet], 3) -> (n, 2): where the whole body has glided, the stream's first
+        pelvis plus the sum of each frame's floor move of the standing foot: the lower one where
+        the other is lifted (a real step's swinging foot may move less, early in its swing), else
+        the one that moved less (decoded feet glide without lifting)."""
+        feet = joints[:, 1:, [0, 2]]
+        if self._glide is None:  # the stream's first frame: nothing has glided yet
+            self._glide, self._feet = joints[0, 0, [0, 2]], feet[0]
+        moved = feet - np.concatenate([self._feet[None], feet[:-1]])
+        heights = joints[:, 1:, 1]
+        standing = np.where(np.abs(heights[:, 0] - heights[:, 1]) > RELEASE,
+                            np.argmin(heights, axis=1), np.argmin(np.hypot(*moved.T).T, axis=1))
+        glide = moved[np.arange(len(moved)), standing]
+        # summed from the last frame's position on, frame by frame: chunks add up as the whole
+        path = np.cumsum(np.concatenate([self._glide[None], glide]), axis=0)[1:]
+        self._glide, self._feet = path[-1], feet[-1]
         return path
