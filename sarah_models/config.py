@@ -138,6 +138,11 @@ class VAEConfig:
     # recon_units="metres" the root's points then weigh as much as all points together: their
     # error is where the whole body stands.
     root_relative: bool = False
+    # Not in the paper (1 = as above): with root_relative and recon_units="metres", the root's x
+    # and z count this many times once per body point. Below 1 the loss leaves more of itself to
+    # the pose (the steps, the gestures) than to where the body stands, which the root hold
+    # decides at decoding anyway.
+    root_weight: float = 1.0
     # Not in the paper (0 = the paper): how the generators decode, not how the VAE trains. At the
     # first frame of every latent block each decoded point is offset to continue its last
     # position and velocity, and the offset decays by this factor per frame, as a critically
@@ -193,6 +198,9 @@ class VAEConfig:
         if self.seam_mode not in SEAM_MODES:
             raise ValueError(f"VAEConfig.seam_mode must be one of {SEAM_MODES}, got "
                              f"{self.seam_mode!r}")
+        if not self.root_weight > 0:
+            raise ValueError(f"VAEConfig.root_weight must be > 0 (the root's place is trained), "
+                             f"got {self.root_weight}")
         if self.recon_units not in RECON_UNITS:
             raise ValueError(f"VAEConfig.recon_units must be one of {RECON_UNITS}, got "
                              f"{self.recon_units!r}")

@@ -1050,6 +1050,11 @@ def test_root_weighted_counts_the_root_once_per_point_of_the_body():
     expected[1, 0] *= 4
     expected[1, 2] *= 4
     assert torch.equal(weighted, expected)
+    quarter = root_weighted(variance, torch.tensor([1]), 0.25).unflatten(-1, (4, 3))
+    expected[1, [0, 2]] /= 4  # the root's place counts a quarter as much; the pose as before
+    assert torch.equal(quarter, expected)
+    with pytest.raises(ValueError, match="root_weight"):
+        VAEConfig(root_weight=0.0)
 
 
 def test_root_relative_training_fits_its_statistics_and_the_model_file_keeps_them(prepared_shards,

@@ -43,7 +43,7 @@ class VAEObjective(nn.Module):
         if vae.config.recon_units == "metres":
             variance = normalizer.motion_std.float().square()
             if normalizer.root_relative:
-                variance = root_weighted(variance, normalizer.motion_root)
+                variance = root_weighted(variance, normalizer.motion_root, vae.config.root_weight)
             weight = variance / variance.mean()
         self.register_buffer("channel_weight", weight, persistent=False)
 
@@ -69,13 +69,14 @@ class VAEObjective(nn.Module):
         return {**out, "loss": loss, **terms}
 
 
-def root_weighted(variance: Tensor, root_points: Tensor) -> Tensor:
-    """Root-relative channels' variances with the root points' x and z counted once per point of
-    the body: absolute, every point carries the root's error, so where the body stands weighs as
-    much as all of its pose together, and a loss in metres keeps that balance."""
+def root_weighted(variance: Tensor, root_points: Tensor, weight: float = 1.0) -> Tensor:
+    """Root-relative channels' variances with the root points' x and z counted ``weight`` times
+    once per point of the body: absolute, every point carries the root's error, so at weight 1
+    where the body stands weighs as much as all of its pose together, as a loss in metres of the
+    absolute points would weigh it (``vae.root_weight``)."""
     points = variance.unflatten(-1, (-1, 3)).clone()
     root = root_points.to(points.device)
-    points[root[:, None], torch.tensor([0, 2], device=points.device)] *= points.shape[0] / root.numel()
+    points[root[:, None], torch.tensor([0, 2], device=points.device)] *= weight * points.shape[0] / root.numel()
     return points.flatten()
 
 
