@@ -17,7 +17,9 @@
 # (the forty-third run's variant, a window of 17 with the user's head velocity, no seam springs
 # and 8-frame steps: FLOW_SETTINGS="--set flow.attention_window=17 --set flow.head_velocity=true"
 # DECODING_SETTINGS="--set vae.boundary_inertia=0 --set vae.root_inertia=0
-# --set vae.foot_swing_frames=8"; not the default, docs/results.md says why). Stages are skipped
+# --set vae.foot_swing_frames=8"; not the default, docs/results.md says why), VAE_SETTINGS the
+# VAE's (both of its stages; the forty-sixth run's: VAE_SETTINGS="--set vae.root_weight=0.05",
+# measured with that variant only). Stages are skipped
 # once their folder has a .done marker, so an interrupted run resumes at the stage it stopped in (that
 # stage starts over). Every step is seeded (train.seed 0): the same code on the same thread count
 # and the same kind of CPU gives the same model file, whose sha256 is printed (another instruction
@@ -60,6 +62,7 @@ FLOW_STEPS=${FLOW_STEPS:-3600}
 STRIDE=${STRIDE:-}                   # frames per latent token (vae.stride), if not the preset's
 FLOW_SETTINGS=${FLOW_SETTINGS:-"--set flow.attention_window=3"}  # more sarah-train --set for the flow
 DECODING_SETTINGS=${DECODING_SETTINGS:-}  # ... and for the model file's decoding
+VAE_SETTINGS=${VAE_SETTINGS:-}       # ... and for both VAE stages
 SWEEP_WINDOWS=${SWEEP_WINDOWS:-104}  # the gaze sweep's windows, evenly spaced over the same split
 UNTIL=${UNTIL:-eval}                 # stop after this stage: prep, train, trajectory (its tuning
                                      # and test) or eval
@@ -107,10 +110,11 @@ train() {
   touch "$RUN/$name/$stage.done"
   stamp "train $name $stage: end"
 }
+read -r -a VAE_SET <<< "$VAE_SETTINGS"
 train encoder vae --set train.vae_short_window=100 --set "train.vae_short_steps=$VAE_SHORT_STEPS" \
-  --set "train.vae_steps=$((VAE_SHORT_STEPS + VAE_LONG_STEPS))"
+  --set "train.vae_steps=$((VAE_SHORT_STEPS + VAE_LONG_STEPS))" ${VAE_SET[@]+"${VAE_SET[@]}"}
 train model vae --init-from "$RUN/encoder/vae.pt" --set "train.vae_steps=$DECODER_STEPS" \
-  --set train.freeze_encoder=true --set vae.latent_noise=0.2
+  --set train.freeze_encoder=true --set vae.latent_noise=0.2 ${VAE_SET[@]+"${VAE_SET[@]}"}
 read -r -a FLOW_SET <<< "$FLOW_SETTINGS"
 read -r -a DECODING_SET <<< "$DECODING_SETTINGS"
 train model flow "${FLOW_SET[@]}" --set "train.flow_steps=$FLOW_STEPS" --set train.flow_echo=8
