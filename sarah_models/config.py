@@ -269,8 +269,17 @@ class FlowConfig:
     # a difference the encoder's first Linear has to learn to amplify ~30x before it can tell a
     # walking user from a standing one (docs/results.md, forty-first run).
     head_velocity: bool = False
+    # Not in the paper (None = the paper): the user's mean head speed over about this many
+    # seconds (``nn/head_travel.py``) beside each frame's head position. Which partner walks
+    # and which turns in place holds for a sequence; a flow whose attention reaches a few
+    # seconds cannot tell, and walks where the user walks (the forty-first and forty-seventh
+    # runs). A running mean carries it at a constant cost, streamed exactly as offline.
+    head_travel_seconds: float | None = None
 
     def __post_init__(self) -> None:
+        if self.head_travel_seconds is not None and not self.head_travel_seconds > 0:
+            raise ValueError(f"FlowConfig.head_travel_seconds must be > 0 or None, got "
+                             f"{self.head_travel_seconds}")
         if self.difference_weight < 0:
             raise ValueError(f"FlowConfig.difference_weight must be >= 0, got "
                              f"{self.difference_weight}")

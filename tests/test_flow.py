@@ -1,11 +1,14 @@
 """The causal flow matcher: inputs, CFG dropout, velocity, caching, and that it learns."""
 
+import math
+
 import pytest
 import torch
 from helpers import randomize
 
 from sarah_models.config import FlowConfig
 from sarah_models.nn.flow import MODALITIES, FlowModel, build_block_mask
+from sarah_models.nn.head_travel import head_travel
 from sarah_models.nn.layers import KVCache
 from sarah_models.sampling.guidance import sample_drop_mask
 from sarah_models.sampling.path import velocity_from_x1
@@ -236,3 +239,56 @@ def test_head_velocity_reads_each_block_alone():
     assert not torch.allclose(moved[..., S * 2:], stacked[..., S * 2:])
     plain = FlowModel(FlowConfig.tiny(), DZ, S, DA)
     assert plain.encoders["user_head"][0].in_features == S * 2
+
+
+def test_head_travel_is_a_running_mean_a_stream_computes_block_by_block():
+    """nn/head_travel: a constant speed reads as that speed from the second frame on, a standing
+    user as 0; after a long walk and ``seconds`` of standing, e^-1 of the walk's speed is left;
+    fed block by block (past the exact scan's chunk), it is the one-call value."""
+    line = torch.stack([torch.arange(60.0) * 0.01, torch.zeros(60)], -1)[None]  # 0.3 units/s
+    speed, _ = head_travel(line, 5.0)
+    assert speed[0, 0, 0] == 0.0
+    torch.testing.assert_close(speed[0, 1:, 0], torch.full((59,), 0.3))
+    assert torch.equal(head_travel(torch.ones(1, 9, 2), 5.0)[0], torch.zeros(1, 9, 1))
+    seconds, walk = 0.5, 40 * 15  # a walk 40 time constants long, then one constant standing
+    path = torch.cat([torch.arange(walk + 1.0) * 0.01, torch.full((15,), walk * 0.01)])
+    after, _ = head_travel(torch.stack([path, torch.zeros_like(path)], -1)[None], seconds)
+    torch.testing.assert_close(after[0, -1, 0].item(), 0.3 * math.exp(-1.0), atol=1e-4, rtol=0)
+    g = torch.Generator().manual_seed(3)
+    head = torch.cumsum(torch.randn(2, 1100, 2, generator=g) * 0.02, 1)
+    whole, end = head_travel(head, 2.0)
+    parts, state = [], None
+    for i in range(0, 1100, S):
+        part, state = head_travel(head[:, i:i + S], 2.0, state)
+        parts.append(part)
+    torch.testing.assert_close(torch.cat(parts, 1), whole)
+    torch.testing.assert_close(state.total, end.total)
+    with pytest.raises(ValueError, match="seconds"):
+        head_travel(head, 0.0)
+    with pytest.raises(ValueError, match="head_travel_seconds"):
+        FlowConfig(head_travel_seconds=-1.0)
+
+
+def test_head_travel_carries_the_users_walk_past_the_attention():
+    """flow.head_travel_seconds: a block's encoding reads how much the user walked before it,
+    further back than the flow attends; given the stream's running mean, a block encodes as the
+    same block does inside the whole window."""
+    config = FlowConfig(**{**FlowConfig.tiny().__dict__, "head_travel_seconds": 3.0})
+    model = trained_weights(FlowModel(config, DZ, S, DA))
+    assert model.encoders["user_head"][0].in_features == S * 2 + S
+    g = torch.Generator().manual_seed(7)
+    cond = make_cond(1, g)
+    whole = model.encode_condition(cond, positions=torch.arange(K))
+    travel, _ = head_travel(cond["user_head"], 3.0)
+    for k in range(K):
+        block = {name: value[:, k * S:(k + 1) * S] for name, value in cond.items()}
+        block["head_travel"] = travel[:, k * S:(k + 1) * S]
+        torch.testing.assert_close(model.encode_condition(block, first_token=k), whole[:, k:k + 1])
+    standing = dict(cond, user_head=cond["user_head"][:, :1].expand(-1, T, -1).clone())
+    walked = dict(standing, user_head=standing["user_head"].clone())
+    walked["user_head"][:, :S] += torch.linspace(0, 1, S)[None, :, None]  # a walk in the first block
+    last = [model.encode_condition(c, positions=torch.arange(K))[:, -1] for c in (standing, walked)]
+    assert not torch.allclose(*last)
+    plain = trained_weights(FlowModel(FlowConfig.tiny(), DZ, S, DA))
+    last = [plain.encode_condition(c, positions=torch.arange(K))[:, -1] for c in (standing, walked)]
+    torch.testing.assert_close(*last)

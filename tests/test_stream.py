@@ -498,3 +498,33 @@ def test_sessions_pushed_together_get_what_each_gets_alone():
                 np.testing.assert_array_equal(together[i].last_features[person],
                                               alone[i].last_features[person])
     assert [len(s.features("agent")) for s in together] == [16, 16, 16]
+
+
+def test_a_stream_carries_the_users_head_travel_as_offline_does():
+    """flow.head_travel_seconds: the stream carries the running mean of the user's head speed
+    from block to block, so with trajectory imputation it is still the offline solve; and a
+    walk in the first block changes the last block's latent, which without the feature lies
+    beyond what the windowed flow's joint solve carries (float rounding)."""
+    def walk_reaches_the_last_token(models) -> float:
+        standing = (np.repeat(inputs[0][-1:], len(inputs[0]), 0), *inputs[1:])
+        walked = standing[0].copy()
+        walked[:S] = inputs[0][:S]  # the user walks in the first block only
+        still = offline_with_latents(*models, *standing, config)[1]
+        return float((offline_with_latents(*models, walked, *inputs[1:], config)[1][-1]
+                      - still[-1]).abs().max())
+
+    travel, plain = (random_models("tiny", 8, SHELL, 0, motion_std=0.02, init_std=0.05,
+                                   audio_mean=0.0, audio_std=1.0, latent_mean_std=0.1,
+                                   overrides=overrides)
+                     for overrides in (("flow.head_travel_seconds=2.0",), ()))
+    inputs = make_inputs(4 * 22)
+    config = StreamConfig(imputation="trajectory", cfg_scale=1.3, noise_scale=0.6)
+    gen = StreamingGenerator(*travel, config)
+    latents = []
+    for i in range(0, len(inputs[0]), S):
+        gen.step(*(x[i:i + S] for x in inputs))
+        latents.append(gen.last_latent)
+    torch.testing.assert_close(torch.stack(latents),
+                               offline_with_latents(*travel, *inputs, config)[1], atol=1e-5, rtol=0)
+    assert walk_reaches_the_last_token(travel) > 1e-2
+    assert walk_reaches_the_last_token(plain) < 1e-4

@@ -50,6 +50,7 @@ from torch import Tensor, nn
 from sarah_data.constants import FPS
 
 from ..config import FlowConfig
+from .head_travel import head_travel
 from .layers import (
     AdaLNZeroBlock,
     AdaLNZeroOutput,
@@ -84,6 +85,8 @@ class FlowModel(nn.Module):
         widths = {name: stride * d for name, d in self.dims.items()}
         if config.head_velocity:
             widths["user_head"] += (stride - 1) * self.dims["user_head"]
+        if config.head_travel_seconds is not None:
+            widths["user_head"] += stride
         self.encoders = nn.ModuleDict({
             name: nn.Sequential(nn.Linear(width, c), nn.SiLU(), nn.Linear(c, c))
             for name, width in widths.items()})
@@ -108,7 +111,8 @@ class FlowModel(nn.Module):
         window = self.config.attention_window
         return None if window is None else self.config.layers * (window - 1) + 1
 
-    def _stack(self, name: str, value: Tensor, num_blocks: int | None) -> Tensor:
+    def _stack(self, name: str, value: Tensor, num_blocks: int | None,
+               travel: Tensor | None = None) -> Tensor:
         if name == "gaze" and value.dim() == 2:
             value = value[..., None]
         b, t, d = value.shape
@@ -124,6 +128,13 @@ class FlowModel(nn.Module):
             # within the block only, so a streamed block and the same block offline see the same
             velocity = torch.diff(blocks, dim=2) * FPS
             stacked = torch.cat([stacked, velocity.flatten(2)], dim=-1)
+        if name == "user_head" and self.config.head_travel_seconds is not None:
+            if travel is None:  # the stream starts with these frames
+                travel, _ = head_travel(value, self.config.head_travel_seconds)
+            if travel.shape[:2] != value.shape[:2]:
+                raise ValueError(f"head_travel has shape {tuple(travel.shape)}, expected "
+                                 f"({b}, {t}, 1)")
+            stacked = torch.cat([stacked, travel.reshape(b, t // self.stride, self.stride)], -1)
         return stacked
 
     def encode_condition(self, cond: Mapping[str, Tensor], drop_mask: Tensor | None = None,
@@ -132,7 +143,9 @@ class FlowModel(nn.Module):
         """Per-block conditioning contribution (B, K, hidden); independent of tau and z_tau.
 
         cond: user_head (B,T,2), agent_audio and user_audio (B,T,Da), gaze (B,T) or (B,T,1),
-        all standardized; T = K*s. drop_mask (B, 4) bool in ``MODALITIES`` order.
+        all standardized; T = K*s; with ``head_travel_seconds``, optionally head_travel (B,T,1)
+        (``nn/head_travel.py``, carried by a stream past its first block; without it the
+        frames are a stream's first). drop_mask (B, 4) bool in ``MODALITIES`` order.
         first_token: the stream index of the first block (its position embedding; dropping
         modalities never drops the position), or ``positions`` (K,) every block's index."""
         missing = [m for m in MODALITIES if m not in cond]
@@ -140,7 +153,8 @@ class FlowModel(nn.Module):
             raise KeyError(f"conditioning is missing {missing}")
         parts = []
         for i, name in enumerate(MODALITIES):
-            enc = self.encoders[name](self._stack(name, cond[name], num_blocks))
+            enc = self.encoders[name](self._stack(name, cond[name], num_blocks,
+                                                  cond.get("head_travel")))
             if drop_mask is not None:
                 enc = torch.where(drop_mask[:, i, None, None], self.nulls[name].to(enc.dtype), enc)
             parts.append(enc)
