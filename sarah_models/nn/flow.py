@@ -10,7 +10,10 @@ e_m: the s frames of block k are stacked, (K, s*D_m), and mapped by Linear -> Si
 ``cond_dim`` (the frame's place inside the block is its place in the stacked vector; time across
 blocks is RoPE over the block index, relative only, so P, a learned embedding of the token's
 index in the stream, tells the first token -- the agent at the window origin -- from the rest;
-streaming passes each block's stream index, so it sees what offline generation sees). Flow time tau enters every block via AdaLN-Zero, from a
+streaming passes each block's stream index, so it sees what offline generation sees). Not in
+the paper, the user_head encoder may also read the head's velocity inside the block
+(``head_velocity``) and the user's running mean head speed (``head_travel_seconds``,
+``nn/head_travel.py``, which a stream carries from block to block). Flow time tau enters every block via AdaLN-Zero, from a
 sinusoidal embedding and an MLP. Attention over blocks is causal (``build_block_mask``).
 
 Classifier-free guidance: ``drop_mask`` (B, 4) bool, True = modality dropped for that sample.
