@@ -286,7 +286,7 @@ def test_head_travel_carries_the_users_walk_past_the_attention():
         torch.testing.assert_close(model.encode_condition(block, first_token=k), whole[:, k:k + 1])
     standing = dict(cond, user_head=cond["user_head"][:, :1].expand(-1, T, -1).clone())
     walked = dict(standing, user_head=standing["user_head"].clone())
-    walked["user_head"][:, :S] += torch.linspace(0, 1, S)[None, :, None]  # a walk in the first block
+    walked["user_head"][:, :S] += torch.linspace(0, 1, S)[None, :, None]  # walks in block 0
     last = [model.encode_condition(c, positions=torch.arange(K))[:, -1] for c in (standing, walked)]
     assert not torch.allclose(*last)
     plain = trained_weights(FlowModel(FlowConfig.tiny(), DZ, S, DA))

@@ -13,8 +13,9 @@ index in the stream, tells the first token -- the agent at the window origin -- 
 streaming passes each block's stream index, so it sees what offline generation sees). Not in
 the paper, the user_head encoder may also read the head's velocity inside the block
 (``head_velocity``) and the user's running mean head speed (``head_travel_seconds``,
-``nn/head_travel.py``, which a stream carries from block to block). Flow time tau enters every block via AdaLN-Zero, from a
-sinusoidal embedding and an MLP. Attention over blocks is causal (``build_block_mask``).
+``nn/head_travel.py``, which a stream carries from block to block). Flow time tau enters
+every block via AdaLN-Zero, from a sinusoidal embedding and an MLP. Attention over blocks is
+causal (``build_block_mask``).
 
 Classifier-free guidance: ``drop_mask`` (B, 4) bool, True = modality dropped for that sample.
 A dropped modality's encoding is replaced by its own learned null vector (``null_<name>``), so

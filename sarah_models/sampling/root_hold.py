@@ -105,8 +105,9 @@ class RootHold:
             self._glide, self._feet = joints[0, 0, [0, 2]], feet[0]
         moved = feet - np.concatenate([self._feet[None], feet[:-1]])
         heights = joints[:, 1:, 1]
+        least = np.argmin(np.hypot(moved[..., 0], moved[..., 1]), axis=1)
         standing = np.where(np.abs(heights[:, 0] - heights[:, 1]) > RELEASE,
-                            np.argmin(heights, axis=1), np.argmin(np.hypot(*moved.T).T, axis=1))
+                            np.argmin(heights, axis=1), least)
         glide = moved[np.arange(len(moved)), standing]
         # summed from the last frame's position on, frame by frame: chunks add up as the whole
         path = np.cumsum(np.concatenate([self._glide[None], glide]), axis=0)[1:]
