@@ -272,7 +272,8 @@ def test_head_travel_is_a_running_mean_a_stream_computes_block_by_block():
 def test_head_travel_carries_the_users_walk_past_the_attention():
     """flow.head_travel_seconds: a block's encoding reads how much the user walked before it,
     further back than the flow attends; given the stream's running mean, a block encodes as the
-    same block does inside the whole window."""
+    same block does inside the whole window (to float rounding: other matrix shapes)."""
+    torch.manual_seed(0)
     config = FlowConfig(**{**FlowConfig.tiny().__dict__, "head_travel_seconds": 3.0})
     model = trained_weights(FlowModel(config, DZ, S, DA))
     assert model.encoders["user_head"][0].in_features == S * 2 + S
@@ -283,7 +284,8 @@ def test_head_travel_carries_the_users_walk_past_the_attention():
     for k in range(K):
         block = {name: value[:, k * S:(k + 1) * S] for name, value in cond.items()}
         block["head_travel"] = travel[:, k * S:(k + 1) * S]
-        torch.testing.assert_close(model.encode_condition(block, first_token=k), whole[:, k:k + 1])
+        torch.testing.assert_close(model.encode_condition(block, first_token=k), whole[:, k:k + 1],
+                                   atol=1e-4, rtol=1e-4)
     standing = dict(cond, user_head=cond["user_head"][:, :1].expand(-1, T, -1).clone())
     walked = dict(standing, user_head=standing["user_head"].clone())
     walked["user_head"][:, :S] += torch.linspace(0, 1, S)[None, :, None]  # walks in block 0

@@ -49,16 +49,13 @@ def head_travel(user_head: Tensor, seconds: float,
         raise ValueError("head_travel needs at least one frame")
     head = user_head.double()
     decay = math.exp(-1.0 / (seconds * FPS))
-    if state is None:
-        previous = head[:, :1]
-        total = head.new_zeros(b, 1)
-        weight = head.new_zeros(b, 1)
-        valid = torch.ones(b, t, 1, dtype=head.dtype, device=head.device)
+    valid = torch.ones(b, t, 1, dtype=head.dtype, device=head.device)
+    if state is None:  # the first frame has no step behind it
+        previous, total, weight = head[:, :1], head.new_zeros(b, 1), head.new_zeros(b, 1)
         valid[:, 0] = 0.0
     else:
         previous = state.last.double()[:, None]
         total, weight = state.total.double(), state.weight.double()
-        valid = torch.ones(b, t, 1, dtype=head.dtype, device=head.device)
     steps = torch.linalg.vector_norm(torch.diff(torch.cat([previous, head], 1), dim=1), dim=-1,
                                      keepdim=True) * FPS * valid
     values = []

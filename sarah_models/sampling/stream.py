@@ -209,7 +209,7 @@ class StreamingGenerator:
         self._states: deque[Tensor] = deque(maxlen=keep)  # their trajectories ("trajectory")
         window = None if keep is None else keep + 1
         self._cond: deque[Tensor] = deque(maxlen=window)  # per block (2, 1, hidden), padded
-        self._travel: TravelState | None = None  # the user's head travel so far (if the flow reads it)
+        self._travel: TravelState | None = None  # the user's head travel (flows that read it)
         self._decoder = self._m.vae.new_decoder_cache(cfg.decoder_blocks(self._m.vae.stride))
         self._decoding = self._m.decoding()
         self.frames_generated = 0
