@@ -273,7 +273,8 @@ class FlowConfig:
     # seconds (``nn/head_travel.py``) beside each frame's head position. Which partner walks
     # and which turns in place holds for a sequence; a flow whose attention reaches a few
     # seconds cannot tell, and walks where the user walks (the forty-first and forty-seventh
-    # runs). A running mean carries it at a constant cost, streamed exactly as offline.
+    # runs). A running mean carries it at a constant cost, streamed exactly as offline. On the
+    # fixtures it tells the roles apart but the agent walks as much; no preset uses it.
     head_travel_seconds: float | None = None
 
     def __post_init__(self) -> None:
