@@ -54,7 +54,7 @@ from torch import Tensor, nn
 from sarah_data.constants import FPS
 
 from ..config import FlowConfig
-from .head_travel import head_travel
+from .head_travel import TravelState, head_travel
 from .layers import (
     AdaLNZeroBlock,
     AdaLNZeroOutput,
@@ -170,6 +170,18 @@ class FlowModel(nn.Module):
                 positions = positions.to(tokens.device).clamp(0, self.config.position_tokens - 1)
             tokens = tokens + self.token_positions(positions)
         return tokens
+
+    def carry_condition(self, cond: Mapping[str, Tensor], state: TravelState | None
+                        ) -> tuple[Mapping[str, Tensor], TravelState | None]:
+        """A stream's next blocks' ``cond`` with what it carries from its earlier blocks (the
+        user's head travel, for a flow that reads it), and the state to carry on; ``state`` None
+        at the stream's start. ``encode_condition`` of the result then encodes the blocks as the
+        whole stream's call would."""
+        seconds = self.config.head_travel_seconds
+        if seconds is None:
+            return cond, state
+        travel, state = head_travel(cond["user_head"], seconds, state)
+        return {**cond, "head_travel": travel}, state
 
     def token_index(self, first_token: int, count: int, device: torch.device | None = None) -> Tensor:
         """Position-embedding indices of ``count`` tokens from stream index ``first_token``:

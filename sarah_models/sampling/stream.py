@@ -49,7 +49,7 @@ from sarah_data.skeleton import MotionLayout
 
 from ..config import StreamConfig, check_gaze
 from ..nn.flow import FlowModel
-from ..nn.head_travel import TravelState, head_travel
+from ..nn.head_travel import TravelState
 from ..nn.normalizer import Normalizer
 from ..nn.streams import independent_streams
 from ..nn.vae import CausalVAE
@@ -209,7 +209,7 @@ class StreamingGenerator:
         self._states: deque[Tensor] = deque(maxlen=keep)  # their trajectories ("trajectory")
         window = None if keep is None else keep + 1
         self._cond: deque[Tensor] = deque(maxlen=window)  # per block (2, 1, hidden), padded
-        self._travel: TravelState | None = None  # the user's head travel (flows that read it)
+        self._carried: TravelState | None = None  # what the flow carries across blocks
         self._decoder = self._m.vae.new_decoder_cache(cfg.decoder_blocks(self._m.vae.stride))
         self._decoding = self._m.decoding()
         self.frames_generated = 0
@@ -230,13 +230,10 @@ class StreamingGenerator:
         """The next block's conditioning from its inputs, which it checks (ValueError naming
         the input); the stream's state is left as it was."""
         m = self._m
-        cond = m.condition(user_head, agent_audio, user_audio, self.gaze, m.stride)
-        travel = self._travel
-        seconds = m.flow.config.head_travel_seconds
-        if seconds is not None:
-            cond["head_travel"], travel = head_travel(cond["user_head"], seconds, self._travel)
+        cond, carried = m.flow.carry_condition(
+            m.condition(user_head, agent_audio, user_audio, self.gaze, m.stride), self._carried)
         return BlockCondition(
-            m.cond_tokens(cond, self.gaze, first_token=self.frames_generated // m.stride), travel)
+            m.cond_tokens(cond, self.gaze, first_token=self.frames_generated // m.stride), carried)
 
     def begin_step(self, condition: BlockCondition) -> PendingBlock:
         """``step`` up to the flow's solve: the block's conditioning (``block_condition``)
@@ -244,7 +241,7 @@ class StreamingGenerator:
         with other streams' (``step_together``), and hands the new latent to ``end_step``."""
         m = self._m
         self._cond.append(condition.tokens)
-        self._travel = condition.travel
+        self._carried = condition.carried
         window = list(self._cond)
         if any(t.shape[0] == 2 for t in window):  # guidance active somewhere in the window
             window = [t if t.shape[0] == 2 else t.expand(2, -1, -1) for t in window]
@@ -273,11 +270,11 @@ class StreamingGenerator:
 
 @dataclass(frozen=True)
 class BlockCondition:
-    """One stream's next block's conditioning: its tokens (B, 1, hidden), and the user's head
-    travel after it (None when the flow does not read it)."""
+    """One stream's next block's conditioning: its tokens (B, 1, hidden), and what the flow
+    carries to the next block (``FlowModel.carry_condition``; None when it carries nothing)."""
 
     tokens: Tensor
-    travel: TravelState | None
+    carried: TravelState | None
 
 
 @dataclass
