@@ -73,7 +73,8 @@ def build_parser() -> argparse.ArgumentParser:
                         metavar="FIELD=VALUE",
                         help="override a config field, e.g. --set train.lr=3e-4 --set "
                              "vae.hidden=512 --set train.audio_features=logmel (repeatable; "
-                             "sections vae, flow, train)")
+                             "sections vae, flow, train; --stage flow trains on OUT/vae.pt "
+                             "and takes only its decoding settings from --set vae.*)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
 
@@ -123,6 +124,8 @@ def main(argv: list[str] | None = None) -> int:
     from sarah_models.training.stages import train
 
     stages = ("vae", "flow") if args.stage == "all" else (args.stage,)
+    vae_settings = {name for section, name in map(config.target_of, args.overrides)
+                    if section == "vae"}
     try:
         if args.replace_changed and is_main_process():
             from sarah_models.training.stages import set_aside, stale_stages
@@ -135,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
         for stage in stages:
             path = train(stage, config, args.shards, args.out, resume=args.resume,
                          device=args.device, init_from=args.init_from,
-                         progress=not args.no_progress)
+                         vae_settings=vae_settings, progress=not args.no_progress)
             print(f"{stage}: checkpoint {path}")
             if stage == "flow" and is_main_process():
                 model = write_model_file(path, Path(args.out) / MODEL_FILE)

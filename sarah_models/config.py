@@ -419,29 +419,35 @@ class RunConfig:
         return cls(from_dict(VAEConfig, data["vae"]), from_dict(FlowConfig, flow),
                    from_dict(TrainConfig, data["train"]))
 
+    def target_of(self, text: str) -> tuple[str, str]:
+        """The (section, field) a ``section.field=value`` (or unique ``field=value``) names."""
+        sections = {"vae": self.vae, "flow": self.flow, "train": self.train}
+        key, sep, _ = text.partition("=")
+        if not sep:
+            raise ValueError(f"--set expects field=value, got {text!r}")
+        key = key.strip()
+        if "." in key:
+            section, name = key.split(".", 1)
+            if section not in sections:
+                raise ValueError(f"--set {text!r}: unknown section {section!r}; use vae/flow/train")
+        else:
+            owners = [s for s, c in sections.items() if name_in(c, key)]
+            if len(owners) != 1:
+                raise ValueError(f"--set {text!r}: field {key!r} is "
+                                 f"{'ambiguous' if owners else 'unknown'}; write section.field")
+            section, name = owners[0], key
+        if not name_in(sections[section], name):
+            raise ValueError(f"--set {text!r}: {section} has no field {name!r}")
+        return section, name
+
     def with_overrides(self, assignments: Sequence[str]) -> "RunConfig":
         """Apply ``section.field=value`` (or ``field=value`` when the name is unique) strings."""
         sections = {"vae": self.vae, "flow": self.flow, "train": self.train}
         assigned: set[tuple[str, str]] = set()
         for text in assignments:
-            key, sep, raw = text.partition("=")
-            if not sep:
-                raise ValueError(f"--set expects field=value, got {text!r}")
-            key = key.strip()
-            if "." in key:
-                section, name = key.split(".", 1)
-                if section not in sections:
-                    raise ValueError(f"--set {text!r}: unknown section {section!r}; use vae/flow/train")
-            else:
-                owners = [s for s, c in sections.items() if name_in(c, key)]
-                if len(owners) != 1:
-                    raise ValueError(f"--set {text!r}: field {key!r} is "
-                                     f"{'ambiguous' if owners else 'unknown'}; write section.field")
-                section, name = owners[0], key
+            section, name = self.target_of(text)
             current = sections[section]
-            if not name_in(current, name):
-                raise ValueError(f"--set {text!r}: {section} has no field {name!r}")
-            value = _parse_value(getattr(current, name), raw.strip(), text)
+            value = _parse_value(getattr(current, name), text.partition("=")[2].strip(), text)
             sections[section] = dataclasses.replace(current, **{name: value})
             assigned.add((section, name))
         # The position embedding spans one training window: a new window (or stride) moves it,

@@ -773,6 +773,41 @@ def test_cli_trains_both_stages_on_real_shards(tmp_path, capsys):
         assert torch.equal(value, shared.flow.state_dict()[name]), name
 
 
+def test_cli_flow_stage_refuses_vae_settings_its_vae_lacks_and_keeps_decoding_ones(tmp_path, capsys):
+    """--stage flow trains on OUT/vae.pt: a --set vae.* that would need another VAE is one
+    error line naming the file and the field (nothing written), one that the VAE already has is
+    fine, and a decoding setting reaches the model file (the flow stage used to drop both)."""
+    import shutil
+
+    from sarah_models.training.model_file import MODEL_FILE, read_model_file
+
+    shards, base = tmp_path / "shards", tmp_path / "base"
+    shards.mkdir()
+    _write_shards(shards)
+    small = ["vae.hidden=32", "vae.latent_dim=8", "vae.encoder_layers=1", "vae.decoder_layers=1",
+             "flow.hidden=32", "flow.cond_dim=16", "flow.time_dim=16", "flow.layers=1",
+             f"train.window={WINDOW}", "train.latent_stats_batches=1", "vae.root_weight=0.5"]
+    common = ["--config", "tiny", "--shards", str(shards), "--steps", "2", "--batch-size", "2",
+              "--device", "cpu", "--no-progress"]
+    sets = lambda extra: sum((["--set", s] for s in small + extra), [])  # noqa: E731
+    assert main(["--stage", "vae", "--out", str(base)] + common + sets([])) == 0
+    capsys.readouterr()
+
+    def flow(name: str, extra: list[str]) -> int:
+        (tmp_path / name).mkdir()
+        shutil.copy(base / "vae.pt", tmp_path / name / "vae.pt")
+        return main(["--stage", "flow", "--out", str(tmp_path / name)] + common + sets(extra))
+
+    assert flow("other_vae", ["vae.root_weight=0.25", "vae.beta=0.5"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(tmp_path / "other_vae" / "vae.pt") in err[0], err
+    assert "vae.root_weight=0.25 (it has 0.5)" in err[0] and "vae.beta=0.5" in err[0], err
+    assert not (tmp_path / "other_vae" / "flow.pt").exists()
+    assert flow("decoding", ["vae.foot_swing_frames=7"]) == 0, capsys.readouterr().err
+    written = read_model_file(tmp_path / "decoding" / MODEL_FILE)["config"]["vae"]
+    assert written["foot_swing_frames"] == 7 and written["root_weight"] == 0.5
+
+
 def test_phased_batches_take_the_first_steps_then_the_rest_and_close_the_first():
     from sarah_models.training.batches import phased_batches
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Collection, Mapping
 
 import torch
 import torch.distributed as dist
@@ -170,6 +170,24 @@ FINE_TUNE_FIELDS = {
              "streamed_context")}
 
 
+def _flow_run_config(config: RunConfig, stored_vae: Mapping[str, Any],
+                     vae_settings: Collection[str], path: Path) -> RunConfig:
+    """The flow stage's config: ``config`` with the VAE of ``path`` (see ``train``)."""
+    stored = RunConfig.from_dict({**config.to_dict(), "vae": stored_vae})
+    decoding = set(DECODING_FIELDS["vae"])
+    differ = {name: (getattr(config.vae, name), getattr(stored.vae, name))
+              for name in sorted(vae_settings)
+              if getattr(config.vae, name) != getattr(stored.vae, name)}
+    clash = [f"vae.{name}={wanted} (it has {has})" for name, (wanted, has) in differ.items()
+             if name not in decoding]
+    if clash:
+        raise ValueError(f"{path}: the flow stage trains on this VAE, and --set asks for "
+                         f"another: {', '.join(clash)}; train a VAE with it (--stage vae or "
+                         f"all), or leave it out")
+    return replace(stored, vae=replace(stored.vae, **{name: wanted for name, (wanted, _) in
+                                                      differ.items()}))
+
+
 def load_init_source(path: str | Path, stage: str) -> dict[str, Any]:
     """The weights ``--init-from`` names for ``stage``: a checkpoint, ``<folder>/<stage>.pt``, or
     a model file (``model.safetensors``, a shipped model included: both stages' weights)."""
@@ -217,7 +235,7 @@ def source_vae_checkpoint(source: Mapping[str, Any]) -> dict[str, Any]:
 
 def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir: str | Path,
           resume: bool = False, device: str | torch.device | None = None, *,
-          init_from: str | Path | None = None,
+          init_from: str | Path | None = None, vae_settings: Collection[str] = (),
           dataset: Dataset | None = None, stats: Mapping[str, Any] | None = None,
           progress: bool = True, echo: Callable[[str], None] = print) -> Path:
     """Train one stage into ``out_dir`` and return its checkpoint path.
@@ -230,7 +248,13 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
     weights start from it, while step count, optimizer and LR schedule start afresh, so loss
     weights, dropout and schedule may differ from the source run (the architecture may not).
     A VAE keeps the source's data statistics; a flow refits its latent statistics on this run's
-    VAE. The checkpoint records the source as ``init_from``."""
+    VAE. The checkpoint records the source as ``init_from``.
+
+    ``vae_settings`` names the VAE fields the caller set (``--set vae.*``). The flow stage takes
+    every other VAE field from ``vae.pt``; a named decoding field (DECODING_FIELDS) it takes
+    from ``config`` (it changes no weight), and a named field that would change the VAE is an
+    error unless ``vae.pt`` already has that value: silently training on another VAE than the
+    one asked for is the one outcome a user cannot see."""
     if stage not in STAGES:
         raise ValueError(f"unknown stage {stage!r}; choose from {STAGES}")
     if init_from is not None and resume:
@@ -303,7 +327,8 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
         if vae_ckpt["step"] < vae_ckpt["total_steps"] and info.is_main:
             echo(f"note: {out_dir / 'vae.pt'} stopped at step {vae_ckpt['step']} of "
                  f"{vae_ckpt['total_steps']}; the flow trains on that VAE")
-        run_config = RunConfig.from_dict({**config.to_dict(), "vae": vae_ckpt["config"]["vae"]})
+        run_config = _flow_run_config(config, vae_ckpt["config"]["vae"], vae_settings,
+                                      out_dir / "vae.pt")
         if tcfg.window % run_config.vae.stride:
             raise ValueError(f"window {tcfg.window} is not a multiple of the VAE stride "
                              f"{run_config.vae.stride}")
