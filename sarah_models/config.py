@@ -228,6 +228,11 @@ class FlowConfig:
     cond_dim: int = 256  # width of each modality's encoding before the input projection
     time_dim: int = 256  # sinusoidal embedding width of the flow time tau
     drop_prob: float = 0.05  # CFG: each modality dropped independently per sample
+    # Not in the paper (None = drop_prob, the paper): the gaze score's own drop rate. With g = none
+    # the flow samples from what it learned on the windows whose gaze was dropped, 5 % of them;
+    # a flow trained longer faces the user more there than the data does (docs/results.md,
+    # forty-first and forty-seventh runs), and this is the lever on that branch alone.
+    gaze_drop_prob: float | None = None
     min_denominator: float = 0.05  # velocity = (z1 - z_tau) / max(1 - tau, this)
     rope_base: float = 10_000.0
     # A learned embedding of each token's index in the stream (the paper's learned positional
@@ -281,6 +286,10 @@ class FlowConfig:
         if self.head_travel_seconds is not None and not self.head_travel_seconds > 0:
             raise ValueError(f"FlowConfig.head_travel_seconds must be > 0 or None, got "
                              f"{self.head_travel_seconds}")
+        for name in ("drop_prob", "gaze_drop_prob"):
+            value = getattr(self, name)
+            if value is not None and not 0.0 <= value <= 1.0:
+                raise ValueError(f"FlowConfig.{name} must be in [0, 1], got {value}")
         if self.difference_weight < 0:
             raise ValueError(f"FlowConfig.difference_weight must be >= 0, got "
                              f"{self.difference_weight}")

@@ -1,6 +1,7 @@
 """The causal flow matcher: inputs, CFG dropout, velocity, caching, and that it learns."""
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -10,7 +11,7 @@ from sarah_models.config import FlowConfig
 from sarah_models.nn.flow import MODALITIES, FlowModel, build_block_mask
 from sarah_models.nn.head_travel import head_travel
 from sarah_models.nn.layers import KVCache
-from sarah_models.sampling.guidance import sample_drop_mask
+from sarah_models.sampling.guidance import drop_probs, sample_drop_mask
 from sarah_models.sampling.path import velocity_from_x1
 from sarah_models.training.objectives import flow_matching_loss
 
@@ -99,6 +100,14 @@ def test_cfg_drop_rates_are_five_percent_and_independent(flow):
     assert torch.all((rates - 0.05).abs() < 0.005), rates
     both = (drop[:, 0] & drop[:, 3]).float().mean().item()
     assert abs(both - 0.05 * 0.05) < 0.0015
+    # flow.gaze_drop_prob: the gaze score's own rate, the others' unchanged, the same draws
+    config = replace(flow.config, gaze_drop_prob=0.3)
+    assert drop_probs(flow.config) == (0.05,) * 4 and drop_probs(config) == (0.05,) * 3 + (0.3,)
+    gaze = sample_drop_mask(40_000, drop_probs(config), torch.Generator().manual_seed(0))
+    assert torch.equal(gaze[:, :3], drop[:, :3]) and torch.all(gaze[:, 3] >= drop[:, 3])
+    assert abs(gaze[:, 3].float().mean().item() - 0.3) < 0.01
+    with pytest.raises(ValueError, match="gaze_drop_prob must be in"):
+        replace(flow.config, gaze_drop_prob=1.5)
 
 
 def test_velocity_matches_linear_path_and_is_clamped(flow):

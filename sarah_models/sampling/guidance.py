@@ -1,7 +1,7 @@
 """Classifier-free guidance (3.4): which modalities each branch drops, and how branches combine.
 
 Training drops each modality of ``MODALITIES`` independently with probability ``drop_prob``
-(``sample_drop_mask``); a dropped modality's encoding becomes its learned null vector. At
+(the gaze score with ``gaze_drop_prob`` where set: ``drop_probs``, ``sample_drop_mask``); a dropped modality's encoding becomes its learned null vector. At
 inference the conditional pass sees c = [p_y; a; b; g] with g the target gaze score on every
 frame; the unconditional pass is the same with the modalities of ``StreamConfig.guide`` dropped
 (default: all four, so w = 1.3 guides the conditioning as a whole, as in the paper; with
@@ -21,14 +21,24 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..config import FlowConfig
 from ..nn.flow import MODALITIES
 
 
-def sample_drop_mask(batch_size: int, drop_prob: float, generator: torch.Generator | None = None,
+def drop_probs(config: FlowConfig) -> tuple[float, ...]:
+    """Each modality's training drop rate in MODALITIES order: ``drop_prob``, the gaze score's
+    ``gaze_drop_prob`` where set."""
+    return tuple(config.gaze_drop_prob if name == "gaze" and config.gaze_drop_prob is not None
+                 else config.drop_prob for name in MODALITIES)
+
+
+def sample_drop_mask(batch_size: int, drop_prob: float | tuple[float, ...],
+                     generator: torch.Generator | None = None,
                      device: torch.device | str | None = None) -> Tensor:
-    """(B, 4) bool: each modality dropped independently with probability ``drop_prob``."""
+    """(B, 4) bool: each modality dropped independently with probability ``drop_prob`` (one
+    rate, or one per modality in MODALITIES order)."""
     u = torch.rand(batch_size, len(MODALITIES), generator=generator, device=device)
-    return u < drop_prob
+    return u < torch.as_tensor(drop_prob, dtype=u.dtype, device=u.device)
 
 
 def drop_masks(gaze: float | None, guide: tuple[str, ...], cfg_scale: float) -> Tensor:

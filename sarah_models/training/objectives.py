@@ -24,7 +24,7 @@ from ..config import STREAMED_TOKENS
 from ..nn.flow import FlowModel, build_block_mask
 from ..nn.normalizer import Normalizer
 from ..nn.vae import CausalVAE
-from ..sampling.guidance import sample_drop_mask
+from ..sampling.guidance import drop_probs, sample_drop_mask
 from ..sampling.path import interpolate
 
 
@@ -254,7 +254,7 @@ def flow_matching_loss(flow: FlowModel, z: Tensor, cond: Mapping[str, Tensor],
     tau = torch.rand(b, generator=generator, device=z.device)
     eps = torch.randn(z.shape, generator=generator, device=z.device, dtype=z.dtype)
     z_tau = interpolate(eps, z, tau[:, None, None].to(z.dtype))
-    drop = sample_drop_mask(b, flow.config.drop_prob, generator, z.device)
+    drop = sample_drop_mask(b, drop_probs(flow.config), generator, z.device)
     mask = None  # the model's own (``attention_window``)
     if flow.config.streamed_context > 0 and (
             torch.rand((), generator=generator, device=z.device) < flow.config.streamed_context):

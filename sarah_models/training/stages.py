@@ -166,7 +166,7 @@ def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
 FINE_TUNE_FIELDS = {
     "vae": ("beta", "velocity_weight", "acceleration_weight", "contact_weight", "head_weight",
             "spectral_weight", "latent_noise", "recon_units", *DECODING_FIELDS["vae"]),
-    "flow": ("drop_prob", "min_denominator", "difference_weight", "attention_window",
+    "flow": ("drop_prob", "gaze_drop_prob", "min_denominator", "difference_weight", "attention_window",
              "streamed_context")}
 
 
