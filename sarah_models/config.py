@@ -229,9 +229,10 @@ class FlowConfig:
     time_dim: int = 256  # sinusoidal embedding width of the flow time tau
     drop_prob: float = 0.05  # CFG: each modality dropped independently per sample
     # Not in the paper (None = drop_prob, the paper): the gaze score's own drop rate. With g = none
-    # the flow samples from what it learned on the windows whose gaze was dropped, 5 % of them;
-    # a flow trained longer faces the user more there than the data does (docs/results.md,
-    # forty-first and forty-seventh runs), and this is the lever on that branch alone.
+    # the flow samples from what it learned on the windows whose gaze was dropped, 5 % of them.
+    # On the fixture benchmark more of them did not undo what a longer-trained flow does there
+    # (faces the user in nearly every window): at 0.2 and 0.5 it faced the user more still, and
+    # the agent that should stand walked less (docs/results.md, forty-eighth run); no preset uses it.
     gaze_drop_prob: float | None = None
     min_denominator: float = 0.05  # velocity = (z1 - z_tau) / max(1 - tau, this)
     rope_base: float = 10_000.0
