@@ -747,13 +747,17 @@ def _write_shards(root: Path) -> None:
     compute_stats(root, window=WINDOW)
 
 
+# sarah-train --set for a model small enough to train in a test
+SMALL_CLI = ["vae.hidden=32", "vae.latent_dim=8", "vae.encoder_layers=1", "vae.decoder_layers=1",
+             "flow.hidden=32", "flow.cond_dim=16", "flow.time_dim=16", "flow.layers=1",
+             f"train.window={WINDOW}", "train.latent_stats_batches=1"]
+
+
 def test_cli_trains_both_stages_on_real_shards(tmp_path, capsys):
     shards, out = tmp_path / "shards", tmp_path / "run"
     shards.mkdir()
     _write_shards(shards)
-    small = ["vae.hidden=32", "vae.latent_dim=8", "vae.encoder_layers=1", "vae.decoder_layers=1",
-             "flow.hidden=32", "flow.cond_dim=16", "flow.time_dim=16", "flow.layers=1",
-             f"train.window={WINDOW}", "train.latent_stats_batches=1", "train.log_every=1"]
+    small = SMALL_CLI + ["train.log_every=1"]
     args = ["--stage", "all", "--config", "tiny", "--shards", str(shards), "--out", str(out),
             "--steps", "2", "--batch-size", "2", "--device", "cpu", "--no-progress"]
     assert main(args + sum((["--set", s] for s in small), [])) == 0, capsys.readouterr().err
@@ -784,9 +788,7 @@ def test_cli_flow_stage_refuses_vae_settings_its_vae_lacks_and_keeps_decoding_on
     shards, base = tmp_path / "shards", tmp_path / "base"
     shards.mkdir()
     _write_shards(shards)
-    small = ["vae.hidden=32", "vae.latent_dim=8", "vae.encoder_layers=1", "vae.decoder_layers=1",
-             "flow.hidden=32", "flow.cond_dim=16", "flow.time_dim=16", "flow.layers=1",
-             f"train.window={WINDOW}", "train.latent_stats_batches=1", "vae.root_weight=0.5"]
+    small = SMALL_CLI + ["vae.root_weight=0.5"]
     common = ["--config", "tiny", "--shards", str(shards), "--steps", "2", "--batch-size", "2",
               "--device", "cpu", "--no-progress"]
     sets = lambda extra: sum((["--set", s] for s in small + extra), [])  # noqa: E731
