@@ -19,7 +19,8 @@
 # DECODING_SETTINGS="--set vae.boundary_inertia=0 --set vae.root_inertia=0
 # --set vae.foot_swing_frames=8"; not the default, docs/results.md says why), VAE_SETTINGS the
 # VAE's (both of its stages; the forty-sixth run's: VAE_SETTINGS="--set vae.root_weight=0.05",
-# measured with that variant only). Stages are skipped
+# measured with that variant only; the forty-eighth run's adds FLOW_STEPS=7000, a 27-minute
+# recipe on the AVX2-only VM). Stages are skipped
 # once their folder has a .done marker, so an interrupted run resumes at the stage it stopped in (that
 # stage starts over). Every step is seeded (train.seed 0): the same code on the same thread count
 # and the same kind of CPU gives the same model file, whose sha256 is printed (another instruction
@@ -30,7 +31,7 @@
 # machine for the training time (2-core AMD EPYC VMs: 27.8 min of training on the AVX2-only one,
 # thirty-fourth run; 12.8 min on the one with AVX-512, thirty-seventh run; 11.7 with the
 # forty-third run's variant), then ~50 min for the
-# 29 offline tuning evaluations of trajectory imputation, ~10 min for its five test ones, ~42 min
+# 29 (now 33) offline tuning evaluations of trajectory imputation, ~10 min for its five test ones, ~42 min
 # for the ten streamed tuning evaluations of the paper's imputation and ~25 min for its ten
 # test ones (thirty-seventh run).
 set -euo pipefail
@@ -47,13 +48,16 @@ TUNE_SEED=${TUNE_SEED:-3}
 TUNE_GRID=${TUNE_GRID:-"1.0:1.3 0.7:0.7 0.7:0.6 0.7:0.5 0.6:0.6 0.6:0.5 0.6:0.4 0.5:0.6 0.5:0.5 0.5:0.4"}
 # ... and for streams with trajectory imputation, scored by the offline protocol: the same motion
 # (docs/models.md), in a quarter of the time (the thirty-eighth run's grid and, since the
-# forty-second run chose its highest CFG, two at 1.8; a third field is
-# sarah-eval's --guide, the modalities guidance drops, else all four)
+# forty-second run chose its highest CFG, two at 1.8; since the forty-eighth run, whose flow
+# faced the user in nearly every window until its guidance of the user's position was 2.5,
+# four guiding that at 2 to 3; a third field is sarah-eval's --guide, the modalities guidance
+# drops, else all four)
 TUNE_GRID_TRAJECTORY=${TUNE_GRID_TRAJECTORY:-"1.0:1.3 1.0:0.6 0.7:1.3 0.7:1.0 0.7:0.7 0.6:1.5
   0.6:1.3 0.6:1.2 0.6:1.1 0.6:1.0 0.6:0.8 0.6:0.6 0.6:0.5 0.5:1.5 0.5:1.3 0.5:1.1 0.5:0.5 0.4:1.3
   0.7:1.3:agent_audio,user_audio,gaze 0.6:1.3:agent_audio,user_audio,gaze
   0.7:1.5:user_head,gaze 0.7:1.3:user_head,gaze 0.6:1.5:user_head,gaze 0.6:1.3:user_head,gaze
-  0.6:1.1:user_head,gaze 0.5:1.3:user_head,gaze 0.5:1.1:user_head,gaze 0.7:1.8 0.6:1.8"}
+  0.6:1.1:user_head,gaze 0.5:1.3:user_head,gaze 0.5:1.1:user_head,gaze 0.7:1.8 0.6:1.8
+  0.6:2.5:user_head,gaze 0.5:2.0:user_head,gaze 0.5:2.5:user_head,gaze 0.5:3.0:user_head,gaze"}
 JOBS=${JOBS:-2}                      # prep workers, and evaluations run side by side
 VAE_SHORT_STEPS=${VAE_SHORT_STEPS:-2500}  # on 100-frame windows (~1/7 of a 400-frame step)
 VAE_LONG_STEPS=${VAE_LONG_STEPS:-150}     # then on 400-frame windows
