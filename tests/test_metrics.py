@@ -350,6 +350,26 @@ def test_evaluate_per_clip_metrics_are_category_means_and_weighted_average():
     assert table.values["fgd"].s == pytest.approx(0.0, abs=1e-6)
 
 
+def test_look_away_is_the_share_of_windows_whose_head_angle_is_below_a_half():
+    """Windows facing the user (score 1), turned 60-90 degrees off (0.26, 0) or away (-1): the
+    column is the share below 0.5 per category, which Head Ang.'s mean alone cannot tell from
+    an agent that half-faces the user everywhere."""
+    from sarah_models.evaluation.metrics.look_away import LOOK_AWAY_SCORE, looks_away
+
+    assert LOOK_AWAY_SCORE == 0.5 and (looks_away(0.49), looks_away(0.5), looks_away(0.9)) == (1.0, 0.0, 0.0)
+    rng = np.random.default_rng(3)
+    facings = [0.0, np.pi, np.pi / 2, 0.0, 1.31]  # scores 1, -1, 0, 1, 0.26
+    speaking = np.array([True, True, False, False, False])
+    table = evaluate([_random_clip(rng, facing=f) for f in facings],
+                     [_random_clip(rng, facing=0.0) for _ in facings], speaking, batch_clips=2)
+    away = table.values["look_away"]
+    assert (away.s, away.ns, away.avg) == (pytest.approx(0.5), pytest.approx(2 / 3), pytest.approx(0.6))
+    # half-facing the user in every window (Head Ang. 0.51) reads none looking away
+    half = evaluate([_random_clip(rng, facing=np.pi / 3 - 0.01) for _ in facings],
+                    [_random_clip(rng, facing=0.0) for _ in facings], speaking, batch_clips=2)
+    assert half.values["look_away"].avg == 0.0
+
+
 def test_evaluate_reports_centimetres_and_scales_rows():
     rng = np.random.default_rng(2)
     t = np.arange(12) / FPS

@@ -24,7 +24,8 @@ def head_angle(head_position, head_rotation, user_head_xz) -> float:
                                          np.asarray(as_numpy(user_head_xz), dtype=np.float64))))
 
 
-def _clip_head_angle(clip, config) -> float:
+def clip_head_angle(clip, config) -> float:
+    """Head Ang. of a decoded clip (``clips.DecodedClip``) toward its user."""
     positions, rotations = clip.joints
     head = JOINT[config.head_joint]
     return head_angle(positions[:, head], rotations[:, head], clip.clip.user_head)
@@ -32,4 +33,4 @@ def _clip_head_angle(clip, config) -> float:
 
 METRIC = Metric(name="head_angle", label="Head Ang.", kind="clip", order=50,
                 unit="gaze score in [-1, 1]", decimals=2, better="higher",
-                value_range=" ∈ [-1, 1]", function=_clip_head_angle)
+                value_range=" ∈ [-1, 1]", function=clip_head_angle)
