@@ -1,12 +1,13 @@
 """Classifier-free guidance (3.4): which modalities each branch drops, and how branches combine.
 
 Training drops each modality of ``MODALITIES`` independently with probability ``drop_prob``
-(the gaze score with ``gaze_drop_prob`` where set: ``drop_probs``, ``sample_drop_mask``); a dropped modality's encoding becomes its learned null vector. At
-inference the conditional pass sees c = [p_y; a; b; g] with g the target gaze score on every
-frame; the unconditional pass is the same with the modalities of ``StreamConfig.guide`` dropped
-(default: all four, so w = 1.3 guides the conditioning as a whole, as in the paper; with
-("gaze",) only gaze control is guided, and for g = None both passes would be identical, so no
-guidance at all was applied -- the former default). Then
+(the gaze score with ``gaze_drop_prob`` where set: ``drop_probs``, ``sample_drop_mask``); a
+dropped modality's encoding becomes its learned null vector. At inference the conditional pass
+sees c = [p_y; a; b; g] with g the target gaze score on every frame; the unconditional pass is
+the same with the modalities of ``StreamConfig.guide`` dropped (default: all four, so w = 1.3
+guides the conditioning as a whole, as in the paper; with ("gaze",) only gaze control is guided,
+and for g = None both passes would be identical, so no guidance at all was applied -- the former
+default). Then
 
     x1 = x1_uncond + w (x1_cond - x1_uncond),     w = cfg_scale (1.3)
 
