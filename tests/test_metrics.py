@@ -203,6 +203,36 @@ def test_pelvis_speed_counts_floor_motion_of_the_whole_body_only():
     assert pelvis_speed(gesturing) == 0.0
 
 
+def test_user_distance_and_radial_speed_tell_walking_around_the_user_from_walking_to_them():
+    """An agent walking a circle around a standing user keeps its distance and has no radial
+    speed; one walking straight at the user closes the distance at its full speed; the user's
+    own walking is not the agent's."""
+    from sarah_models.evaluation.metrics.radial_speed import radial_speed
+    from sarah_models.evaluation.metrics.user_distance import user_distance
+
+    frames_, speed, radius = 61, 1.0, 2.0
+    t = np.arange(frames_) / FPS
+    still, _ = _still_pose(frames_)
+    pelvis = still[0, JOINT["pelvis"], [0, 2]]
+    user = np.tile(pelvis + [0.0, radius], (frames_, 1))
+    angle = speed * t / radius  # around the user at 1 m/s
+    around = still + np.stack([radius * np.sin(angle), np.zeros(frames_),
+                               radius * (1 - np.cos(angle))], axis=1)[:, None]
+    assert user_distance(around, user) == pytest.approx(radius, rel=1e-9)
+    assert radial_speed(around, user) == pytest.approx(0.0, abs=0.02)
+    toward = still + np.outer(speed * t, [0.0, 0.0, 1.0])[:, None]  # 2 m straight at the user
+    assert user_distance(toward, user) == pytest.approx(radius - speed * t.mean(), rel=1e-9)
+    assert radial_speed(toward, user) == pytest.approx(speed, rel=1e-9)
+    walking_user = user + np.outer(t, [1.0, 0.0])  # the user walks, the agent stands
+    assert radial_speed(still, walking_user) == 0.0
+    # the user where the agent starts: no direction at the first step, which counts 0; the
+    # agent then walks straight away from the user
+    at_start = np.tile(pelvis, (frames_, 1))
+    assert radial_speed(toward, at_start) == pytest.approx(speed * (frames_ - 2) / (frames_ - 1), rel=1e-9)
+    with pytest.raises(ValueError, match="at least 2 frames"):
+        radial_speed(still[:1], user[:1])
+
+
 def test_acceleration_rms_tells_smooth_from_jittery_motion():
     from sarah_models.evaluation.metrics.acceleration_rms import acceleration_rms
 
