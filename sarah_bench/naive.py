@@ -15,6 +15,7 @@ from sarah_models.sampling.decoding import stream_decoding
 from sarah_models.sampling.guidance import drop_masks, guided
 from sarah_models.sampling.path import velocity_from_x1
 from sarah_models.sampling.solver import imputer, integrate, token_noise
+from sarah_models.sampling.stream import kept_history
 
 
 class NaiveStreamer:
@@ -43,7 +44,7 @@ class NaiveStreamer:
         self._decoding = stream_decoding(self.vae, self.normalizer)
 
     def _window(self, items: list) -> list:
-        keep = self.config.history_tokens
+        keep = kept_history(self.flow, self.config)
         return items if keep is None else items[len(items) - min(len(items), keep):]
 
     @torch.inference_mode()

@@ -16,14 +16,25 @@ def non_negative_int(text: str) -> int:
     return value
 
 
-def history_tokens(text: str) -> int | None:
-    """--history: latents of history a stream keeps, or 'all' (None: never drop any)."""
-    if text.strip().lower() in ("all", "none"):
+def history_tokens(text: str) -> int | str | None:
+    """--history: latents of history a stream keeps, 'all' (None: never drop any) or 'window'
+    (what one layer of the flow attends to beside the new token: config.HISTORY_WINDOW)."""
+    from sarah_models.config import HISTORY_WINDOW
+
+    word = text.strip().lower()
+    if word in ("all", "none"):
         return None
+    if word == HISTORY_WINDOW:
+        return HISTORY_WINDOW
     try:
         return non_negative_int(text)
     except argparse.ArgumentTypeError as error:
-        raise argparse.ArgumentTypeError(f"--history: {error} (or 'all')") from None
+        raise argparse.ArgumentTypeError(f"{error} (or 'all', or '{HISTORY_WINDOW}')") from None
+
+
+HISTORY_HELP = ("latents of history a stream keeps beside the new one: a number, 'all', or "
+                "'window': what one layer of the flow attends to (16 for a flow trained with a "
+                "17-token window; the paper's 2 for one without a window or the tiny preset's)")
 
 
 def guided_modalities(text: str) -> tuple[str, ...]:

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import (IMPUTATION_HELP, NOISE_SCALE_HELP, HelpFormatter,
+from sarah_cli.arguments import (HISTORY_HELP, IMPUTATION_HELP, NOISE_SCALE_HELP, HelpFormatter,
                                  add_model_arguments, guide_help, guided_modalities, history_tokens,
                                  noise_scale)
 
@@ -92,8 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--noise-scale", type=noise_scale, default=d.noise_scale,
                         help=NOISE_SCALE_HELP)
     parser.add_argument("--history", type=history_tokens, default=d.history_tokens,
-                        help="latents of history a stream keeps beside the new one (or 'all'; "
-                             "the paper keeps 2; the offline protocol ignores it)")
+                        help=HISTORY_HELP + "; the offline protocol ignores it")
     parser.add_argument("--guide", type=guided_modalities, default="all", help=guide_help())
     parser.add_argument("--imputation", choices=IMPUTATIONS, default=d.imputation,
                         help=IMPUTATION_HELP + "; the offline protocol ignores it")

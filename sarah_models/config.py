@@ -35,8 +35,20 @@ SOLVER_STEPS = 4
 IMPUTATIONS = ("final", "trajectory")
 GAZE_RANGE = (-1.0, 1.0)  # the gaze score is a cosine: targets outside cannot be reached
 HISTORY_TOKENS = 2  # latents of history the streaming flow sees beside the new one (A.3)
+# StreamConfig.history_tokens's default: as many latents as one layer of the flow attends to
+# beside the new one (its attention window less one; HISTORY_TOKENS, the paper's, for a flow
+# without a window). sampling.stream.kept_history resolves it.
+HISTORY_WINDOW = "window"
 STREAMED_TOKENS = HISTORY_TOKENS + 1  # what a streamed evaluation holds: the history and the new token
 TINY_WINDOW = 64  # the CPU preset's training window
+
+
+def check_history(history) -> None:
+    """ValueError unless ``history`` is a number of tokens >= 0, None (all) or HISTORY_WINDOW."""
+    if history is None or history == HISTORY_WINDOW:
+        return
+    if isinstance(history, bool) or not isinstance(history, int) or history < 0:
+        raise ValueError(f"history_tokens must be >= 0, None (all) or {HISTORY_WINDOW!r}, got {history!r}")
 
 
 def check_gaze(gaze: float | None) -> None:
@@ -525,7 +537,11 @@ def _parse_value(current: Any, raw: str, text: str) -> Any:
 class StreamConfig:
     """Inference settings; defaults are the paper's (A.3 and Tab. 2)."""
 
-    history_tokens: int | None = HISTORY_TOKENS  # latents kept as history (None: never drop any)
+    # Latents kept as history: a number, None (never drop any) or HISTORY_WINDOW: what one layer
+    # of the flow attends to beside the new token, so a flow trained with a window of 17 tokens
+    # streams with 16 (with 2 it wanders; docs/results.md, forty-ninth run) and the paper's
+    # (no window) and the tiny preset's (a window of 3) with the paper's 2.
+    history_tokens: int | str | None = HISTORY_WINDOW
     # "final" (the paper) or "trajectory" (the stream equals offline generation), IMPUTATIONS
     imputation: str = "final"
     steps: int = SOLVER_STEPS  # solver steps (midpoint: 2 network evaluations each)
@@ -546,8 +562,7 @@ class StreamConfig:
     def __post_init__(self) -> None:
         from .nn.flow import MODALITIES
 
-        if self.history_tokens is not None and self.history_tokens < 0:
-            raise ValueError(f"history_tokens must be >= 0 or None, got {self.history_tokens}")
+        check_history(self.history_tokens)
         if self.steps < 1:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
         if self.solver not in SOLVERS:

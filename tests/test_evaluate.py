@@ -204,17 +204,20 @@ def test_streaming_protocol_and_subset_of_methods(tiny, tmp_path):
 
 
 def test_history_sets_what_a_stream_keeps(tiny, tmp_path):
-    """--history: the streamed model row keeps that many latents of history (the paper's 2 by
-    default, not named in the caption); another number, or 'all', changes the motion and is named."""
+    """--history: the streamed model row keeps that many latents of history (by default what
+    the flow's attention window holds, the paper's 2 for the tiny preset, recorded as the number
+    and not named in the caption); another number, or 'all', changes the motion and is named."""
     rows, captions = {}, {}
-    for history in ("2", "0", "all"):
+    for history in ("window", "2", "0", "all"):
         out = tmp_path / history
         assert main(eval_args(tiny, out, "--methods", "gt,model", "--gaze", "none",
                               "--protocol", "stream", "--history", history)) == 0
         t1 = json.loads((out / "table1.json").read_text())
         rows[history], captions[history] = t1["rows"][1]["shown"], t1["caption"]
-        assert t1["settings"]["history_tokens"] == (None if history == "all" else int(history))
-    assert "history" not in captions["2"]
+        expected = {"all": None, "window": 2}[history] if history in ("all", "window") else int(history)
+        assert t1["settings"]["history_tokens"] == expected
+    assert "history" not in captions["2"] and "history" not in captions["window"]
+    assert rows["window"] == rows["2"]
     assert "stream protocol (history: 0 tokens)" in captions["0"]
     assert "stream protocol (history: all tokens)" in captions["all"]
     assert rows["0"]["fgd_local/avg"] != rows["2"]["fgd_local/avg"]

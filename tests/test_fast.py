@@ -36,7 +36,7 @@ from sarah_models.config import RunConfig, StreamConfig
 from sarah_models.nn.layers import KVCache, RopeAngles
 from sarah_models.nn.streams import independent_streams, stream_groups
 from sarah_models.sampling.solver import time_grid
-from sarah_models.sampling.stream import StreamingGenerator
+from sarah_models.sampling.stream import StreamingGenerator, kept_history
 from sarah_models.testing import random_models, stream_deviation, stream_inputs, without_foot_lock
 from sarah_models.training.checkpoint import LoadedModels
 
@@ -74,7 +74,8 @@ def test_fp32_mode_is_exact_and_fully_precomputed(tiny):
     assert [m.misses for m in time] == misses
     assert all(m.hits > 0 for m in time)
     # Rotary angles: computed once per context length (1, 2, then 3 tokens), then looked up.
-    assert all(m.misses == StreamConfig().history_tokens + 1 and m.hits > m.misses for m in rope)
+    kept = kept_history(tiny[1], StreamConfig())
+    assert all(m.misses == kept + 1 and m.hits > m.misses for m in rope)
 
 
 def test_optimized_copies_leave_the_originals_alone(tiny):

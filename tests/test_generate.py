@@ -161,7 +161,7 @@ def test_one_line_errors(run_dir, raw, tmp_path, capsys):
         assert words in _error(capsys, raw_args(run_dir, dict(raw, traj=bad), out))
     with pytest.raises(SystemExit):
         main(raw_args(run_dir, raw, out, "--history", "abc"))
-    assert "--history: expected a whole number, got 'abc' (or 'all')" in capsys.readouterr().err
+    assert "--history: expected a whole number, got 'abc' (or 'all', or 'window')" in capsys.readouterr().err
     assert not out.exists()
 
 

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from sarah_data import icosahedron
 from sarah_data.constants import NUM_JOINTS, SAMPLES_PER_FRAME
 from sarah_data.frames import rotation_about_y, window_transform
-from sarah_models.config import RunConfig, StreamConfig
+from sarah_models.config import HISTORY_WINDOW, RunConfig, StreamConfig
 from sarah_models.nn.flow import MODALITIES
 from sarah_models.sampling.decoding import stream_decoding
 from sarah_models.sampling.guidance import drop_masks
@@ -22,6 +22,7 @@ from sarah_models.sampling.stream import (
     StreamingGenerator,
     StreamingSession,
     generate_offline,
+    kept_history,
     offline_with_latents,
     push_together,
     solve,
@@ -250,6 +251,30 @@ def test_trajectory_imputation_with_unbounded_attention_keeps_what_it_is_told():
     assert np.abs(two[3 * S:] - offline[3 * S:]).max() > 1e-4
     with pytest.raises(ValueError, match="imputation"):
         StreamConfig(imputation="straight")
+
+
+def test_the_default_history_is_what_one_layer_of_the_flow_attends_to():
+    """StreamConfig's default keeps the latents one layer of the flow attends to beside the new
+    token: 16 for a flow trained with a 17-token window (with the paper's 2 such a flow wanders,
+    docs/results.md, forty-ninth run), the paper's 2 for the tiny preset's window of 3 and for a
+    flow without a window. A number is kept as given; trajectory imputation keeps the whole
+    reach of the stacked windows."""
+    flows = {window: random_models("tiny", 8, SHELL, 0, overrides=(f"flow.attention_window={window}",))[1]
+             for window in (None, 3, 17)}
+    assert StreamConfig().history_tokens == HISTORY_WINDOW
+    assert {w: kept_history(f, StreamConfig()) for w, f in flows.items()} == {None: 2, 3: 2, 17: 16}
+    assert {w: kept_history(f, StreamConfig(history_tokens=5)) for w, f in flows.items()} == {None: 5, 3: 5, 17: 5}
+    assert kept_history(flows[17], StreamConfig(imputation="trajectory")) == flows[17].context_tokens - 1 == 32
+    for bad in ("windows", True, 2.0, -1):
+        with pytest.raises(ValueError, match="history_tokens"):
+            StreamConfig(history_tokens=bad)
+    # the stream keeps that many: by default a 6-token window streams as --history 5 does
+    models = random_models("tiny", 8, SHELL, 0, motion_std=0.02, init_std=0.05, audio_mean=0.0,
+                           audio_std=1.0, latent_mean_std=0.1, overrides=("flow.attention_window=6",))
+    inputs = make_inputs(S * 12)
+    default = stream(models, inputs, StreamConfig())
+    np.testing.assert_array_equal(default, stream(models, inputs, StreamConfig(history_tokens=5)))
+    assert np.abs(default - stream(models, inputs, StreamConfig(history_tokens=2))).max() > 1e-4
 
 
 def test_two_frame_tokens_stream_causally_and_as_the_offline_solve():

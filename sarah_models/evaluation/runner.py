@@ -50,8 +50,9 @@ from sarah_data.atomic import atomic_write_text
 from sarah_data.constants import FPS
 from sarah_data.skeleton import MotionLayout
 
-from ..config import (CFG_SCALE, HISTORY_TOKENS, IMPUTATIONS, NOISE_SCALE, SOLVER_STEPS, STRIDE,
-                      WINDOW, StreamConfig, check_gaze, check_noise_scale)
+from ..config import (CFG_SCALE, HISTORY_TOKENS, HISTORY_WINDOW, IMPUTATIONS, NOISE_SCALE,
+                      SOLVER_STEPS, STRIDE, WINDOW, StreamConfig, check_gaze, check_history,
+                      check_noise_scale)
 from .metrics import (
     FrechetRidgeWarning,
     MetricsConfig,
@@ -102,7 +103,7 @@ class EvalConfig:
     cfg_scale: float = CFG_SCALE
     noise_scale: float = NOISE_SCALE  # temperature of the model's starting noise (StreamConfig)
     # Streamed latents kept as history (None: all). The offline protocol has none to drop.
-    history_tokens: int | None = HISTORY_TOKENS
+    history_tokens: int | str | None = HISTORY_WINDOW
     protocol: str = "stream"  # what users run; "offline" is the paper's fps protocol
     imputation: str = StreamConfig.imputation  # a stream's history ("final": the paper's eq. 4)
     # modalities guidance's unconditional pass drops (StreamConfig.guide; all four: the paper)
@@ -141,8 +142,10 @@ class EvalConfig:
             raise EvalError(f"--noise-scale: {error}") from None
         if not self.jitter_mm >= 0:
             raise EvalError(f"--jitter-mm must be >= 0, got {self.jitter_mm}")
-        if self.history_tokens is not None and self.history_tokens < 0:
-            raise EvalError(f"--history must be >= 0 or 'all', got {self.history_tokens}")
+        try:
+            check_history(self.history_tokens)
+        except ValueError as error:
+            raise EvalError(f"--history: {error}") from None
         for g in (*self.gaze, self.table1_gaze):
             try:
                 check_gaze(g)
@@ -307,6 +310,11 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
     shards, out = Path(shards), Path(out)
     run = None if run is None else Path(run)
     models = _load_model(run, config) if "model" in config.methods else None
+    if models is not None and config.history_tokens == HISTORY_WINDOW:
+        from ..sampling.stream import kept_history  # the number the tables state
+
+        config = replace(config, history_tokens=kept_history(
+            models.flow, StreamConfig(history_tokens=HISTORY_WINDOW, imputation="final")))
     vae_models = None
     if "vae" in config.methods or "decoded" in config.methods:
         method = "vae" if "vae" in config.methods else "decoded"

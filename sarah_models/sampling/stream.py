@@ -47,7 +47,7 @@ from torch import Tensor
 from sarah_data.frames import WindowTransform
 from sarah_data.skeleton import MotionLayout
 
-from ..config import StreamConfig, check_gaze
+from ..config import HISTORY_TOKENS, HISTORY_WINDOW, StreamConfig, check_gaze
 from ..nn.flow import FlowModel
 from ..nn.head_travel import TravelState
 from ..nn.normalizer import Normalizer
@@ -93,11 +93,16 @@ def solve(flow: FlowModel, cond_tokens: Tensor, noise: Tensor, known: Tensor | N
 
 
 def kept_history(flow: FlowModel, config: StreamConfig) -> int | None:
-    """How many history tokens a stream keeps (None: all): ``config.history_tokens``, but with
-    trajectory imputation and windowed attention exactly what the flow's attention reaches, so
-    that the stream equals the offline solve at a bounded cost."""
+    """How many history tokens a stream keeps (None: all). With trajectory imputation and
+    windowed attention exactly what the flow's attention reaches, so that the stream equals the
+    offline solve at a bounded cost; otherwise ``config.history_tokens``, where HISTORY_WINDOW
+    is what one layer of the flow attends to beside the new token (the paper's 2 without a
+    window): the context the flow was trained to read."""
     if config.imputation == "trajectory" and flow.context_tokens is not None:
         return flow.context_tokens - 1
+    if config.history_tokens == HISTORY_WINDOW:
+        window = flow.config.attention_window
+        return HISTORY_TOKENS if window is None else window - 1
     return config.history_tokens
 
 
@@ -172,7 +177,7 @@ class StreamingGenerator:
     """Generates the agent's motion causally, one block of s frames per ``step``.
 
     Only past and current inputs are used: ``step`` sees the chunk it is given and what earlier
-    calls gave. The flow's context is the last ``history_tokens`` latents plus the new one.
+    calls gave. The flow's context is the last ``kept_history(flow, config)`` latents plus the new one.
     """
 
     def __init__(self, vae: CausalVAE, flow: FlowModel, normalizer: Normalizer,
