@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 import typing
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Mapping, Sequence, TypeVar
@@ -47,7 +48,7 @@ def check_history(history) -> None:
     """ValueError unless ``history`` is a number of tokens >= 0, None (all) or HISTORY_WINDOW."""
     if history is None or history == HISTORY_WINDOW:
         return
-    if isinstance(history, bool) or not isinstance(history, int) or history < 0:
+    if isinstance(history, bool) or not isinstance(history, numbers.Integral) or history < 0:
         raise ValueError(f"history_tokens must be >= 0, None (all) or {HISTORY_WINDOW!r}, got {history!r}")
 
 

@@ -502,7 +502,7 @@ def _history_note(config: EvalConfig) -> str:
         return ""
     if config.imputation == "trajectory":
         return " (trajectory imputation)"
-    if config.history_tokens == HISTORY_TOKENS:
+    if config.history_tokens in (HISTORY_TOKENS, HISTORY_WINDOW):  # the latter: no model to ask
         return ""
     return " (history: all tokens)" if config.history_tokens is None else (
         f" (history: {config.history_tokens} tokens)")
