@@ -230,9 +230,10 @@ def test_shard_window_end_to_end(run_dir, shards, tmp_path, capsys):
     # The real agent of the same window is measured beside the generated one.
     line = next(line for line in capsys.readouterr().out.splitlines()
                 if line.startswith("generated motion:"))
-    for name in ("gaze score", "foot slide", "wrist speed", "pelvis speed", "bone length"):
+    for name in ("gaze score", "foot slide", "wrist speed", "pelvis speed", "user distance",
+                 "radial speed", "bone length"):
         assert name in line
-    assert line.count("(ground truth") == 5
+    assert line.count("(ground truth") == 7
     data = np.load(out / "motion.npz")
     assert data["icosahedra"].shape[0] == 16  # rounded down to whole blocks of 4
     np.testing.assert_array_equal(data["user_head"], user.head[4:20])

@@ -81,21 +81,27 @@ def motion_figures(positions: np.ndarray, rotations: np.ndarray, user_head: np.n
                    gaze: np.ndarray | None = None) -> dict[str, float]:
     """What a person sees first in a clip, by the evaluation's own metrics: the mean gaze score
     toward the user (``gaze``, the per-frame scores, when already computed), foot slide, wrist
-    and pelvis speed (cm/s: how much it gestures and walks) and bone-length error (p95, %)."""
+    and pelvis speed (cm/s: how much it gestures and walks), the distance it keeps from the user
+    and how fast it walks toward or away from them (cm, cm/s) and bone-length error (p95, %)."""
     from ..evaluation.metrics import foot_slide, wrist_speed
     from ..evaluation.metrics.bone_length import bone_length_error
     from ..evaluation.metrics.pelvis_speed import pelvis_speed
+    from ..evaluation.metrics.radial_speed import radial_speed
+    from ..evaluation.metrics.user_distance import user_distance
 
     if gaze is None:
         gaze = head_gaze(positions, rotations, user_head)
     return {"gaze score": float(gaze.mean()),
             "foot slide": foot_slide(positions), "wrist speed": wrist_speed(positions) * 100.0,
             "pelvis speed": pelvis_speed(positions) * 100.0,
+            "user distance": user_distance(positions, user_head) * 100.0,
+            "radial speed": radial_speed(positions, user_head) * 100.0,
             "bone length": bone_length_error(positions)}
 
 
 FIGURE_FORMATS = {"gaze score": "{:.3f}", "foot slide": "{:.3f}", "wrist speed": "{:.1f} cm/s",
-                  "pelvis speed": "{:.1f} cm/s", "bone length": "{:.1f} % (p95)"}
+                  "pelvis speed": "{:.1f} cm/s", "user distance": "{:.0f} cm",
+                  "radial speed": "{:.1f} cm/s", "bone length": "{:.1f} % (p95)"}
 
 
 @dataclass
