@@ -311,10 +311,9 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
     run = None if run is None else Path(run)
     models = _load_model(run, config) if "model" in config.methods else None
     if models is not None and config.history_tokens == HISTORY_WINDOW:
-        from ..sampling.stream import kept_history  # the number the tables state
+        from ..sampling.stream import window_history  # the number the tables state
 
-        config = replace(config, history_tokens=kept_history(
-            models.flow, StreamConfig(history_tokens=HISTORY_WINDOW, imputation="final")))
+        config = replace(config, history_tokens=window_history(models.flow))
     vae_models = None
     if "vae" in config.methods or "decoded" in config.methods:
         method = "vae" if "vae" in config.methods else "decoded"

@@ -92,6 +92,13 @@ def solve(flow: FlowModel, cond_tokens: Tensor, noise: Tensor, known: Tensor | N
         return integrate(velocity, noise, impute, config, trace)
 
 
+def window_history(flow: FlowModel) -> int:
+    """The history HISTORY_WINDOW stands for: what one layer of the flow attends to beside the
+    new token (its attention window less one), the paper's 2 for a flow without a window."""
+    window = flow.config.attention_window
+    return HISTORY_TOKENS if window is None else window - 1
+
+
 def kept_history(flow: FlowModel, config: StreamConfig) -> int | None:
     """How many history tokens a stream keeps (None: all). With trajectory imputation and
     windowed attention exactly what the flow's attention reaches, so that the stream equals the
@@ -101,8 +108,7 @@ def kept_history(flow: FlowModel, config: StreamConfig) -> int | None:
     if config.imputation == "trajectory" and flow.context_tokens is not None:
         return flow.context_tokens - 1
     if config.history_tokens == HISTORY_WINDOW:
-        window = flow.config.attention_window
-        return HISTORY_TOKENS if window is None else window - 1
+        return window_history(flow)
     return config.history_tokens
 
 

@@ -22,6 +22,11 @@ def as_numpy(x) -> np.ndarray:
     return np.asarray(x)
 
 
+def floor_path(joint_positions, root_joint: str = "pelvis") -> np.ndarray:
+    """(T, 2) horizontal (x, z) positions of ``root_joint`` from (T, J, 3) joint positions, float64."""
+    return np.asarray(as_numpy(joint_positions), dtype=np.float64)[:, JOINT[root_joint]][:, [0, 2]]
+
+
 def step_lengths(points) -> np.ndarray:
     """How far each point moves in each frame step: (T, ..., D) -> (T-1, ...), in its units."""
     return np.linalg.norm(np.diff(np.asarray(as_numpy(points), dtype=np.float64), axis=0), axis=-1)

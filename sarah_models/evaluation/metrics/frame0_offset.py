@@ -9,15 +9,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from sarah_data.constants import JOINT
-
+from .clips import floor_path
 from .spec import Metric
 
 
 def frame0_offset(joint_positions, root_joint: str = "pelvis") -> float:
     """Horizontal (x, z) distance of the root joint at frame 0 from the origin, metres."""
-    p = np.asarray(joint_positions, dtype=np.float64)
-    return float(np.linalg.norm(p[0, JOINT[root_joint], [0, 2]]))
+    return float(np.linalg.norm(floor_path(joint_positions, root_joint)[0]))
 
 
 METRIC = Metric(name="frame0_offset", label="Frame-0 Off.", kind="clip", order=70,

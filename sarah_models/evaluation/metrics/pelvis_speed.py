@@ -9,16 +9,15 @@ GT's, paired by window: the closer the better.
 
 from __future__ import annotations
 
-from sarah_data.constants import FPS, JOINT
+from sarah_data.constants import FPS
 
-from .clips import as_numpy, mean_speed
+from .clips import floor_path, mean_speed
 from .spec import Metric
 
 
 def pelvis_speed(joint_positions, fps: float = FPS, root_joint: str = "pelvis") -> float:
     """Mean horizontal (x, z) speed of the root joint over all frame steps, m/s."""
-    floor = as_numpy(joint_positions)[:, JOINT[root_joint]][:, [0, 2]]
-    return mean_speed(floor, fps, "pelvis_speed")
+    return mean_speed(floor_path(joint_positions, root_joint), fps, "pelvis_speed")
 
 
 METRIC = Metric(name="pelvis_speed", label="Pelvis Speed", kind="clip", order=45, unit="{u}/s",

@@ -15,16 +15,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from sarah_data.constants import FPS, JOINT
+from sarah_data.constants import FPS
 
-from .clips import as_numpy
+from .clips import as_numpy, floor_path
 from .spec import Metric
 
 
 def radial_speed(joint_positions, user_head_xz, fps: float = FPS, root_joint: str = "pelvis") -> float:
     """Mean |v . r| (m/s) of the root's horizontal velocity v on the unit vector r toward the
     user's head at the start of each frame step; a step taken on top of the user counts 0."""
-    root = np.asarray(as_numpy(joint_positions), dtype=np.float64)[:, JOINT[root_joint]][:, [0, 2]]
+    root = floor_path(joint_positions, root_joint)
     user = np.asarray(as_numpy(user_head_xz), dtype=np.float64)
     if len(root) < 2:
         raise ValueError(f"radial_speed needs at least 2 frames, got {len(root)}")

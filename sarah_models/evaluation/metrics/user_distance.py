@@ -11,17 +11,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from sarah_data.constants import JOINT
-
-from .clips import as_numpy
+from .clips import as_numpy, floor_path
 from .spec import Metric
 
 
 def user_distance(joint_positions, user_head_xz, root_joint: str = "pelvis") -> float:
     """Mean horizontal distance (m) between the root joint and the user's head over frames."""
-    root = np.asarray(as_numpy(joint_positions), dtype=np.float64)[:, JOINT[root_joint]][:, [0, 2]]
     user = np.asarray(as_numpy(user_head_xz), dtype=np.float64)
-    return float(np.mean(np.linalg.norm(root - user, axis=1)))
+    return float(np.mean(np.linalg.norm(floor_path(joint_positions, root_joint) - user, axis=1)))
 
 
 METRIC = Metric(name="user_distance", label="User Dist.", kind="clip", order=46, unit="{u}",
