@@ -295,6 +295,14 @@ class FlowConfig:
     # runs). A running mean carries it at a constant cost, streamed exactly as offline. On the
     # fixtures it tells the roles apart but the agent walks as much; no preset uses it.
     head_travel_seconds: float | None = None
+    # Not in the paper (False = the paper): the user's head as seen from where the agent stands,
+    # its floor (x, z) less the agent's pelvis at the end of the previous block, in metres
+    # (``nn/user_offset.py``), beside the window-frame position the user_head encoder reads.
+    # Where the agent stands now is only in its latents, so a walking agent cannot tell which way
+    # goes around its user; on the fixtures it walked as much toward the user as around them
+    # (data: 0.17 against 0.97 m/s, forty-ninth run). Generation then decodes block by block,
+    # offline too, since each block reads where the decoded agent stands.
+    user_relative: bool = False
 
     def __post_init__(self) -> None:
         if self.head_travel_seconds is not None and not self.head_travel_seconds > 0:

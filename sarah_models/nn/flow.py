@@ -13,7 +13,8 @@ index in the stream, tells the first token -- the agent at the window origin -- 
 streaming passes each block's stream index, so it sees what offline generation sees). Not in
 the paper, the user_head encoder may also read the head's velocity inside the block
 (``head_velocity``) and the user's running mean head speed (``head_travel_seconds``,
-``nn/head_travel.py``, which a stream carries from block to block). Flow time tau enters
+``nn/head_travel.py``, which a stream carries from block to block) and the user's head as
+seen from where the agent stands (``user_relative``, ``nn/user_offset.py``). Flow time tau enters
 every block via AdaLN-Zero, from a sinusoidal embedding and an MLP. Attention over blocks is
 causal (``build_block_mask``).
 
@@ -91,6 +92,8 @@ class FlowModel(nn.Module):
             widths["user_head"] += (stride - 1) * self.dims["user_head"]
         if config.head_travel_seconds is not None:
             widths["user_head"] += stride
+        if config.user_relative:
+            widths["user_head"] += stride * self.dims["user_head"]
         self.encoders = nn.ModuleDict({
             name: nn.Sequential(nn.Linear(width, c), nn.SiLU(), nn.Linear(c, c))
             for name, width in widths.items()})
@@ -116,7 +119,7 @@ class FlowModel(nn.Module):
         return None if window is None else self.config.layers * (window - 1) + 1
 
     def _stack(self, name: str, value: Tensor, num_blocks: int | None,
-               travel: Tensor | None = None) -> Tensor:
+               travel: Tensor | None = None, offset: Tensor | None = None) -> Tensor:
         if name == "gaze" and value.dim() == 2:
             value = value[..., None]
         b, t, d = value.shape
@@ -139,6 +142,14 @@ class FlowModel(nn.Module):
                 raise ValueError(f"head_travel has shape {tuple(travel.shape)}, expected "
                                  f"({b}, {t}, 1)")
             stacked = torch.cat([stacked, travel.reshape(b, t // self.stride, self.stride)], -1)
+        if name == "user_head" and self.config.user_relative:
+            if offset is None:
+                raise KeyError("conditioning is missing 'user_offset' (flow.user_relative: the "
+                               "user's head less where the agent stands, nn/user_offset.py)")
+            if offset.shape != value.shape:
+                raise ValueError(f"user_offset has shape {tuple(offset.shape)}, expected "
+                                 f"{tuple(value.shape)}")
+            stacked = torch.cat([stacked, offset.reshape(b, t // self.stride, -1)], -1)
         return stacked
 
     def encode_condition(self, cond: Mapping[str, Tensor], drop_mask: Tensor | None = None,
@@ -149,7 +160,8 @@ class FlowModel(nn.Module):
         cond: user_head (B,T,2), agent_audio and user_audio (B,T,Da), gaze (B,T) or (B,T,1),
         all standardized; T = K*s; with ``head_travel_seconds``, optionally head_travel (B,T,1)
         (``nn/head_travel.py``, carried by a stream past its first block; without it the
-        frames are a stream's first). drop_mask (B, 4) bool in ``MODALITIES`` order.
+        frames are a stream's first); with ``user_relative``, user_offset (B,T,2) in metres
+        (``nn/user_offset.py``). drop_mask (B, 4) bool in ``MODALITIES`` order.
         first_token: the stream index of the first block (its position embedding; dropping
         modalities never drops the position), or ``positions`` (K,) every block's index."""
         missing = [m for m in MODALITIES if m not in cond]
@@ -158,7 +170,7 @@ class FlowModel(nn.Module):
         parts = []
         for i, name in enumerate(MODALITIES):
             enc = self.encoders[name](self._stack(name, cond[name], num_blocks,
-                                                  cond.get("head_travel")))
+                                                  cond.get("head_travel"), cond.get("user_offset")))
             if drop_mask is not None:
                 enc = torch.where(drop_mask[:, i, None, None], self.nulls[name].to(enc.dtype), enc)
             parts.append(enc)

@@ -37,7 +37,7 @@ stay near their start); streams that wander far from the anchor leave the traini
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -52,6 +52,7 @@ from ..nn.flow import FlowModel
 from ..nn.head_travel import TravelState
 from ..nn.normalizer import Normalizer
 from ..nn.streams import independent_streams
+from ..nn.user_offset import pelvis_floor, user_offset
 from ..nn.vae import CausalVAE
 from .decoding import StreamDecoding, stream_decoding
 from .guidance import combine, drop_masks
@@ -142,8 +143,10 @@ class _Models:
         self.audio_keys = {k: normalizer.stats_key(k) for k in ("agent_audio", "user_audio")}
 
     def condition(self, user_head, agent_audio, user_audio, gaze: float | None,
-                  frames: int | None) -> dict[str, Tensor]:
-        """Standardized model inputs (1, T, .) from world-frame user head and raw features."""
+                  frames: int | None, place: Tensor | None = None) -> dict[str, Tensor]:
+        """Standardized model inputs (1, T, .) from world-frame user head and raw features;
+        with ``flow.user_relative`` also user_offset, the head less ``place`` (2,), where the
+        agent stands in the generation frame as these frames begin (one block of them)."""
         head = _as_tensor(user_head, (2,), "user_head", frames)
         t = head.shape[0]
         a = _as_tensor(agent_audio, (self.audio_dim,), "agent_audio", t)
@@ -156,6 +159,12 @@ class _Models:
                 "user_audio": nz.normalize(self.audio_keys["user_audio"], b.to(self.device)),
                 "gaze": torch.full((t, 1), 0.0 if gaze is None else float(gaze),
                                    device=self.device)}
+        if self.flow.config.user_relative:
+            if place is None or t != self.stride:
+                raise ValueError("a flow that reads where its agent stands (flow.user_relative) "
+                                 "takes one block at a time, with the agent's place")
+            starts = place.reshape(1, 1, 2).to(self.device)
+            cond["user_offset"] = user_offset(head.to(self.device)[None], starts, self.stride)[0]
         return {k: v[None] for k, v in cond.items()}
 
     def cond_tokens(self, cond: Mapping[str, Tensor], gaze: float | None,
@@ -168,10 +177,13 @@ class _Models:
         """A new stream's decoding (seams, skeleton, feet: as the VAE config asks)."""
         return stream_decoding(self.vae, self.normalizer)
 
-    def to_world(self, motion: Tensor, decoding: StreamDecoding) -> np.ndarray:
-        """Standardized decoder output, the stream's next T frames (T, Dx) -> world-frame motion
-        vector (T, Dx) float32, through the stream's ``decoding``."""
-        x = decoding(self.normalizer.denormalize("motion", motion).double().cpu().numpy())
+    def decode(self, motion: Tensor, decoding: StreamDecoding) -> np.ndarray:
+        """Standardized decoder output, the stream's next T frames (T, Dx) -> motion in the
+        generation frame (T, Dx) float64, through the stream's ``decoding``."""
+        return decoding(self.normalizer.denormalize("motion", motion).double().cpu().numpy())
+
+    def to_world(self, x: np.ndarray) -> np.ndarray:
+        """Generation-frame motion (T, Dx) -> world-frame motion vector (T, Dx) float32."""
         points = self.anchor.invert_points(x.reshape(x.shape[0], -1, 3))
         return points.reshape(x.shape).astype(np.float32)
 
@@ -221,6 +233,7 @@ class StreamingGenerator:
         window = None if keep is None else keep + 1
         self._cond: deque[Tensor] = deque(maxlen=window)  # per block (2, 1, hidden), padded
         self._carried: TravelState | None = None  # what the flow carries across blocks
+        self._place = torch.zeros(2)  # the decoded pelvis's floor (x, z) in the generation frame
         self._decoder = self._m.vae.new_decoder_cache(cfg.decoder_blocks(self._m.vae.stride))
         self._decoding = self._m.decoding()
         self.frames_generated = 0
@@ -242,7 +255,8 @@ class StreamingGenerator:
         the input); the stream's state is left as it was."""
         m = self._m
         cond, carried = m.flow.carry_condition(
-            m.condition(user_head, agent_audio, user_audio, self.gaze, m.stride), self._carried)
+            m.condition(user_head, agent_audio, user_audio, self.gaze, m.stride, self._place),
+            self._carried)
         return BlockCondition(
             m.cond_tokens(cond, self.gaze, first_token=self.frames_generated // m.stride), carried)
 
@@ -274,9 +288,11 @@ class StreamingGenerator:
             if states is None:
                 raise ValueError("trajectory imputation needs the new token's solver states")
             self._states.append(states)
-        frames = m.vae.decoder_step(m.latent_for_decoder(z)[None], self._decoder)[0]
+        frames = m.decode(m.vae.decoder_step(m.latent_for_decoder(z)[None], self._decoder)[0],
+                          self._decoding)
+        self._place = pelvis_floor(torch.from_numpy(frames[-1:]))[0].float()
         self.frames_generated += m.stride
-        return m.to_world(frames, self._decoding)
+        return m.to_world(frames)
 
 
 @dataclass(frozen=True)
@@ -354,6 +370,9 @@ def offline_with_latents(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer
                          user_head, agent_audio, user_audio, config: StreamConfig = StreamConfig(),
                          anchor: WindowTransform | None = None) -> tuple[np.ndarray, Tensor]:
     """``generate_offline``'s motion and the standardized latents it decoded (K, Dz)."""
+    if flow.config.user_relative:
+        return _offline_by_blocks(vae, flow, normalizer, user_head, agent_audio, user_audio,
+                                  config, anchor)
     m = _Models(vae, flow, normalizer, config, anchor)
     cond = m.condition(user_head, agent_audio, user_audio, config.gaze, None)
     t = cond["user_head"].shape[1]
@@ -364,7 +383,28 @@ def offline_with_latents(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer
     noise = torch.stack([token_noise(generator, flow.latent_dim, config.noise_scale)
                          for _ in range(t // m.stride)]).to(m.device)
     z = solve(flow, m.cond_tokens(cond, config.gaze), noise, None, config)
-    return m.to_world(vae.decode(m.latent_for_decoder(z)[None])[0], m.decoding()), z
+    return m.to_world(m.decode(vae.decode(m.latent_for_decoder(z)[None])[0], m.decoding())), z
+
+
+def _offline_by_blocks(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer, user_head,
+                       agent_audio, user_audio, config: StreamConfig,
+                       anchor: WindowTransform | None) -> tuple[np.ndarray, Tensor]:
+    """The offline protocol for a flow that reads where its agent stands: each block needs the
+    decoded frames before it, so the joint solve runs as the stream that equals it, trajectory
+    imputation over everything the flow's attention reaches."""
+    head = np.asarray(user_head, dtype=np.float32)
+    s = vae.stride
+    if head.ndim != 2 or head.shape[0] == 0 or head.shape[0] % s:
+        raise ValueError(f"offline generation needs a positive multiple of {s} frames, "
+                         f"got user_head of shape {head.shape}")
+    stream = StreamingGenerator(vae, flow, normalizer,
+                                replace(config, imputation="trajectory", history_tokens=None),
+                                anchor)
+    motion, latents = [], []
+    for i in range(0, head.shape[0], s):
+        motion.append(stream.step(head[i:i + s], agent_audio[i:i + s], user_audio[i:i + s]))
+        latents.append(stream.last_latent)
+    return np.concatenate(motion), torch.stack(latents)
 
 
 class StreamingSession:

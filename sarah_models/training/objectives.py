@@ -23,6 +23,7 @@ from sarah_data.skeleton import FEET, HEAD, ICOSAHEDRON_POINTS, MotionLayout
 from ..config import STREAMED_TOKENS
 from ..nn.flow import FlowModel, build_block_mask
 from ..nn.normalizer import Normalizer
+from ..nn.user_offset import block_starts, pelvis_floor, user_offset
 from ..nn.vae import CausalVAE
 from ..sampling.guidance import drop_probs, sample_drop_mask
 from ..sampling.path import interpolate
@@ -236,8 +237,13 @@ class FlowObjective(nn.Module):
                 generator: torch.Generator | None = None) -> dict[str, Tensor]:
         """The batch as the loss reads it: normalized inputs plus ``"latent"``, the frozen
         encoder's standardized latents (what ``train.flow_echo`` reuses)."""
-        inputs = self.normalizer.normalize_batch(batch, self.normalizer.motion_mean.device)
+        device = self.normalizer.motion_mean.device
+        inputs = self.normalizer.normalize_batch(batch, device)
         inputs["latent"] = self.normalizer.normalize("latent", self.latents(inputs["motion"], generator))
+        if self.flow.config.user_relative:  # where the data's agent stands before each block
+            motion, head = (batch[k].to(device=device, dtype=torch.float32) for k in ("motion", "user_head"))
+            starts = block_starts(pelvis_floor(motion), self.flow.stride)
+            inputs["user_offset"] = user_offset(head, starts, self.flow.stride)
         return inputs
 
     def forward(self, batch: Mapping[str, Tensor], generator: torch.Generator | None = None):
