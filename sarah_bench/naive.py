@@ -10,6 +10,7 @@ import torch
 from sarah_models.config import StreamConfig
 from sarah_models.nn.flow import FlowModel
 from sarah_models.nn.normalizer import Normalizer
+from sarah_models.nn.user_offset import pelvis_floor
 from sarah_models.nn.vae import CausalVAE
 from sarah_models.sampling.decoding import stream_decoding
 from sarah_models.sampling.guidance import drop_masks, guided
@@ -41,6 +42,7 @@ class NaiveStreamer:
         self._inputs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._latents: list[torch.Tensor] = []  # final latents of every block so far
         self._noise: list[torch.Tensor] = []
+        self._places: list[np.ndarray] = [np.zeros(2)]  # where the agent stands as each block begins
         self._decoding = stream_decoding(self.vae, self.normalizer)
 
     def _window(self, items: list) -> list:
@@ -64,6 +66,10 @@ class NaiveStreamer:
                 "agent_audio": nz.normalize(self.audio_keys["agent_audio"], a)[None],
                 "user_audio": nz.normalize(self.audio_keys["user_audio"], b)[None],
                 "gaze": torch.full((1, frames, 1), 0.0 if cfg.gaze is None else float(cfg.gaze))}
+        if flow.config.user_relative:
+            places = [self._places[i] for i in history] + [self._places[-1]]
+            cond["user_offset"] = torch.cat([torch.from_numpy(blk[0] - place).float()
+                                             for blk, place in zip(blocks, places)])[None]
         masks = drop_masks(cfg.gaze, cfg.guide, cfg.cfg_scale)
         first = len(self._latents) - len(history)  # the stream index of the window's first block
         branches = [flow.encode_condition(cond, masks[i:i + 1], first_token=first)
@@ -80,6 +86,7 @@ class NaiveStreamer:
         latents = nz.denormalize("latent", torch.stack(context))[None]
         motion = self.vae.decode(latents)[0, -self.stride:]
         out = self._decoding(nz.denormalize("motion", motion).double().numpy()).astype(np.float32)
+        self._places.append(pelvis_floor(torch.from_numpy(out[-1:]).double())[0].numpy())
         if timings is not None:
             timings["flow"] = timings.get("flow", 0.0) + solved - tick
             timings["decode"] = timings.get("decode", 0.0) + time.perf_counter() - solved
