@@ -303,6 +303,10 @@ class FlowConfig:
     # (data: 0.17 against 0.97 m/s, forty-ninth run). Generation then decodes block by block,
     # offline too, since each block reads where the decoded agent stands.
     user_relative: bool = False
+    # With user_relative: the std in metres of the noise training adds to where the data's agent
+    # stands before each block but the first (0 = none). A stream reads its own decoded pelvis,
+    # which is not the data's; a flow that reads the data's exactly leans on it.
+    place_noise: float = 0.0
 
     def __post_init__(self) -> None:
         if self.head_travel_seconds is not None and not self.head_travel_seconds > 0:
@@ -312,6 +316,8 @@ class FlowConfig:
             value = getattr(self, name)
             if value is not None and not 0.0 <= value <= 1.0:
                 raise ValueError(f"FlowConfig.{name} must be in [0, 1], got {value}")
+        if self.place_noise < 0:
+            raise ValueError(f"FlowConfig.place_noise must be >= 0, got {self.place_noise}")
         if self.difference_weight < 0:
             raise ValueError(f"FlowConfig.difference_weight must be >= 0, got "
                              f"{self.difference_weight}")

@@ -167,7 +167,7 @@ FINE_TUNE_FIELDS = {
     "vae": ("beta", "velocity_weight", "acceleration_weight", "contact_weight", "head_weight",
             "spectral_weight", "latent_noise", "recon_units", *DECODING_FIELDS["vae"]),
     "flow": ("drop_prob", "gaze_drop_prob", "min_denominator", "difference_weight", "attention_window",
-             "streamed_context")}
+             "streamed_context", "place_noise")}
 
 
 def _flow_run_config(config: RunConfig, stored_vae: Mapping[str, Any],
