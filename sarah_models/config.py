@@ -301,7 +301,10 @@ class FlowConfig:
     # Where the agent stands now is only in its latents, so a walking agent cannot tell which way
     # goes around its user; on the fixtures it walked as much toward the user as around them
     # (data: 0.17 against 0.97 m/s, forty-ninth run). Generation then decodes block by block,
-    # offline too, since each block reads where the decoded agent stands.
+    # offline too, since each block reads where the decoded agent stands. On the fixtures the
+    # training loss fell by a quarter, but the agent walks away from its user (User Dist. +118 cm
+    # at the benchmark's pick): reading its own place closes a loop training never showed it
+    # (docs/results.md, fiftieth run); no preset uses it.
     user_relative: bool = False
     # With user_relative: the std in metres of the noise training adds to where the data's agent
     # stands before each block but the first (0 = none). A stream reads its own decoded pelvis,

@@ -16,7 +16,9 @@ time) and replays it, and keeps as many history tokens as the flow's attention r
 (``FlowModel.context_tokens`` - 1; ``history_tokens`` when attention is unbounded): a stream is
 then the offline joint solve computed causally, equal to it up to float rounding, for streams
 of any length when the flow's attention is windowed (the tiny preset) and, with unbounded
-attention, while the stream is within ``history_tokens`` + 1 tokens.
+attention, while the stream is within ``history_tokens`` + 1 tokens. A flow that reads where
+its agent stands (``flow.user_relative``, ``nn/user_offset.py``) takes each block's place from
+the stream's decoded frames, so its offline protocol is that stream, block by block.
 
 Many streams. ``step_together`` (and ``push_together`` for sessions) takes one block of each
 of several streams and solves all of them in one network call per evaluation, as a server does
