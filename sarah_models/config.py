@@ -310,6 +310,11 @@ class FlowConfig:
     # stands before each block but the first (0 = none). A stream reads its own decoded pelvis,
     # which is not the data's; a flow that reads the data's exactly leans on it.
     place_noise: float = 0.0
+    # With user_relative: False drops the window-frame position from what the user_head encoder
+    # reads, leaving the offset (and the within-block velocity, ``head_velocity``): the place
+    # the offset was taken from can then not be worked out from the two, and the flow has to
+    # take where its agent stands from its own latents, the offset only for where the user is.
+    user_absolute: bool = True
 
     def __post_init__(self) -> None:
         if self.head_travel_seconds is not None and not self.head_travel_seconds > 0:
@@ -319,6 +324,9 @@ class FlowConfig:
             value = getattr(self, name)
             if value is not None and not 0.0 <= value <= 1.0:
                 raise ValueError(f"FlowConfig.{name} must be in [0, 1], got {value}")
+        if not self.user_absolute and not self.user_relative:
+            raise ValueError("FlowConfig.user_absolute=False leaves the user_head encoder "
+                             "nothing to read without user_relative=True")
         if self.place_noise < 0:
             raise ValueError(f"FlowConfig.place_noise must be >= 0, got {self.place_noise}")
         if self.difference_weight < 0:

@@ -146,3 +146,20 @@ def test_the_naive_reference_streamer_reads_the_same_place(models):
     for i in range(0, 8 * S, S):
         block = [x[i:i + S] for x in data]
         np.testing.assert_allclose(naive.step(*block), generator.step(*block), atol=1e-4)
+
+
+def test_without_the_absolute_position_only_the_offset_is_read():
+    """flow.user_absolute=False: moving the user and the agent's place together changes
+    nothing the flow reads (it cannot work out the place); moving the user alone does."""
+    vae, flow, normalizer = random_models(
+        "tiny", AUDIO, 4, 0, motion_std=0.02, init_std=0.05, audio_mean=0.0, audio_std=1.0,
+        latent_mean_std=0.1, overrides=("flow.user_relative=true", "flow.user_absolute=false"))
+    head, a, b = (torch.from_numpy(x[None]) for x in inputs(3 * S))
+    base = {"user_head": head, "agent_audio": a, "user_audio": b, "gaze": torch.zeros(1, 3 * S),
+            "user_offset": head - 0.3}
+    moved = {**base, "user_head": head + 1.0}
+    torch.testing.assert_close(flow.encode_condition(base), flow.encode_condition(moved))
+    assert not torch.allclose(flow.encode_condition(base),
+                              flow.encode_condition({**base, "user_offset": head + 0.7}))
+    with pytest.raises(ValueError, match="user_relative=True"):
+        random_models("tiny", AUDIO, 4, 0, overrides=("flow.user_absolute=false",))

@@ -88,6 +88,8 @@ class FlowModel(nn.Module):
         h, c = config.hidden, config.cond_dim
         self.dims = modality_dims(audio_dim)
         widths = {name: stride * d for name, d in self.dims.items()}
+        if not config.user_absolute:
+            widths["user_head"] = 0
         if config.head_velocity:
             widths["user_head"] += (stride - 1) * self.dims["user_head"]
         if config.head_travel_seconds is not None:
@@ -131,6 +133,8 @@ class FlowModel(nn.Module):
                              f"{'a multiple of ' + str(self.stride) if num_blocks is None else num_blocks * self.stride}")
         blocks = value.reshape(b, t // self.stride, self.stride, d)
         stacked = blocks.flatten(2)
+        if name == "user_head" and not self.config.user_absolute:
+            stacked = stacked[..., :0]  # the offset below stands for it
         if name == "user_head" and self.config.head_velocity:
             # within the block only, so a streamed block and the same block offline see the same
             velocity = torch.diff(blocks, dim=2) * FPS
