@@ -86,7 +86,8 @@ class NaiveStreamer:
         latents = nz.denormalize("latent", torch.stack(context))[None]
         motion = self.vae.decode(latents)[0, -self.stride:]
         out = self._decoding(nz.denormalize("motion", motion).double().numpy()).astype(np.float32)
-        self._places.append(pelvis_floor(torch.from_numpy(out[-1:]).double())[0].numpy())
+        if flow.config.user_relative:
+            self._places.append(pelvis_floor(torch.from_numpy(out[-1:]).double())[0].numpy())
         if timings is not None:
             timings["flow"] = timings.get("flow", 0.0) + solved - tick
             timings["decode"] = timings.get("decode", 0.0) + time.perf_counter() - solved

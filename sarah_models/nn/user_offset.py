@@ -15,15 +15,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from sarah_data.skeleton import MotionLayout
-
-ROOT_JOINT = "pelvis"
+from sarah_data.skeleton import ROOT, MotionLayout
 
 
 def pelvis_floor(motion: Tensor) -> Tensor:
     """Motion vectors (..., T, D) in metres -> the pelvis's floor (x, z) path (..., T, 2)."""
     layout = MotionLayout.from_width(motion.shape[-1])
-    return layout.joint_positions(motion, [ROOT_JOINT])[..., 0, :][..., [0, 2]]
+    return layout.joint_positions(motion, [ROOT])[..., 0, :][..., [0, 2]]
 
 
 def block_starts(floor: Tensor, stride: int) -> Tensor:

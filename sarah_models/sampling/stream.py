@@ -292,7 +292,8 @@ class StreamingGenerator:
             self._states.append(states)
         frames = m.decode(m.vae.decoder_step(m.latent_for_decoder(z)[None], self._decoder)[0],
                           self._decoding)
-        self._place = pelvis_floor(torch.from_numpy(frames[-1:]))[0].float()
+        if m.flow.config.user_relative:  # where the next block's offset is taken from
+            self._place = pelvis_floor(torch.from_numpy(frames[-1:]))[0].float()
         self.frames_generated += m.stride
         return m.to_world(frames)
 
@@ -372,15 +373,15 @@ def offline_with_latents(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer
                          user_head, agent_audio, user_audio, config: StreamConfig = StreamConfig(),
                          anchor: WindowTransform | None = None) -> tuple[np.ndarray, Tensor]:
     """``generate_offline``'s motion and the standardized latents it decoded (K, Dz)."""
+    t = len(user_head)
+    if t == 0 or t % vae.stride:
+        raise ValueError(f"offline generation needs a positive multiple of {vae.stride} frames, "
+                         f"got {t}")
     if flow.config.user_relative:
         return _offline_by_blocks(vae, flow, normalizer, user_head, agent_audio, user_audio,
                                   config, anchor)
     m = _Models(vae, flow, normalizer, config, anchor)
     cond = m.condition(user_head, agent_audio, user_audio, config.gaze, None)
-    t = cond["user_head"].shape[1]
-    if t == 0 or t % m.stride:
-        raise ValueError(f"offline generation needs a positive multiple of {m.stride} frames, "
-                         f"got {t}")
     generator = torch.Generator().manual_seed(config.seed)
     noise = torch.stack([token_noise(generator, flow.latent_dim, config.noise_scale)
                          for _ in range(t // m.stride)]).to(m.device)
@@ -394,17 +395,13 @@ def _offline_by_blocks(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer, 
     """The offline protocol for a flow that reads where its agent stands: each block needs the
     decoded frames before it, so the joint solve runs as the stream that equals it, trajectory
     imputation over everything the flow's attention reaches."""
-    head = np.asarray(user_head, dtype=np.float32)
     s = vae.stride
-    if head.ndim != 2 or head.shape[0] == 0 or head.shape[0] % s:
-        raise ValueError(f"offline generation needs a positive multiple of {s} frames, "
-                         f"got user_head of shape {head.shape}")
     stream = StreamingGenerator(vae, flow, normalizer,
                                 replace(config, imputation="trajectory", history_tokens=None),
                                 anchor)
     motion, latents = [], []
-    for i in range(0, head.shape[0], s):
-        motion.append(stream.step(head[i:i + s], agent_audio[i:i + s], user_audio[i:i + s]))
+    for i in range(0, len(user_head), s):
+        motion.append(stream.step(user_head[i:i + s], agent_audio[i:i + s], user_audio[i:i + s]))
         latents.append(stream.last_latent)
     return np.concatenate(motion), torch.stack(latents)
 

@@ -243,10 +243,10 @@ class FlowObjective(nn.Module):
         if self.flow.config.user_relative:  # where the data's agent stands before each block
             motion, head = (batch[k].to(device=device, dtype=torch.float32) for k in ("motion", "user_head"))
             starts = block_starts(pelvis_floor(motion), self.flow.stride)
-            if self.flow.config.place_noise > 0:
+            if self.flow.config.place_noise > 0:  # block 0 starts at the origin in generation too
                 noise = torch.randn(starts.shape, generator=generator, device=device)
-                starts = starts + self.flow.config.place_noise * noise * (torch.arange(
-                    starts.shape[1], device=device) > 0)[None, :, None]
+                noise[:, 0] = 0
+                starts = starts + self.flow.config.place_noise * noise
             inputs["user_offset"] = user_offset(head, starts, self.flow.stride)
         return inputs
 

@@ -14,6 +14,7 @@ import numpy as np
 
 from sarah_data import frames, icosahedron
 from sarah_data.constants import FPS, JOINT, NUM_JOINTS
+from sarah_data.skeleton import ROOT
 
 
 def as_numpy(x) -> np.ndarray:
@@ -22,7 +23,7 @@ def as_numpy(x) -> np.ndarray:
     return np.asarray(x)
 
 
-def floor_path(joint_positions, root_joint: str = "pelvis") -> np.ndarray:
+def floor_path(joint_positions, root_joint: str = ROOT) -> np.ndarray:
     """(T, 2) horizontal (x, z) positions of ``root_joint`` from (T, J, 3) joint positions, float64."""
     return np.asarray(as_numpy(joint_positions), dtype=np.float64)[:, JOINT[root_joint]][:, [0, 2]]
 
