@@ -300,11 +300,12 @@ class FlowConfig:
     # (``nn/user_offset.py``), beside the window-frame position the user_head encoder reads.
     # Where the agent stands now is only in its latents, so a walking agent cannot tell which way
     # goes around its user; on the fixtures it walked as much toward the user as around them
-    # (data: 0.17 against 0.97 m/s, forty-ninth run). Generation then decodes block by block,
-    # offline too, since each block reads where the decoded agent stands. On the fixtures the
-    # training loss fell by a quarter, but the agent walks away from its user (User Dist. +118 cm
-    # at the benchmark's pick): reading its own place closes a loop training never showed it
-    # (docs/results.md, fiftieth run); no preset uses it.
+    # (data: 0.17 (0.16-0.19) against 0.97 (0.96-0.97) m/s, 148 windows; forty-ninth run).
+    # Generation then decodes block by block, offline too, since each block reads where the
+    # decoded agent stands. On the fixtures the
+    # training loss fell by a quarter, but the agent walks away from its user (User Dist. +118
+    # (110-126) cm at the benchmark's pick, 296 test windows): reading its own place closes a
+    # loop training never showed it (docs/results.md, fiftieth run); no preset uses it.
     user_relative: bool = False
     # With user_relative: the std in metres of the noise training adds to where the data's agent
     # stands before each block but the first (0 = none). A stream reads its own decoded pelvis,
@@ -314,9 +315,9 @@ class FlowConfig:
     # reads, leaving the offset (and the within-block velocity, ``head_velocity``): the place
     # the offset was taken from can then not be worked out from the two, and the flow has to
     # take where its agent stands from its own latents, the offset only for where the user is.
-    # On the fixtures its walking agent goes around the user (pooled FGD offline 29,829 against
-    # the benchmark pick's 173,041) but walks 2.7x the data's pelvis speed at the pick (fiftieth
-    # run); no preset uses it.
+    # On the fixtures its walking agent goes around the user (pooled FGD offline 29,829
+    # (9,244-50,413) against the benchmark pick's 173,041, 296 test windows) but walks 2.66x
+    # (2.41-2.93) the data's pelvis speed at the pick (fiftieth run); no preset uses it.
     user_absolute: bool = True
 
     def __post_init__(self) -> None:
