@@ -1,7 +1,7 @@
 """Where a model's motion differs from the ground truth's: root against pose, which joints carry
 the acceleration, how far the body travels, whether the feet step (docs/results.md, seventeenth
 run). Streams the model (as sarah-eval's model row, g = none) on every 400-frame window of a
-split and prints seven tables:
+split and prints eight tables:
 
     python scripts/motion_anatomy.py --pretrained fixture-tiny --shards test_shards --split train
 
@@ -23,7 +23,12 @@ split and prints seven tables:
 7. FGD_acc by body part: the same Fréchet distance as sarah-eval's FGD_acc (batches of 16 clips,
    their mean, a bootstrap interval over batches) on the shell points nearest each part's
    joints only, for the model (streamed and offline) and for its VAE, with each part's acceleration energy against the
-   ground truth's (docs/results.md, twenty-fourth run): which part of the body the distance is in.
+   ground truth's (docs/results.md, twenty-fourth run): which part of the body the distance is in;
+8. the decoding chain's own steps: the ground truth with its knees, ankles and feet carried
+   rigidly with the pelvis (feet that glide, as a decoder's do, under the data's own path),
+   through the model's decoding chain; FGD_acc of the whole shell and the legs, and foot slide
+   (docs/results.md, fifty-first run): how far the foot lock's steps are from the data's where
+   everything else is the data's.
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from sarah_data.constants import BODY_JOINTS, FPS, JOINT_NAMES
+from sarah_data.frames import rotation_about_y
 from sarah_data.moments import Moments
 from sarah_data.skeleton import FEET, ROOT, MotionLayout
 from sarah_models.evaluation.metrics import (evaluate, foot_slide, foot_steps, step_paths,
@@ -49,6 +55,7 @@ from sarah_models.sampling.foot_lock import SWING_FRAMES
 
 BANDS = ((0, 2), (2, 4), (4, 6), (6, 8), (8, 10), (10, FPS / 2 + 1))  # Hz; the last holds Nyquist
 BEATS = (2, 7)  # Hz: the fixtures' syllable-rate gestures (~4.5 Hz) and what blurs them
+GLIDING = ("knee", "ankle", "foot")  # what a decoder's gliding legs carry along with the pelvis
 PARTS = {"fingers": ("index", "middle", "ring", "pinky", "thumb"), "wrists": ("wrist",),
          "arms": ("collar", "shoulder", "elbow"), "legs": ("hip", "knee", "ankle", "foot"),
          "trunk and head": ("pelvis", "spine", "neck", "head", "jaw", "eye")}
@@ -313,6 +320,51 @@ def acceleration_by_part(clips, layout: MotionLayout) -> None:
         print(f"| {part} | {len(points)} | " + " | ".join(cells) + " |")
 
 
+def gliding_legs(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
+    """``motion`` with its knees, ankles and feet (their icosahedra, and the shell points nearest
+    them in the first frame) carried rigidly with the pelvis from the first frame, turning as
+    the line between the hips turns: the legs of a decoder whose feet glide, under the data's
+    own pelvis path. Everything else stays as it was."""
+    out = np.array(motion, dtype=np.float64)
+    icosahedra, shell = layout.split(out)  # views into ``out``
+    joints = icosahedra.mean(axis=-2)
+    legs = [j for j, name in enumerate(JOINT_NAMES[:BODY_JOINTS]) if name.endswith(GLIDING)]
+    points = np.flatnonzero(np.isin(nearest_body_joint(out, layout), legs))
+    hips = joints[:, JOINT_NAMES.index("left_hip")] - joints[:, JOINT_NAMES.index("right_hip")]
+    yaw = np.arctan2(hips[:, 0], hips[:, 2])  # the angle rotation_about_y adds to
+    turn = rotation_about_y(yaw - yaw[0])  # (T, 3, 3)
+    pelvis = joints[:, JOINT_NAMES.index(ROOT)]
+
+    def carried(first: np.ndarray) -> np.ndarray:
+        return pelvis[:, None] + np.einsum("tij,nj->tni", turn, first.reshape(-1, 3) - pelvis[0])
+
+    icosahedra[:, legs] = carried(icosahedra[0, legs]).reshape(icosahedra[:, legs].shape)
+    shell[:, points] = carried(shell[0, points])
+    return out
+
+
+def chain_steps(clips, layout: MotionLayout, decoding) -> None:
+    """Table 8: the ground truth and its gliding legs through ``decoding()`` (a new stream's
+    decoding chain), fed 4 frames at a time as a stream feeds it."""
+    def decoded(motion: np.ndarray) -> np.ndarray:
+        chain = decoding()
+        return np.concatenate([chain(motion[a:a + 4]) for a in range(0, len(motion), 4)])
+
+    truth = [c[0] for c in clips]
+    gliding = [gliding_legs(m, layout) for m in truth]
+    gt = shell_accelerations(truth, layout)
+    parts = shell_parts(truth[0], layout)
+    print("| clips | FGD_acc (÷1e5) | legs FGD_acc | legs energy / GT | foot slide |\n|---|---|---|---|---|")
+    for label, motions in (("ground truth through the chain", [decoded(m) for m in truth]),
+                           ("its legs gliding with the pelvis", gliding),
+                           ("the same through the chain", [decoded(m) for m in gliding])):
+        acc = shell_accelerations(motions, layout)
+        whole, legs = (part_fgd_acc(acc, gt, parts[p]) for p in ("whole shell", "legs"))
+        slide = np.mean([foot_slide(layout.joint_positions(m)) for m in motions])
+        print(f"| {label} | {whole[0]:,.0f} ({whole[1]:,.0f}-{whole[2]:,.0f}) | "
+              f"{legs[0]:,.0f} ({legs[1]:,.0f}-{legs[2]:,.0f}) | {legs[3]:.2f} | {slide:.4f} |")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -347,6 +399,12 @@ def main(argv: list[str] | None = None) -> int:
     latent_spectrum(clips, FPS / (clips[0][0].shape[0] // len(clips[0][4]["encoder"])))
     print()
     acceleration_by_part(clips, layout)
+    print()
+    from sarah_models.generation.run import load_run
+    from sarah_models.sampling.decoding import stream_decoding
+
+    models, _ = load_run(model, None, device="cpu", need_flow=False)
+    chain_steps(clips, layout, lambda: stream_decoding(models.vae, models.normalizer))
     return 0
 
 

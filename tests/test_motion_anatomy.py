@@ -132,3 +132,33 @@ def test_the_feet_table_prints_the_median_step(capsys):
     row = next(line for line in shown.splitlines() if line.startswith("| ground truth | 1 |"))
     # from frame 18, the last it stands: still at 19, there from 20 on
     assert row.endswith(" | 0 " + " ".join(["100"] * (anatomy.SWING_FRAMES - 1)) + " |")
+
+
+def test_gliding_legs_ride_the_pelvis_and_leave_the_rest_as_it_was():
+    from sarah_data.frames import rotation_about_y
+
+    frames = 40
+    still, layout = _body(frames, ["left_knee", "right_foot", "head", "left_wrist"],
+                          np.random.default_rng(2))
+    t = np.arange(frames)
+    pelvis = layout.joint_positions(still[:1], ["pelvis"])[0, 0]
+    shift = np.stack([0.03 * t, 0.0 * t, 0.01 * t], -1)
+    # The whole body walks and turns about its pelvis, rigidly: its legs already ride the pelvis.
+    walked = (np.einsum("tij,tnj->tni", rotation_about_y(0.02 * t), still.reshape(frames, -1, 3) - pelvis)
+              + pelvis + shift[:, None]).reshape(frames, -1)
+    np.testing.assert_allclose(anatomy.gliding_legs(walked, layout), walked, atol=1e-12)
+    # A foot that steps on its own is carried along instead; a nodding head is left alone.
+    stepping = walked.copy()
+    icosahedra, shell = layout.split(stepping)
+    icosahedra[20:, JOINT_NAMES.index("right_foot")] += [0.0, 0.05, 0.4]
+    shell[20:, 1] += [0.0, 0.05, 0.4]
+    icosahedra[:, JOINT_NAMES.index("head")] += 0.05 * np.sin(t)[:, None, None]
+    shell[:, 2] += 0.05 * np.sin(t)[:, None]
+    expected = stepping.copy()
+    legs = [JOINT_NAMES.index(f"{side}_{part}") for side in ("left", "right")
+            for part in ("knee", "ankle", "foot")]
+    layout.split(expected)[0][:, legs] = layout.split(walked)[0][:, legs]
+    layout.split(expected)[1][:, :2] = layout.split(walked)[1][:, :2]
+    given = stepping.copy()
+    np.testing.assert_allclose(anatomy.gliding_legs(stepping, layout), expected, atol=1e-12)
+    np.testing.assert_array_equal(stepping, given)  # the input is not written to
