@@ -39,8 +39,9 @@ from pathlib import Path
 
 import numpy as np
 
+from sarah_data import icosahedron
 from sarah_data.constants import BODY_JOINTS, FPS, JOINT_NAMES
-from sarah_data.frames import rotation_about_y
+from sarah_data.frames import rotation_about_y, yaw_of
 from sarah_data.moments import Moments
 from sarah_data.skeleton import FEET, ROOT, MotionLayout
 from sarah_models.evaluation.metrics import (evaluate, foot_slide, foot_steps, step_paths,
@@ -323,17 +324,17 @@ def acceleration_by_part(clips, layout: MotionLayout) -> None:
 def gliding_legs(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
     """``motion`` with its knees, ankles and feet (their icosahedra, and the shell points nearest
     them in the first frame) carried rigidly with the pelvis from the first frame, turning as
-    the line between the hips turns: the legs of a decoder whose feet glide, under the data's
+    the pelvis turns: the legs of a decoder whose feet glide, under the data's
     own pelvis path. Everything else stays as it was."""
     out = np.array(motion, dtype=np.float64)
     icosahedra, shell = layout.split(out)  # views into ``out``
     joints = icosahedra.mean(axis=-2)
     legs = [j for j, name in enumerate(JOINT_NAMES[:BODY_JOINTS]) if name.endswith(GLIDING)]
     points = np.flatnonzero(np.isin(nearest_body_joint(out, layout), legs))
-    hips = joints[:, JOINT_NAMES.index("left_hip")] - joints[:, JOINT_NAMES.index("right_hip")]
-    yaw = np.arctan2(hips[:, 0], hips[:, 2])  # the angle rotation_about_y adds to
+    root = JOINT_NAMES.index(ROOT)
+    yaw = yaw_of(icosahedron.decode(icosahedra[:, root])[1])  # the heading the window frame reads
     turn = rotation_about_y(yaw - yaw[0])  # (T, 3, 3)
-    pelvis = joints[:, JOINT_NAMES.index(ROOT)]
+    pelvis = joints[:, root]
 
     def carried(first: np.ndarray) -> np.ndarray:
         return pelvis[:, None] + np.einsum("tij,nj->tni", turn, first.reshape(-1, 3) - pelvis[0])
