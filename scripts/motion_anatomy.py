@@ -56,25 +56,24 @@ from sarah_models.sampling.foot_lock import SWING_FRAMES
 
 BANDS = ((0, 2), (2, 4), (4, 6), (6, 8), (8, 10), (10, FPS / 2 + 1))  # Hz; the last holds Nyquist
 BEATS = (2, 7)  # Hz: the fixtures' syllable-rate gestures (~4.5 Hz) and what blurs them
-GLIDING = ("knee", "ankle", "foot")  # what a decoder's gliding legs carry along with the pelvis
 PARTS = {"fingers": ("index", "middle", "ring", "pinky", "thumb"), "wrists": ("wrist",),
          "arms": ("collar", "shoulder", "elbow"), "legs": ("hip", "knee", "ankle", "foot"),
          "trunk and head": ("pelvis", "spine", "neck", "head", "jaw", "eye")}
+# What a decoder's gliding legs carry along with the pelvis: the legs below the hips, which ride
+# the pelvis already.
+GLIDING = tuple(key for key in PARTS["legs"] if key != "hip")
 
 
-def streamed_windows(model: str, shards: Path, split: str, threads: int):
+def streamed_windows(models, shards: Path, split: str):
     """(ground truth, model motion, user head, VAE reconstruction, latents, offline motion) of
-    every window, streamed, generated offline and reconstructed as sarah-eval's model (both
+    every window, ``models`` (``load_run``'s) streamed, generated offline and reconstructed as sarah-eval's model (both
     protocols) and VAE rows are; latents holds the standardized (K, Dz) latents "encoder" (of
     the ground truth), "stream" and "offline"."""
     import torch
 
     from sarah_data.dataset import WindowDataset
     from sarah_models.evaluation.runner import EvalConfig, _vae_producer, window_generator
-    from sarah_models.generation.run import load_run
 
-    torch.set_num_threads(threads)
-    models, _ = load_run(model, None, device="cpu", need_flow=True)
     windows = WindowDataset.sliding(shards, split, extractor=models.features, window=400)
     stream, offline = (window_generator(models, EvalConfig(protocol=p), None)
                        for p in ("stream", "offline"))
@@ -329,7 +328,7 @@ def gliding_legs(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
     out = np.array(motion, dtype=np.float64)
     icosahedra, shell = layout.split(out)  # views into ``out``
     joints = icosahedra.mean(axis=-2)
-    legs = [j for j, name in enumerate(JOINT_NAMES[:BODY_JOINTS]) if name.endswith(GLIDING)]
+    legs = [j for j, name in enumerate(JOINT_NAMES[:BODY_JOINTS]) if any(k in name for k in GLIDING)]
     points = np.flatnonzero(np.isin(nearest_body_joint(out, layout), legs))
     root = JOINT_NAMES.index(ROOT)
     yaw = yaw_of(icosahedron.decode(icosahedra[:, root])[1])  # the heading the window frame reads
@@ -346,10 +345,10 @@ def gliding_legs(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
 
 def chain_steps(clips, layout: MotionLayout, decoding) -> None:
     """Table 8: the ground truth and its gliding legs through ``decoding()`` (a new stream's
-    decoding chain), fed 4 frames at a time as a stream feeds it."""
+    decoding chain; causal, so a whole window decodes as a stream's blocks do, as in
+    sarah-eval's "decoded" row)."""
     def decoded(motion: np.ndarray) -> np.ndarray:
-        chain = decoding()
-        return np.concatenate([chain(motion[a:a + 4]) for a in range(0, len(motion), 4)])
+        return decoding()(motion)
 
     truth = [c[0] for c in clips]
     gliding = [gliding_legs(m, layout) for m in truth]
@@ -385,7 +384,14 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(str(exc))
     else:
         model = args.run
-    clips = streamed_windows(model, args.shards, args.split, args.threads)
+    import torch
+
+    from sarah_models.generation.run import load_run
+    from sarah_models.sampling.decoding import stream_decoding
+
+    torch.set_num_threads(args.threads)
+    models, _ = load_run(model, None, device="cpu", need_flow=True)
+    clips = streamed_windows(models, args.shards, args.split)
     if not clips:
         print(f"{args.shards}: split {args.split!r} has no 400-frame windows", file=sys.stderr)
         return 2
@@ -401,10 +407,6 @@ def main(argv: list[str] | None = None) -> int:
     print()
     acceleration_by_part(clips, layout)
     print()
-    from sarah_models.generation.run import load_run
-    from sarah_models.sampling.decoding import stream_decoding
-
-    models, _ = load_run(model, None, device="cpu", need_flow=False)
     chain_steps(clips, layout, lambda: stream_decoding(models.vae, models.normalizer))
     return 0
 
