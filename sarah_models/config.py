@@ -158,6 +158,12 @@ class VAEConfig:
     # fixture benchmark's VAE reconstructed FGD_acc 646 against 862, its arms halved
     # (docs/results.md, forty-sixth run). 1 in both presets (neither is root-relative).
     root_weight: float = 1.0
+    # Not in the paper (False = the paper): a linear code of each latent block beside the
+    # transformers, fitted to the training data's principal components before the VAE trains
+    # (``nn.block_code``): the untrained VAE then reconstructs what a linear code can, and
+    # training learns the rest. A short CPU run's VAE otherwise reconstructs worse than that
+    # code alone (docs/results.md, fifty-second run).
+    block_code: bool = False
     # Not in the paper (0 = the paper): how the generators decode, not how the VAE trains. At the
     # first frame of every latent block each decoded point is offset to continue its last
     # position and velocity, and the offset decays by this factor per frame, as a critically

@@ -50,7 +50,10 @@ import torch
 from torch import Tensor, nn
 
 from ..config import VAEConfig
+from .block_code import BlockCode
 from .layers import KVCache, TransformerBlock, causal_mask
+
+BLOCK_CODE_LOGVAR = -5.0  # the posterior's initial log-variance with ``vae.block_code``
 
 
 def encoder_layout(num_blocks: int, stride: int) -> list[tuple[str, int, int]]:
@@ -104,6 +107,18 @@ class CausalVAE(nn.Module):
         self.decoder = blocks(config.decoder_layers)
         self.decoder_norm = nn.LayerNorm(h)
         self.frame_out = nn.Linear(h, motion_dim)
+        # Not in the paper (``vae.block_code``): a linear code of each block beside the
+        # transformers, fitted before training (``BlockCode.fit``); their outputs start at zero,
+        # so the untrained VAE is that code and training learns what it misses.
+        self.block_code = None
+        if config.block_code:
+            self.block_code = BlockCode(motion_dim, s, config.latent_dim, rank=h)
+            for layer in (self.mu_out, self.frame_out, self.logvar_out):
+                nn.init.zeros_(layer.weight)
+                nn.init.zeros_(layer.bias)
+            # The code's latents are whitened: a posterior std of 1 would bury the code in noise
+            # at the first step; start where trained VAEs of this kind end (~0.08 of the spread)
+            nn.init.constant_(self.logvar_out.bias, BLOCK_CODE_LOGVAR)
 
     @property
     def stride(self) -> int:
@@ -128,12 +143,16 @@ class CausalVAE(nn.Module):
             tokens = block(tokens, mask, positions)
         out = self.encoder_norm(tokens).view(b, k, s + 2, h)
         logvar = self.logvar_out(out[:, :, s + 1]).clamp(-30.0, 20.0)
-        return self.mu_out(out[:, :, s]), logvar
+        mu = self.mu_out(out[:, :, s])
+        if self.block_code is not None:
+            mu = mu + self.block_code.encode(x.view(b, k, s, -1))
+        return mu, logvar
 
     def encoder_modules(self) -> list[nn.Module | nn.Parameter]:
         """Everything ``encode`` uses (frozen by ``train.freeze_encoder``)."""
+        code = [] if self.block_code is None else self.block_code.encoder_modules()
         return [self.frame_in, self.mu_token, self.sigma_token, self.encoder, self.encoder_norm,
-                self.mu_out, self.logvar_out]
+                self.mu_out, self.logvar_out, *code]
 
     def _decoder_tokens(self, z: Tensor) -> Tensor:
         b, k, _ = z.shape
@@ -142,11 +161,13 @@ class CausalVAE(nn.Module):
         queries = self.queries.to(latent.dtype).expand(b, k, s, h)
         return torch.cat((latent, queries), dim=2).reshape(b, k * (s + 1), h)
 
-    def _decoder_frames(self, tokens: Tensor) -> Tensor:
+    def _decoder_frames(self, tokens: Tensor, z: Tensor) -> Tensor:
         b, n, h = tokens.shape
         s = self.stride
-        out = self.decoder_norm(tokens).view(b, n // (s + 1), s + 1, h)[:, :, 1:]
-        return self.frame_out(out).reshape(b, -1, self.motion_dim)
+        out = self.frame_out(self.decoder_norm(tokens).view(b, n // (s + 1), s + 1, h)[:, :, 1:])
+        if self.block_code is not None:
+            out = out + self.block_code.decode(z).to(out.dtype)
+        return out.reshape(b, -1, self.motion_dim)
 
     def decode(self, z: Tensor) -> Tensor:
         """z (B, K, Dz) -> x_hat (B, K*s, Dx)."""
@@ -155,7 +176,7 @@ class CausalVAE(nn.Module):
         mask, positions = causal_mask(n, device=z.device), torch.arange(n, device=z.device)
         for block in self.decoder:
             tokens = block(tokens, mask, positions)
-        return self._decoder_frames(tokens)
+        return self._decoder_frames(tokens, z)
 
     def new_decoder_cache(self, max_blocks: int | None = None) -> DecoderCache:
         """A fresh streaming-decoder state. ``max_blocks`` bounds memory by attending only to the
@@ -175,7 +196,7 @@ class CausalVAE(nn.Module):
             tokens = block(tokens, mask, positions, layer_cache)
         cache.position += n
         cache.blocks += 1
-        return self._decoder_frames(tokens)
+        return self._decoder_frames(tokens, z_k[:, None])
 
     @staticmethod
     def kl(mu: Tensor, logvar: Tensor) -> Tensor:

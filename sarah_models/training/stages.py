@@ -306,6 +306,11 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
             for part in vae.encoder_modules():
                 part.requires_grad_(False)
         run_config, objective = config, VAEObjective(vae, normalizer)
+        if vae.block_code is not None and previous is None and source is None:
+            kept = _fit_block_code(objective, dataset, tcfg)
+            if info.is_main:
+                echo(f"vae: block code fitted; it keeps {kept['frame']:.4f} of the weighted "
+                     f"variance per frame, {kept['block']:.4f} per block")
     else:
         if not (out_dir / "vae.pt").is_file():
             if previous is not None or source is None:
@@ -465,6 +470,21 @@ def _fit_root_relative_stats(normalizer: Normalizer, dataset: Dataset, config: T
     mean, std = _channel_stats(normalizer.relative_motion(batch["motion"].double())
                                for _, batch in batches)
     normalizer.set("motion", mean, std)
+
+
+@torch.no_grad()
+def _fit_block_code(objective: VAEObjective, dataset: Dataset, config: TrainConfig
+                    ) -> dict[str, float]:
+    """Fit the VAE's block code (``vae.block_code``) to the standardized motion of the first
+    ``latent_stats_batches`` batches of a fixed order, weighted as the loss weighs channels."""
+    loader = EpochBatches(dataset, config, DistInfo(0, 1, 0, torch.device("cpu")), seed_offset=3)
+    normalizer = objective.normalizer
+
+    def batches():
+        for _, batch in zip(range(config.latent_stats_batches), loader):
+            yield normalizer.normalize_batch({"motion": batch["motion"]}, "cpu")["motion"]
+
+    return objective.vae.block_code.fit(batches, objective.channel_weight)
 
 
 def _channel_stats(chunks) -> tuple[Tensor, Tensor]:
