@@ -161,8 +161,9 @@ class VAEConfig:
     # Not in the paper (False = the paper): a linear code of each latent block beside the
     # transformers, fitted to the training data's principal components before the VAE trains
     # (``nn.block_code``): the untrained VAE then reconstructs what a linear code can, and
-    # training learns the rest. A short CPU run's VAE otherwise reconstructs worse than that
-    # code alone (docs/results.md, fifty-second run).
+    # training learns the rest. On the fixture benchmark it reconstructed 6x closer than the
+    # benchmark's VAE, but a flow trained at that budget on its detailed latents generated far
+    # worse motion (docs/results.md, fifty-second run): no preset uses it.
     block_code: bool = False
     # Not in the paper (0 = the paper): how the generators decode, not how the VAE trains. At the
     # first frame of every latent block each decoded point is offset to continue its last
