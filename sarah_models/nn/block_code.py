@@ -78,7 +78,7 @@ class BlockCode(nn.Module):
                                      f"the code takes multiples of {s} frames x {dx}")
                 yield (batch.detach().double().cpu() * root).reshape(b * t // s, s, dx)
 
-        frame_moment, frames = _second_moment(blocks.reshape(-1, dx) for blocks in weighted_blocks())
+        frame_moment, _ = _second_moment(blocks.reshape(-1, dx) for blocks in weighted_blocks())
         frame_basis, frame_values = _principal(frame_moment, self.rank)
         block_moment, _ = _second_moment((blocks @ frame_basis).reshape(len(blocks), -1)
                                          for blocks in weighted_blocks())

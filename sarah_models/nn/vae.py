@@ -36,6 +36,8 @@ beta = 1e-4 keeps its paper meaning of "a small KL weight" independent of T, Dx 
 ``velocity_weight`` times the mean squared error of frame-to-frame differences and
 ``acceleration_weight`` times that of second differences (both 0 in the paper).
 ``latent_noise`` > 0 adds noise to the decoder's input latents in training (0 in the paper).
+``block_code`` adds a linear code of each block beside both transformers (``nn.block_code``;
+not in the paper).
 ``recon_units="metres"`` weights each channel's squared error by its variance (the objective
 passes ``channel_weight``), so the loss counts a millimetre the same on every axis.
 The planted-foot term (``contact_weight``) and the head-facing term (``head_weight``) need the
@@ -145,7 +147,7 @@ class CausalVAE(nn.Module):
         logvar = self.logvar_out(out[:, :, s + 1]).clamp(-30.0, 20.0)
         mu = self.mu_out(out[:, :, s])
         if self.block_code is not None:
-            mu = mu + self.block_code.encode(x.view(b, k, s, -1))
+            mu = mu + self.block_code.encode(x.reshape(b, k, s, -1))
         return mu, logvar
 
     def encoder_modules(self) -> list[nn.Module | nn.Parameter]:
