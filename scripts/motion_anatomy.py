@@ -347,18 +347,15 @@ def chain_steps(clips, layout: MotionLayout, decoding) -> None:
     """Table 8: the ground truth and its gliding legs through ``decoding()`` (a new stream's
     decoding chain; causal, so a whole window decodes as a stream's blocks do, as in
     sarah-eval's "decoded" row)."""
-    def decoded(motion: np.ndarray) -> np.ndarray:
-        return decoding()(motion)
-
     truth = [c[0] for c in clips]
     gliding = [gliding_legs(m, layout) for m in truth]
     gt = shell_accelerations(truth, layout)
     parts = shell_parts(truth[0], layout)
     print("| clips | FGD_acc (÷1e5) | legs FGD_acc | legs energy / GT | foot slide (95 % over windows) |"
           "\n|---|---|---|---|---|")
-    for label, motions in (("ground truth through the chain", [decoded(m) for m in truth]),
+    for label, motions in (("ground truth through the chain", [decoding()(m) for m in truth]),
                            ("its legs gliding with the pelvis", gliding),
-                           ("the same through the chain", [decoded(m) for m in gliding])):
+                           ("the same through the chain", [decoding()(m) for m in gliding])):
         acc = shell_accelerations(motions, layout)
         whole, legs = (part_fgd_acc(acc, gt, parts[p]) for p in ("whole shell", "legs"))
         slides = [foot_slide(layout.joint_positions(m)) for m in motions]

@@ -465,10 +465,8 @@ def _fit_root_relative_stats(normalizer: Normalizer, dataset: Dataset, config: T
     layout = MotionLayout.from_width(motion_width)
     start = layout.joint(ROOT) * ICOSAHEDRON_POINTS
     normalizer.set_root_relative(torch.arange(start, start + ICOSAHEDRON_POINTS))
-    loader = EpochBatches(dataset, config, DistInfo(0, 1, 0, torch.device("cpu")), seed_offset=2)
-    batches = zip(range(config.latent_stats_batches), loader)
     mean, std = _channel_stats(normalizer.relative_motion(batch["motion"].double())
-                               for _, batch in batches)
+                               for _, batch in _first_batches(dataset, config, seed_offset=2))
     normalizer.set("motion", mean, std)
 
 
@@ -477,14 +475,21 @@ def _fit_block_code(objective: VAEObjective, dataset: Dataset, config: TrainConf
                     ) -> dict[str, float]:
     """Fit the VAE's block code (``vae.block_code``) to the standardized motion of the first
     ``latent_stats_batches`` batches of a fixed order, weighted as the loss weighs channels."""
-    loader = EpochBatches(dataset, config, DistInfo(0, 1, 0, torch.device("cpu")), seed_offset=3)
     normalizer = objective.normalizer
 
     def batches():
-        for _, batch in zip(range(config.latent_stats_batches), loader):
+        for _, batch in _first_batches(dataset, config, seed_offset=3):
             yield normalizer.normalize_batch({"motion": batch["motion"]}, "cpu")["motion"]
 
     return objective.vae.block_code.fit(batches, objective.channel_weight)
+
+
+def _first_batches(dataset: Dataset, config: TrainConfig, seed_offset: int,
+                   device: torch.device = torch.device("cpu")):
+    """(index, batch) of the first ``latent_stats_batches`` batches of a fixed order, the same on
+    every rank and on every call: what the fitted statistics (and the block code) are fitted on."""
+    loader = EpochBatches(dataset, config, DistInfo(0, 1, 0, device), seed_offset=seed_offset)
+    return zip(range(config.latent_stats_batches), loader)
 
 
 def _channel_stats(chunks) -> tuple[Tensor, Tensor]:
@@ -502,11 +507,8 @@ def _fit_latent_stats(objective: FlowObjective, dataset: Dataset, config: TrainC
                       info: DistInfo) -> None:
     """Per-channel mean/std of the frozen encoder's latents over the first batches of a fixed
     order; every rank reads the same batches, so all ranks agree without communicating."""
-    single = DistInfo(0, 1, 0, info.device)
-    loader = EpochBatches(dataset, config, single, seed_offset=1)
-
     def latents():
-        for i, batch in zip(range(config.latent_stats_batches), loader):
+        for i, batch in _first_batches(dataset, config, seed_offset=1, device=info.device):
             motion = objective.normalizer.normalize_batch({"motion": batch["motion"]}, info.device)
             yield objective.latents(motion["motion"], step_generator(info.device, config.seed, 0, i))
 
