@@ -21,6 +21,25 @@ def _lookup(results: dict[str, Any], key: str) -> float | None:
     return float(node)
 
 
+def _interval(results: dict[str, Any], key: str) -> list[float | None] | None:
+    """The interval stored beside a percentile (``...p99`` -> ``...p99_interval``), if any."""
+    node: Any = results
+    parts = key.split("@")[0].split(".")
+    for part in parts[:-1] + [parts[-1] + "_interval"]:
+        if not isinstance(node, dict) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def _interval_text(interval: list[float | None] | None) -> str:
+    """" (low-high)" of a percentile's interval; "?" for an end the sample could not bound."""
+    if not interval:
+        return ""
+    low, high = (("?" if v is None else f"{v:,.1f}") for v in interval)
+    return f" ({low}-{high})"
+
+
 def check_goals(results: dict[str, Any]) -> list[dict[str, Any]]:
     """Each goal of ``GOALS`` with its measured value (None when not measured) and verdict."""
     rows = []
@@ -28,7 +47,7 @@ def check_goals(results: dict[str, Any]) -> list[dict[str, Any]]:
         value = _lookup(results, key)
         met = None if value is None else (value >= target if kind == "min" else value < target)
         rows.append({"goal": key, "description": text, "target": target, "kind": kind,
-                     "value": value, "met": met})
+                     "value": value, "met": met, "interval": _interval(results, key)})
     return rows
 
 
@@ -87,7 +106,7 @@ def format_report(results: dict[str, Any]) -> str:
         cfg = results["config"]
         lines += ["", "streaming (chunks of 4 frames, midpoint x 4 = 8 NFE, cfg 1.3, logmel audio; "
                       f"fast = {cfg['mode']} flow, {cfg.get('decoder_precision', 'fp32')} decoder)"]
-        header = (f"  {'':<16}{'fps':>8}  {'p50 ms':>8}  {'p99 ms':>8}   "
+        header = (f"  {'':<16}{'fps':>8}  {'chunks':>6}  {'p50 ms':>8}  {'p99 ms (95 % interval)':>24}   "
                   f"stage p50/p99 ms: audio | flow | decode | other")
         lines.append(header)
         for size, row in streaming.items():
@@ -99,8 +118,10 @@ def format_report(results: dict[str, Any]) -> str:
                 st = r["stages_ms"]
                 stage_text = " | ".join(f"{_f(st[k]['p50'])}/{_f(st[k]['p99'])}"
                                         for k in ("audio", "flow", "decode", "other"))
-                lines.append(f"  {label:<16}{_f(r['fps']):>8}  {_f(r['latency_ms']['p50']):>8}  "
-                             f"{_f(r['latency_ms']['p99']):>8}   {stage_text}")
+                latency = r["latency_ms"]
+                p99 = _f(latency["p99"]) + _interval_text(latency.get("p99_interval"))
+                lines.append(f"  {label:<16}{_f(r['fps']):>8}  {latency.get('n', '-'):>6}  "
+                             f"{_f(latency['p50']):>8}  {p99:>24}   {stage_text}")
             lines.append(f"  {size} ratio fast/naive {_f(row['ratio'], 2)}; "
                          f"{_deviation_text(results['config']['mode'], row['deviation'])}")
             if "deviation_shipped" in row:
@@ -166,13 +187,18 @@ def format_report(results: dict[str, Any]) -> str:
                               loaded["offline"][size]["fps"]))
             for label, a, b in pairs:
                 lines.append(f"  {label:<34}{_f(a):>10}  {_f(b):>10}   {_f(b / a, 2)}")
+            lines.append(f"  {size} chunk p99 95 % intervals: idle"
+                         f"{_interval_text(idle['latency_ms'].get('p99_interval'))}, loaded"
+                         f"{_interval_text(row['latency_ms'].get('p99_interval'))}")
             lines.append(f"  {size} threads used per chunk: idle {idle.get('threads_used')}, "
                          f"loaded {row.get('threads_used')}")
             fixed = row.get("fixed_threads")
             if fixed:
                 lines.append(f"  {size} loaded with a fixed {fixed['threads']} threads: "
                              f"{_f(fixed['fps'])} fps, p50 {_f(fixed['latency_ms']['p50'])} ms, "
-                             f"p99 {_f(fixed['latency_ms']['p99'])} ms ({fixed['frames']} frames)")
+                             f"p99 {_f(fixed['latency_ms']['p99'])}"
+                             f"{_interval_text(fixed['latency_ms'].get('p99_interval'))} ms "
+                             f"({fixed['frames']} frames)")
     rounds = results.get("rounds")
     if rounds:
         lines += ["", f"{rounds['count']} more rounds, each idle then beside {rounds['processes']} "
@@ -217,11 +243,12 @@ def format_report(results: dict[str, Any]) -> str:
             lines.append(f"  {row['window_s']:>8.1f}   {row['ms_per_chunk']:>12,.0f}   "
                          f"{row['realtime_factor']:>11.3f}   {row['fps']:>5.2f}")
     lines += ["", "goals"]
+    width = max((len(goal["description"]) for goal in results.get("goals", [])), default=0)
     for goal in results.get("goals", []):
         verdict = {True: "MET", False: "MISSED", None: "not measured"}[goal["met"]]
         sign = ">=" if goal["kind"] == "min" else "<"
-        lines.append(f"  {goal['description']:<48} {_f(goal['value']):>9}  {sign} "
-                     f"{goal['target']:g}  {verdict}")
+        value = _f(goal["value"]) + _interval_text(goal.get("interval"))
+        lines.append(f"  {goal['description']:<{width}} {value:>21}  {sign} {goal['target']:g}  {verdict}")
     lines.append(f"\nbench time {results['environment'].get('bench_seconds', 0):.0f} s")
     return "\n".join(lines)
 

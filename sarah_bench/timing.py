@@ -35,12 +35,44 @@ class ChunkClock:
                 "stages_ms": {k: percentiles(v) for k, v in self.stages.items()}}
 
 
-def percentiles(values_s: list[float]) -> dict[str, float]:
+CONFIDENCE = 0.95  # of the intervals every latency percentile carries
+
+
+def quantile_interval(values: np.ndarray, q: float,
+                      confidence: float = CONFIDENCE) -> tuple[float | None, float | None]:
+    """Distribution-free ``confidence`` interval of the ``q``-quantile of what ``values`` were
+    drawn from: the order statistics X_(l) <= X_(u) with P(l <= B < u) >= confidence, B ~
+    Binomial(n, q) the count of draws below the quantile. A tail percentile needs many draws:
+    below about 3 / (1 - q) of them (~370 for p99) no order statistic bounds it from above, and
+    that end is None (open)."""
+    from scipy.stats import binom
+
+    n = len(values)
+    if n == 0:
+        return None, None
+    ordered = np.sort(np.asarray(values, dtype=np.float64))
+    alpha = 1.0 - confidence
+    # 1-based ranks: l = the largest with P(B < l) <= alpha / 2, u = the smallest with
+    # P(B >= u) <= alpha / 2 (each tail gets half of what the interval may miss).
+    low = int(binom.ppf(alpha / 2, n, q))
+    high = int(binom.ppf(1.0 - alpha / 2, n, q)) + 1
+    while low >= 1 and binom.cdf(low - 1, n, q) > alpha / 2:
+        low -= 1
+    return (float(ordered[low - 1]) if low >= 1 else None,
+            float(ordered[high - 1]) if high <= n else None)
+
+
+def percentiles(values_s: list[float]) -> dict[str, Any]:
+    """p50, p99 and mean in ms, with ``CONFIDENCE`` intervals of p50 and p99 (``*_interval``:
+    [low, high], None where the sample is too small to bound that end) and the sample size."""
     ms = np.asarray(values_s, dtype=np.float64) * 1000.0
     if ms.size == 0:
-        return {"p50": float("nan"), "p99": float("nan"), "mean": float("nan")}
+        return {"p50": float("nan"), "p99": float("nan"), "mean": float("nan"), "n": 0,
+                "p50_interval": [None, None], "p99_interval": [None, None]}
     return {"p50": float(np.percentile(ms, 50)), "p99": float(np.percentile(ms, 99)),
-            "mean": float(ms.mean())}
+            "mean": float(ms.mean()), "n": int(ms.size),
+            "p50_interval": list(quantile_interval(ms, 0.50)),
+            "p99_interval": list(quantile_interval(ms, 0.99))}
 
 
 class StageHooks:

@@ -525,6 +525,8 @@ def test_bench_quick_runs_end_to_end(tmp_path):
     tiny_stream = results["streaming"]["tiny"]
     assert tiny_stream["fps"] > 0 and tiny_stream["naive"]["fps"] > 0
     assert set(tiny_stream["stages_ms"]) == {"audio", "flow", "decode", "other"}
+    latency = tiny_stream["latency_ms"]  # 8 chunks: a p99 with an open upper end, not a max
+    assert latency["n"] == tiny_stream["frames"] // 4 and latency["p99_interval"][1] is None
     assert tiny_stream["deviation"]["max_joint_mm"] <= TOLERANCE_MM
     fewer = tiny_stream["fewer_steps"]
     assert fewer["steps"] == 1 and fewer["fps"] > 0
@@ -583,6 +585,29 @@ def test_bench_background_load_reports_both_sides(tmp_path, capsys):
     assert "2 more rounds, each idle then beside 1 busy processes" in report
     assert "tiny stream fps" in report.split("2 more rounds")[1]
     assert spinning_processes() == []
+
+
+def test_latency_percentiles_carry_distribution_free_intervals():
+    """A percentile's interval is a pair of order statistics that covers the true quantile at
+    least 95 % of the time, whatever the distribution; an end no order statistic can bound is
+    left open (None) rather than clipped to the sample's extreme."""
+    from sarah_bench.timing import percentiles, quantile_interval
+
+    rng = np.random.default_rng(0)
+    for n, q in ((400, 0.99), (101, 0.5)):
+        truth = -np.log(1.0 - q)  # the exponential distribution's q-quantile
+        covered = 0
+        for _ in range(2000):
+            sample = rng.exponential(size=n)
+            low, high = quantile_interval(sample, q)
+            assert low in sample and high in sample and low <= np.quantile(sample, q) <= high
+            covered += low <= truth <= high
+        assert 0.95 <= covered / 2000 <= 0.99
+    assert quantile_interval(np.arange(100.0), 0.99)[1] is None  # p99 of T's 100 chunks: open
+    assert quantile_interval(np.arange(400.0), 0.99) == (391.0, 399.0)  # 4 x T: closed
+    row = percentiles([0.001 * i for i in range(1, 9)])
+    assert row["n"] == 8 and row["p99_interval"][1] is None and row["p99_interval"][0] <= row["p99"]
+    assert percentiles([])["p99_interval"] == [None, None]
 
 
 def test_bench_config_rejects_bad_values():
