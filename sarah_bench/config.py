@@ -57,7 +57,7 @@ class BenchConfig:
     sizes: tuple[str, ...] = ("paper", "tiny")
     # Streamed by the optimized generator: 400 chunks, 4 x T. A p99 of T's 100 chunks is its
     # second-worst chunk, which no order statistic bounds from above (timing.quantile_interval
-    # needs ~370), and a stream past T is what users run: the decoder's cache full (T frames).
+    # needs 368), and a stream past T is what users run: the decoder's cache full (T frames).
     stream_frames: int = 4 * WINDOW
     naive_frames: int = 64  # streamed by the naive reference (its cost grows per chunk)
     max_stream_seconds: float = 60.0  # a stream stops early past this (slow or loaded machine)

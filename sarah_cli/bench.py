@@ -47,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
                         metavar="N",
                         help="frames each timed stream generates (a multiple of 4; each stream "
                              "also stops after a minute): p99 chunk latency gets a closed 95 %% "
-                             "interval from about 1,480 frames (370 chunks) on")
+                             "interval from 1,472 frames (368 chunks) on")
     parser.add_argument("--quick", action="store_true",
                         help="smoke run: tiny model, short streams, small prep, no HuBERT")
     parser.add_argument("--no-prep", action="store_true", help="skip the prep benchmark")
