@@ -44,8 +44,7 @@ def quantile_interval(values: np.ndarray, q: float,
     drawn from: the order statistics X_(l) <= X_(u) with P(l <= B < u) >= confidence, B ~
     Binomial(n, q) the count of draws below the quantile. A tail percentile needs many draws:
     below about -ln((1 - confidence) / 2) / (1 - q) of them (368 for p99 at 95 %) no order
-    statistic bounds it from above, and
-    that end is None (open)."""
+    statistic bounds it from above, and that end is None (open)."""
     from scipy.stats import binom
 
     n = len(values)
