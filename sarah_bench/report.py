@@ -32,7 +32,7 @@ def _interval(results: dict[str, Any], key: str) -> list[float | None] | None:
     return node
 
 
-def _interval_text(interval: list[float | None] | None) -> str:
+def interval_text(interval: list[float | None] | None) -> str:
     """" (low-high)" of a percentile's interval; "?" for an end the sample could not bound."""
     if not interval:
         return ""
@@ -119,7 +119,7 @@ def format_report(results: dict[str, Any]) -> str:
                 stage_text = " | ".join(f"{_f(st[k]['p50'])}/{_f(st[k]['p99'])}"
                                         for k in ("audio", "flow", "decode", "other"))
                 latency = r["latency_ms"]
-                p99 = _f(latency["p99"]) + _interval_text(latency.get("p99_interval"))
+                p99 = _f(latency["p99"]) + interval_text(latency.get("p99_interval"))
                 lines.append(f"  {label:<16}{_f(r['fps']):>8}  {latency.get('n', '-'):>6}  "
                              f"{_f(latency['p50']):>8}  {p99:>24}   {stage_text}")
             lines.append(f"  {size} ratio fast/naive {_f(row['ratio'], 2)}; "
@@ -188,8 +188,8 @@ def format_report(results: dict[str, Any]) -> str:
             for label, a, b in pairs:
                 lines.append(f"  {label:<34}{_f(a):>10}  {_f(b):>10}   {_f(b / a, 2)}")
             lines.append(f"  {size} chunk p99 95 % intervals: idle"
-                         f"{_interval_text(idle['latency_ms'].get('p99_interval'))}, loaded"
-                         f"{_interval_text(row['latency_ms'].get('p99_interval'))}")
+                         f"{interval_text(idle['latency_ms'].get('p99_interval'))}, loaded"
+                         f"{interval_text(row['latency_ms'].get('p99_interval'))}")
             lines.append(f"  {size} threads used per chunk: idle {idle.get('threads_used')}, "
                          f"loaded {row.get('threads_used')}")
             fixed = row.get("fixed_threads")
@@ -197,7 +197,7 @@ def format_report(results: dict[str, Any]) -> str:
                 lines.append(f"  {size} loaded with a fixed {fixed['threads']} threads: "
                              f"{_f(fixed['fps'])} fps, p50 {_f(fixed['latency_ms']['p50'])} ms, "
                              f"p99 {_f(fixed['latency_ms']['p99'])}"
-                             f"{_interval_text(fixed['latency_ms'].get('p99_interval'))} ms "
+                             f"{interval_text(fixed['latency_ms'].get('p99_interval'))} ms "
                              f"({fixed['frames']} frames)")
     rounds = results.get("rounds")
     if rounds:
@@ -247,7 +247,7 @@ def format_report(results: dict[str, Any]) -> str:
     for goal in results.get("goals", []):
         verdict = {True: "MET", False: "MISSED", None: "not measured"}[goal["met"]]
         sign = ">=" if goal["kind"] == "min" else "<"
-        value = _f(goal["value"]) + _interval_text(goal.get("interval"))
+        value = _f(goal["value"]) + interval_text(goal.get("interval"))
         lines.append(f"  {goal['description']:<{width}} {value:>21}  {sign} {goal['target']:g}  {verdict}")
     lines.append(f"\nbench time {results['environment'].get('bench_seconds', 0):.0f} s")
     return "\n".join(lines)

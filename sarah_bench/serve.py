@@ -32,6 +32,8 @@ from sarah_data.constants import FPS, SAMPLES_PER_FRAME
 
 from .config import SHIPPED_MODEL
 from .load import BackgroundLoad
+from .report import interval_text
+from .timing import quantile_interval
 
 CHUNK = 4
 SIZES = ("tiny", "paper", SHIPPED_MODEL)  # a "size" that is the shipped trained model too
@@ -223,12 +225,14 @@ def run_soak(server: ServerProcess, sessions: int, cfg: ServeBenchConfig,
     result = {"sessions": sessions, "seconds": seconds, "chunks": stats["chunks"],
               "lost": stats["lost"], "reordered": stats["reordered"],
               "p50_ms": float(np.percentile(rtts, 50)), "p99_ms": float(np.percentile(rtts, 99)),
+              "p99_interval": list(quantile_interval(rtts, 0.99)),
               "min_fps": float(min(stats["fps"])),
               "rss_mb_first": float(settled[0, 1]), "rss_mb_last": float(settled[-1, 1]),
               "rss_mb_max": float(rss[:, 1].max()), "rss_slope_mb_per_min": slope,
               "rss_samples": rss.tolist()}
     log(f"soak: {sessions} sessions x {seconds:.0f} s, {result['chunks']} chunks, "
-        f"{result['lost']} lost, {result['reordered']} reordered, p99 {result['p99_ms']:.1f} ms, "
+        f"{result['lost']} lost, {result['reordered']} reordered, p99 {result['p99_ms']:.1f}"
+        f"{interval_text(result['p99_interval'])} ms, "
         f"RSS {result['rss_mb_first']:.0f} -> {result['rss_mb_last']:.0f} MB")
     return result
 
@@ -284,7 +288,8 @@ def format_serve_report(result: ServeBenchResult) -> str:
     if result.soak:
         s = result.soak
         lines.append(f"soak: {s['sessions']} tiny sessions for {s['seconds']:.0f} s: {s['chunks']} "
-                     f"chunks, {s['lost']} lost, {s['reordered']} reordered, p99 {s['p99_ms']:.1f} ms; "
+                     f"chunks, {s['lost']} lost, {s['reordered']} reordered, p99 {s['p99_ms']:.1f}"
+                     f"{interval_text(s.get('p99_interval'))} ms; "
                      f"server RSS {s['rss_mb_first']:.0f} MB after the first minute, "
                      f"{s['rss_mb_last']:.0f} MB at the end (max {s['rss_mb_max']:.0f}, "
                      f"slope {s['rss_slope_mb_per_min']:+.2f} MB/min)")
