@@ -12,24 +12,24 @@ from sarah_data.atomic import atomic_write_text
 from .config import GOALS
 
 
-def _lookup(results: dict[str, Any], key: str) -> float | None:
+def _node(results: dict[str, Any], key: str) -> Any:
+    """The value at a dotted key (a goal's ``@target`` suffix ignored), or None if absent."""
     node: Any = results
     for part in key.split("@")[0].split("."):
         if not isinstance(node, dict) or part not in node:
             return None
         node = node[part]
-    return float(node)
+    return node
+
+
+def _lookup(results: dict[str, Any], key: str) -> float | None:
+    node = _node(results, key)
+    return None if node is None else float(node)
 
 
 def _interval(results: dict[str, Any], key: str) -> list[float | None] | None:
     """The interval stored beside a percentile (``...p99`` -> ``...p99_interval``), if any."""
-    node: Any = results
-    parts = key.split("@")[0].split(".")
-    for part in parts[:-1] + [parts[-1] + "_interval"]:
-        if not isinstance(node, dict) or part not in node:
-            return None
-        node = node[part]
-    return node
+    return _node(results, key.split("@")[0] + "_interval")
 
 
 def interval_text(interval: list[float | None] | None) -> str:

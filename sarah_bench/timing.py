@@ -52,12 +52,11 @@ def quantile_interval(values: np.ndarray, q: float,
         return None, None
     ordered = np.sort(np.asarray(values, dtype=np.float64))
     alpha = 1.0 - confidence
-    # 1-based ranks: l = the largest with P(B < l) <= alpha / 2, u = the smallest with
-    # P(B >= u) <= alpha / 2 (each tail gets half of what the interval may miss).
+    # 1-based ranks: l = the largest with P(B < l) <= alpha / 2 (ppf is the smallest k with
+    # P(B <= k) >= alpha / 2), u = the smallest with P(B >= u) <= alpha / 2: each tail gets half
+    # of what the interval may miss.
     low = int(binom.ppf(alpha / 2, n, q))
     high = int(binom.ppf(1.0 - alpha / 2, n, q)) + 1
-    while low >= 1 and binom.cdf(low - 1, n, q) > alpha / 2:
-        low -= 1
     return (float(ordered[low - 1]) if low >= 1 else None,
             float(ordered[high - 1]) if high <= n else None)
 
