@@ -35,6 +35,7 @@ import torch
 
 from sarah_data.constants import FPS, SAMPLES_PER_FRAME
 from sarah_models.accel import (
+    cpu_identity,
     cpu_info,
     optimize_for_inference,
     resolve_decoder,
@@ -427,7 +428,8 @@ def environment(threads: int | str) -> dict[str, Any]:
     cpu = cpu_info("model name") or platform.processor() or "unknown"
     isa = vector_isa()
     return {"date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-            "cpu": f"{cpu} ({isa})" if isa else cpu, "cores": os.cpu_count(),
+            "cpu": f"{cpu} ({isa})" if isa else cpu, "cpu_identity": cpu_identity(),
+            "cores": os.cpu_count(),
             "threads": threads, "torch": torch.__version__,
             "numpy": np.__version__, "python": platform.python_version(),
             "load_before": list(os.getloadavg())}

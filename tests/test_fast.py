@@ -507,6 +507,22 @@ def test_naive_reference_computes_what_the_generator_computes(tiny):
         assert timings["flow"] > 0 and timings["decode"] > 0
 
 
+def test_last_level_cache_reads_the_highest_level_sysfs_states(tmp_path):
+    from sarah_models.accel.cpu import last_level_cache
+
+    assert last_level_cache(tmp_path) == ""  # no cache folders: unknown, not a guess
+    for index, (level, size) in enumerate([(1, "48K"), (1, "32K"), (2, "2048K"), (3, "266240K")]):
+        folder = tmp_path / f"index{index}"
+        folder.mkdir()
+        (folder / "level").write_text(f"{level}\n")
+        (folder / "size").write_text(f"{size}\n")
+    assert last_level_cache(tmp_path) == "L3 260 MiB"
+    (tmp_path / "index3" / "size").write_text("garbled\n")  # an unreadable level is skipped
+    assert last_level_cache(tmp_path) == "L2 2 MiB"
+    (tmp_path / "index2" / "size").write_text("512K\n")
+    assert last_level_cache(tmp_path) == "L2 512 KiB"
+
+
 def test_bench_quick_runs_end_to_end(tmp_path):
     from sarah_cli.bench import main
 
@@ -522,6 +538,10 @@ def test_bench_quick_runs_end_to_end(tmp_path):
     assert vector_isa() in ("AMX", "AVX-512 VNNI", "AVX-512", "AVX2", "")
     assert not vector_isa() or results["environment"]["cpu"].endswith(f" ({vector_isa()})")
     assert results["environment"]["cpu"] in history.read_text()
+    # ... and what tells apart VMs of one name: family, model, last-level cache (Linux)
+    from sarah_models.accel import cpu_identity
+
+    assert results["environment"]["cpu_identity"] == cpu_identity()
     tiny_stream = results["streaming"]["tiny"]
     assert tiny_stream["fps"] > 0 and tiny_stream["naive"]["fps"] > 0
     assert set(tiny_stream["stages_ms"]) == {"audio", "flow", "decode", "other"}

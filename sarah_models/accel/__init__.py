@@ -1,7 +1,7 @@
 """Inference speed-ups by module replacement (see ``optimize.py``): the reference model in
 ``sarah_models.nn`` never imports this package."""
 
-from .cpu import cpu_info, vector_isa
+from .cpu import cpu_identity, cpu_info, vector_isa
 from .optimize import (
                        DECODER_PRECISIONS,
                        MODE_HELP,
@@ -12,5 +12,5 @@ from .optimize import (
 )
 from .threads import ThreadPolicy
 
-__all__ = ["DECODER_PRECISIONS", "MODES", "MODE_HELP", "cpu_info", "optimize_for_inference",
+__all__ = ["DECODER_PRECISIONS", "MODES", "MODE_HELP", "cpu_identity", "cpu_info", "optimize_for_inference",
            "resolve_decoder", "vector_isa", "warm_up", "ThreadPolicy"]

@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
+
+CACHE_DIR = Path("/sys/devices/system/cpu/cpu0/cache")
+CACHE_UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30}
+
 
 def cpu_info(field: str) -> str:
     """A field of /proc/cpuinfo ("vendor_id", "model name", ...) for the first CPU; "" when
@@ -19,6 +25,37 @@ def cpu_info(field: str) -> str:
 def cpu_vendor() -> str:
     """The CPU's vendor id ("GenuineIntel", "AuthenticAMD", ...; "" when unknown)."""
     return cpu_info("vendor_id")
+
+
+def last_level_cache(cache_dir: Path = CACHE_DIR) -> str:
+    """The first CPU's largest cache level and its size as sysfs states them ("L3 260 MiB"; ""
+    when unknown): whether a chunk's weights stay in cache decides its speed (the paper-size
+    flow reads 48 MB per evaluation), and VMs of one model name differ here."""
+    best: tuple[int, int] | None = None
+    for index in sorted(cache_dir.glob("index*")):
+        try:
+            level = int((index / "level").read_text())
+            size = (index / "size").read_text().strip()
+        except (OSError, ValueError):
+            continue
+        parsed = re.fullmatch(r"(\d+)([KMG]?)", size)
+        number = int(parsed[1]) * CACHE_UNITS[parsed[2]] if parsed else 0
+        if number and (best is None or level > best[0]):
+            best = (level, number)
+    if best is None:
+        return ""
+    level, number = best
+    return f"L{level} {number / 2**20:g} MiB" if number >= 2**20 else f"L{level} {number // 2**10} KiB"
+
+
+def cpu_identity() -> str:
+    """Family, model and last-level cache ("family 6 model 207, L3 260 MiB"; the parts known):
+    VMs that report the same model name ("Intel(R) Xeon(R) Processor") ran the same stream 1.6x
+    apart (docs/performance.md, 2026-12-02)."""
+    family, model = cpu_info("cpu family"), cpu_info("model")
+    parts = [f"family {family} model {model}"] if family and model else []
+    cache = last_level_cache()
+    return ", ".join(parts + ([cache] if cache else []))
 
 
 def has_cpu_feature(name: str) -> bool:
