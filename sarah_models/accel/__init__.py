@@ -12,5 +12,5 @@ from .optimize import (
 )
 from .threads import ThreadPolicy
 
-__all__ = ["DECODER_PRECISIONS", "MODES", "MODE_HELP", "cpu_identity", "cpu_info", "optimize_for_inference",
-           "resolve_decoder", "vector_isa", "warm_up", "ThreadPolicy"]
+__all__ = ["DECODER_PRECISIONS", "MODES", "MODE_HELP", "cpu_identity", "cpu_info",
+           "optimize_for_inference", "resolve_decoder", "vector_isa", "warm_up", "ThreadPolicy"]
