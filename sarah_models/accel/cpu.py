@@ -45,7 +45,9 @@ def last_level_cache(cache_dir: Path = CACHE_DIR) -> str:
     if best is None:
         return ""
     level, number = best
-    return f"L{level} {number / 2**20:g} MiB" if number >= 2**20 else f"L{level} {number // 2**10} KiB"
+    if number >= 2**20:
+        return f"L{level} {number / 2**20:g} MiB"
+    return f"L{level} {number // 2**10} KiB"
 
 
 def cpu_identity() -> str:
