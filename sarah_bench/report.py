@@ -66,11 +66,16 @@ def _fit(concurrent: dict[str, Any]) -> str:
     return f"{'>= ' if concurrent.get('every_count_held') else ''}{concurrent['fit']}"
 
 
+def cpu_text(env: dict[str, Any]) -> str:
+    """The CPU as reports name it: model name and instruction set, then family, model and
+    last-level cache where known (VMs of one model name differ there)."""
+    return f"{env['cpu']}, {env['cpu_identity']}" if env.get("cpu_identity") else env["cpu"]
+
+
 def format_report(results: dict[str, Any]) -> str:
     """The results as plain-text tables."""
     env = results["environment"]
-    identity = f" [{env['cpu_identity']}]" if env.get("cpu_identity") else ""
-    lines = [f"sarah-bench  {env['date']}  {env['cpu']}{identity}, {env['cores']} cores, "
+    lines = [f"sarah-bench  {env['date']}  {cpu_text(env)}, {env['cores']} cores, "
              f"{env['threads']} threads, torch {env['torch']}",
              f"load average before {env['load_before'][0]:.2f}, after "
              f"{env.get('load_after', [float('nan')])[0]:.2f} "
@@ -262,11 +267,10 @@ def history_row(results: dict[str, Any]) -> str:
         value = _lookup(results, key)
         return _f(value)
 
-    cpu = f"{env['cpu']}, {env['cpu_identity']}" if env.get("cpu_identity") else env["cpu"]
     mode = results["config"]["mode"]
     if results["config"].get("decoder_precision") == "bf16":
         mode += ", bf16 decoder"
-    return (f"| {env['date'][:10]} | {cpu} | {env['threads']} | {env['torch']} | "
+    return (f"| {env['date'][:10]} | {cpu_text(env)} | {env['threads']} | {env['torch']} | "
             f"{mode} | {get('streaming.paper.fps')} | "
             f"{get('streaming.paper.latency_ms.p99')} | "
             f"{get('streaming.paper.fewer_steps.latency_ms.p99')} | {get('offline.paper.fps')} | "
