@@ -4,6 +4,9 @@ run). Streams the model (as sarah-eval's model row, g = none) on every 400-frame
 split and prints eight tables:
 
     python scripts/motion_anatomy.py --pretrained fixture-tiny --shards test_shards --split train
+    # a model at its own sampling setting (sarah-eval's flags of the same names)
+    python scripts/motion_anatomy.py --run model.safetensors --shards test_shards --split train \
+        --noise-scale 0.6 --cfg 2.5 --guide user_head,gaze --imputation trajectory
 
 1. FGD (pooled), FGD_acc and foot slide of hybrids: the ground truth's pose on the model's root
    trajectory, and the model's pose on the ground truth's root; what each part costs;
@@ -50,6 +53,7 @@ from sarah_models.evaluation.metrics.clips import accelerations
 from sarah_models.evaluation.metrics.frechet import moments_distance
 from sarah_models.evaluation.metrics.spec import FOOT_MAX_HEIGHT, FOOT_MIN_SPEED, MetricsConfig
 from sarah_models.evaluation.metrics.table import bootstrap_interval
+from sarah_models.evaluation.runner import EvalConfig, EvalError
 from sarah_models.evaluation.tables import MethodResult
 from sarah_models.evaluation.windows import motion_clip
 from sarah_models.sampling.foot_lock import SWING_FRAMES
@@ -64,18 +68,20 @@ PARTS = {"fingers": ("index", "middle", "ring", "pinky", "thumb"), "wrists": ("w
 GLIDING = tuple(key for key in PARTS["legs"] if key != "hip")
 
 
-def streamed_windows(models, shards: Path, split: str):
+def streamed_windows(models, shards: Path, split: str, sampling: dict | None = None):
     """(ground truth, model motion, user head, VAE reconstruction, latents, offline motion) of
     every window, ``models`` (``load_run``'s) streamed, generated offline and reconstructed as sarah-eval's model (both
     protocols) and VAE rows are; latents holds the standardized (K, Dz) latents "encoder" (of
-    the ground truth), "stream" and "offline"."""
+    the ground truth), "stream" and "offline". ``sampling``: EvalConfig fields (steps,
+    cfg_scale, noise_scale, guide, imputation) both protocols sample with (default: the
+    paper's)."""
     import torch
 
     from sarah_data.dataset import WindowDataset
-    from sarah_models.evaluation.runner import EvalConfig, _vae_producer, window_generator
+    from sarah_models.evaluation.runner import _vae_producer, window_generator
 
     windows = WindowDataset.sliding(shards, split, extractor=models.features, window=400)
-    stream, offline = (window_generator(models, EvalConfig(protocol=p), None)
+    stream, offline = (window_generator(models, EvalConfig(protocol=p, **(sampling or {})), None)
                        for p in ("stream", "offline"))
     reconstruct, nz = _vae_producer(models), models.normalizer
     out = []
@@ -373,7 +379,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--shards", type=Path, required=True, help="shards folder (sarah-prep)")
     parser.add_argument("--split", default="test", help="split whose 400-frame windows are streamed")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    paper = EvalConfig()
+    parser.add_argument("--steps", type=int, default=paper.steps, help="midpoint solver steps")
+    parser.add_argument("--cfg", type=float, default=paper.cfg_scale, help="guidance scale w")
+    parser.add_argument("--noise-scale", type=float, default=paper.noise_scale,
+                        help="temperature of the starting noise")
+    parser.add_argument("--guide", default=",".join(paper.guide),
+                        help="modalities guidance's unconditional pass drops")
+    parser.add_argument("--imputation", choices=("final", "trajectory"), default=paper.imputation,
+                        help="a stream's history (docs/models.md)")
     args = parser.parse_args(argv)
+    try:
+        sampling = dict(steps=args.steps, cfg_scale=args.cfg, noise_scale=args.noise_scale,
+                        guide=tuple(g for g in args.guide.split(",") if g),
+                        imputation=args.imputation)
+        EvalConfig(**sampling)
+    except EvalError as error:
+        parser.error(str(error))
     if args.pretrained:
         from sarah_models.pretrained import model_path
 
@@ -390,12 +412,14 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(args.threads)
     models, _ = load_run(model, None, device="cpu", need_flow=True)
-    clips = streamed_windows(models, args.shards, args.split)
+    clips = streamed_windows(models, args.shards, args.split, sampling)
     if not clips:
         print(f"{args.shards}: split {args.split!r} has no 400-frame windows", file=sys.stderr)
         return 2
     layout = MotionLayout.from_width(clips[0][0].shape[1])
-    print(f"{len(clips)} windows of split {args.split!r} in {args.shards}, streamed, g = none\n")
+    print(f"{len(clips)} windows of split {args.split!r} in {args.shards}, streamed, g = none, "
+          f"{args.steps} steps, CFG {args.cfg} guiding {args.guide}, noise {args.noise_scale}, "
+          f"{args.imputation} imputation\n")
     hybrids(clips, layout)
     energy(clips, layout)
     travel(clips, layout)

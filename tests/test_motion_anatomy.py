@@ -162,3 +162,16 @@ def test_gliding_legs_ride_the_pelvis_and_leave_the_rest_as_it_was():
     given = stepping.copy()
     np.testing.assert_allclose(anatomy.gliding_legs(stepping, layout), expected, atol=1e-12)
     np.testing.assert_array_equal(stepping, given)  # the input is not written to
+
+
+def test_sampling_flags_are_checked_before_any_model_loads(capsys, tmp_path):
+    # no model file exists at --run: a bad guide modality must be refused first, in one line
+    missing = str(tmp_path / "absent.safetensors")
+    try:
+        anatomy.main(["--run", missing, "--shards", str(tmp_path), "--guide", "user_head,smell"])
+    except SystemExit as exit_:
+        assert exit_.code == 2
+    else:
+        raise AssertionError("an unknown modality was accepted")
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "--guide" in error and "smell" in error
