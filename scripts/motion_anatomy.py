@@ -38,22 +38,26 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from sarah_cli.arguments import (IMPUTATION_HELP, NOISE_SCALE_HELP, guide_help, guided_modalities,
+                                 noise_scale)
 from sarah_data import icosahedron
 from sarah_data.constants import BODY_JOINTS, FPS, JOINT_NAMES
 from sarah_data.frames import rotation_about_y, yaw_of
 from sarah_data.moments import Moments
 from sarah_data.skeleton import FEET, ROOT, MotionLayout
+from sarah_models.config import IMPUTATIONS
 from sarah_models.evaluation.metrics import (evaluate, foot_slide, foot_steps, step_paths,
                                              step_reaches)
 from sarah_models.evaluation.metrics.clips import accelerations
 from sarah_models.evaluation.metrics.frechet import moments_distance
 from sarah_models.evaluation.metrics.spec import FOOT_MAX_HEIGHT, FOOT_MIN_SPEED, MetricsConfig
 from sarah_models.evaluation.metrics.table import bootstrap_interval
-from sarah_models.evaluation.runner import EvalConfig, EvalError
+from sarah_models.evaluation.runner import EvalConfig
 from sarah_models.evaluation.tables import MethodResult
 from sarah_models.evaluation.windows import motion_clip
 from sarah_models.sampling.foot_lock import SWING_FRAMES
@@ -68,20 +72,19 @@ PARTS = {"fingers": ("index", "middle", "ring", "pinky", "thumb"), "wrists": ("w
 GLIDING = tuple(key for key in PARTS["legs"] if key != "hip")
 
 
-def streamed_windows(models, shards: Path, split: str, sampling: dict | None = None):
+def streamed_windows(models, shards: Path, split: str, sampling: EvalConfig = EvalConfig()):
     """(ground truth, model motion, user head, VAE reconstruction, latents, offline motion) of
     every window, ``models`` (``load_run``'s) streamed, generated offline and reconstructed as sarah-eval's model (both
     protocols) and VAE rows are; latents holds the standardized (K, Dz) latents "encoder" (of
-    the ground truth), "stream" and "offline". ``sampling``: EvalConfig fields (steps,
-    cfg_scale, noise_scale, guide, imputation) both protocols sample with (default: the
-    paper's)."""
+    the ground truth), "stream" and "offline". Both protocols sample as ``sampling`` says
+    (steps, guidance, noise, imputation; default: the paper's)."""
     import torch
 
     from sarah_data.dataset import WindowDataset
     from sarah_models.evaluation.runner import _vae_producer, window_generator
 
     windows = WindowDataset.sliding(shards, split, extractor=models.features, window=400)
-    stream, offline = (window_generator(models, EvalConfig(protocol=p, **(sampling or {})), None)
+    stream, offline = (window_generator(models, replace(sampling, protocol=p), None)
                        for p in ("stream", "offline"))
     reconstruct, nz = _vae_producer(models), models.normalizer
     out = []
@@ -379,23 +382,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--shards", type=Path, required=True, help="shards folder (sarah-prep)")
     parser.add_argument("--split", default="test", help="split whose 400-frame windows are streamed")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    # sarah-eval's sampling flags, parsed and checked by the same functions
     paper = EvalConfig()
     parser.add_argument("--steps", type=int, default=paper.steps, help="midpoint solver steps")
     parser.add_argument("--cfg", type=float, default=paper.cfg_scale, help="guidance scale w")
-    parser.add_argument("--noise-scale", type=float, default=paper.noise_scale,
-                        help="temperature of the starting noise")
-    parser.add_argument("--guide", default=",".join(paper.guide),
-                        help="modalities guidance's unconditional pass drops")
-    parser.add_argument("--imputation", choices=("final", "trajectory"), default=paper.imputation,
-                        help="a stream's history (docs/models.md)")
+    parser.add_argument("--noise-scale", type=noise_scale, default=paper.noise_scale,
+                        help=NOISE_SCALE_HELP)
+    parser.add_argument("--guide", type=guided_modalities, default="all", help=guide_help())
+    parser.add_argument("--imputation", choices=IMPUTATIONS, default=paper.imputation,
+                        help=IMPUTATION_HELP)
     args = parser.parse_args(argv)
-    try:
-        sampling = dict(steps=args.steps, cfg_scale=args.cfg, noise_scale=args.noise_scale,
-                        guide=tuple(g for g in args.guide.split(",") if g),
-                        imputation=args.imputation)
-        EvalConfig(**sampling)
-    except EvalError as error:
-        parser.error(str(error))
+    sampling = EvalConfig(steps=args.steps, cfg_scale=args.cfg, noise_scale=args.noise_scale,
+                          guide=args.guide, imputation=args.imputation)
     if args.pretrained:
         from sarah_models.pretrained import model_path
 
@@ -418,7 +416,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     layout = MotionLayout.from_width(clips[0][0].shape[1])
     print(f"{len(clips)} windows of split {args.split!r} in {args.shards}, streamed, g = none, "
-          f"{args.steps} steps, CFG {args.cfg} guiding {args.guide}, noise {args.noise_scale}, "
+          f"{args.steps} steps, CFG {args.cfg} guiding {','.join(args.guide)}, "
+          f"noise {args.noise_scale}, "
           f"{args.imputation} imputation\n")
     hybrids(clips, layout)
     energy(clips, layout)
