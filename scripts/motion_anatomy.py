@@ -23,13 +23,15 @@ split and prints eight tables:
    the same windows and seeds) in each band of token rate, against the encoder's latents of the
    ground truth, and how far each moves from one token to the next (docs/results.md, twentieth
    run): where the two protocols part;
-7. FGD_acc by body part: the same Fréchet distance as sarah-eval's FGD_acc (batches of 16 clips,
-   their mean, a bootstrap interval over batches) on the shell points nearest each part's
-   joints only, for the model (streamed and offline) and for its VAE, with each part's acceleration energy against the
-   ground truth's (docs/results.md, twenty-fourth run): which part of the body the distance is in;
+7. FGD_acc by body part, as sarah-eval scores it (``metrics.body_parts``: batches of 16 clips,
+   their mean, a bootstrap interval over batches, on the shell points nearest each joint
+   group's joints), for the model (streamed and offline) and for its VAE, with each part's
+   acceleration energy against the ground truth's (docs/results.md, twenty-fourth run): which
+   part of the body the distance is in;
 8. the decoding chain's own steps: the ground truth with its knees, ankles and feet carried
    rigidly with the pelvis (feet that glide, as a decoder's do, under the data's own path),
-   through the model's decoding chain; FGD_acc of the whole shell and the legs, and foot slide
+   through the model's decoding chain; FGD_acc of the whole shell, the legs and the feet, and
+   foot slide
    (docs/results.md, fifty-first run): how far the foot lock's steps are from the data's where
    everything else is the data's.
 """
@@ -48,13 +50,12 @@ from sarah_cli.arguments import (IMPUTATION_HELP, NOISE_SCALE_HELP, guide_help, 
 from sarah_data import icosahedron
 from sarah_data.constants import BODY_JOINTS, FPS, JOINT_NAMES
 from sarah_data.frames import rotation_about_y, yaw_of
-from sarah_data.moments import Moments
-from sarah_data.skeleton import FEET, ROOT, MotionLayout
+from sarah_data.skeleton import FEET, JOINT_GROUPS, ROOT, MotionLayout
 from sarah_models.config import IMPUTATIONS
-from sarah_models.evaluation.metrics import (evaluate, foot_slide, foot_steps, step_paths,
-                                             step_reaches)
+from sarah_models.evaluation.metrics import (MetricsTable, evaluate, foot_slide, foot_steps,
+                                             step_paths, step_reaches)
+from sarah_models.evaluation.metrics.body_parts import part_key, shell_parts
 from sarah_models.evaluation.metrics.clips import accelerations
-from sarah_models.evaluation.metrics.frechet import moments_distance
 from sarah_models.evaluation.metrics.spec import FOOT_MAX_HEIGHT, FOOT_MIN_SPEED, MetricsConfig
 from sarah_models.evaluation.metrics.table import bootstrap_interval
 from sarah_models.evaluation.runner import EvalConfig
@@ -64,12 +65,10 @@ from sarah_models.sampling.foot_lock import SWING_FRAMES
 
 BANDS = ((0, 2), (2, 4), (4, 6), (6, 8), (8, 10), (10, FPS / 2 + 1))  # Hz; the last holds Nyquist
 BEATS = (2, 7)  # Hz: the fixtures' syllable-rate gestures (~4.5 Hz) and what blurs them
-PARTS = {"fingers": ("index", "middle", "ring", "pinky", "thumb"), "wrists": ("wrist",),
-         "arms": ("collar", "shoulder", "elbow"), "legs": ("hip", "knee", "ankle", "foot"),
-         "trunk and head": ("pelvis", "spine", "neck", "head", "jaw", "eye")}
 # What a decoder's gliding legs carry along with the pelvis: the legs below the hips, which ride
 # the pelvis already.
-GLIDING = tuple(key for key in PARTS["legs"] if key != "hip")
+GLIDING = tuple(name for name in JOINT_GROUPS["legs"] + JOINT_GROUPS["feet"]
+                if not name.endswith("hip"))
 
 
 def streamed_windows(models, shards: Path, split: str, sampling: EvalConfig = EvalConfig()):
@@ -205,9 +204,9 @@ def band_energy(points: np.ndarray, bands=BANDS) -> np.ndarray:
 
 
 def part_joints(names) -> dict[str, list[int]]:
-    """Joint indices of each of PARTS, by name."""
-    return {part: [j for j, name in enumerate(names) if any(k in name for k in keys)]
-            for part, keys in PARTS.items()}
+    """Joint indices of each joint group (``JOINT_GROUPS``) among ``names``."""
+    return {part: [names.index(name) for name in group if name in names]
+            for part, group in JOINT_GROUPS.items()}
 
 
 def spectrum(clips, layout: MotionLayout) -> None:
@@ -277,56 +276,37 @@ def nearest_body_joint(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
     return np.argmin(np.sum((shell[0][:, None] - joints[None]) ** 2, -1), axis=1)
 
 
-def shell_parts(motion: np.ndarray, layout: MotionLayout) -> dict[str, np.ndarray]:
-    """The shell points of each of PARTS (those nearest one of its body joints in ``motion``'s
-    first frame; parts without a body joint, the fingers, get none), and "whole shell"."""
-    nearest = nearest_body_joint(motion, layout)
-    by_joint = part_joints(JOINT_NAMES[:BODY_JOINTS])
-    parts = {part: np.flatnonzero(np.isin(nearest, js)) for part, js in by_joint.items()}
-    parts = {part: points for part, points in parts.items() if len(points)}
-    return {**parts, "whole shell": np.arange(len(nearest))}
+def by_part(generated, truth, layout: MotionLayout, parts) -> MetricsTable:
+    """sarah-eval's metrics of ``generated`` motions against ``truth`` (the same windows), FGD_acc
+    by body part too (``parts``: ``body_parts.shell_parts``)."""
+    clips = [[motion_clip(m, np.zeros((len(m), 2))) for m in motions] for motions in (generated, truth)]
+    return evaluate(*clips, np.zeros(len(truth), bool),
+                    config=MetricsConfig(normalize_window=False, shell_parts=parts))
 
 
-def shell_accelerations(clips, layout: MotionLayout,
-                        config: MetricsConfig = MetricsConfig()) -> list[np.ndarray]:
-    """Each clip's shell accelerations (T-2, P, 3) in the reported unit per s², as FGD_acc reads
-    them; computed once and sliced per part by ``part_fgd_acc``."""
-    return [accelerations(layout.split(motion)[1] / config.report_unit) for motion in clips]
+def reference_parts(motion: np.ndarray, layout: MotionLayout) -> dict[str, tuple[int, ...]]:
+    """The body parts' shell points, by ``motion``'s first frame (sarah-eval's rule)."""
+    return shell_parts(*layout.split(motion[0]), layout.joint_names)
 
 
-def part_fgd_acc(generated, ground_truth, points: np.ndarray,
-                 config: MetricsConfig = MetricsConfig()) -> tuple[float, float, float, float]:
-    """FGD_acc (÷1e5) of the shell ``points`` only, from ``shell_accelerations`` of the generated
-    and ground-truth clips, as sarah-eval computes FGD_acc (the mean of per-batch Fréchet
-    distances; a 95 % bootstrap interval over batches), and the generated clips' acceleration
-    energy there against the ground truth's: (avg, low, high, energy ratio)."""
-    batches, energy = [], np.zeros(2)
-    for start in range(0, len(generated), config.batch_clips):
-        moments = (Moments(full=True), Moments(full=True))
-        for pair in zip(generated[start:start + config.batch_clips],
-                        ground_truth[start:start + config.batch_clips]):
-            for i, acceleration in enumerate(pair):
-                a = acceleration[:, points]
-                moments[i].add(a.reshape(len(a), -1))
-                energy[i] += np.sum(a ** 2) / len(a)
-        batches.append(moments_distance(*moments, config.fd_ridge) / 1e5)
-    low, high = bootstrap_interval(batches)
-    return float(np.mean(batches)), low, high, energy[0] / energy[1]
+def fgd_acc_cell(table: MetricsTable, part: str | None = None) -> str:
+    v = table.values["fgd_acc" if part is None else part_key(part)]
+    scale = table.display_scale["fgd_acc"]
+    return f"{v.avg / scale:,.0f} ({v.low / scale:,.0f}-{v.high / scale:,.0f})"
 
 
 def acceleration_by_part(clips, layout: MotionLayout) -> None:
-    gt = shell_accelerations([c[0] for c in clips], layout)
-    methods = [shell_accelerations([c[index] for c in clips], layout) for index in (1, 5, 3)]
-    parts = shell_parts(clips[0][0], layout)
+    truth = [c[0] for c in clips]
+    parts = reference_parts(truth[0], layout)
+    tables = [by_part([c[index] for c in clips], truth, layout, parts) for index in (1, 5, 3)]
     print("| shell points nearest | points | streamed FGD_acc (÷1e5) | streamed energy / GT | "
           "offline FGD_acc | offline energy / GT | VAE FGD_acc | VAE energy / GT |"
           "\n|---|---|---|---|---|---|---|---|")
+    print(f"| whole shell | {layout.shell_points} | " + " | ".join(
+        f"{fgd_acc_cell(t)} | -" for t in tables) + " |")
     for part, points in parts.items():
-        cells = []
-        for generated in methods:
-            avg, low, high, ratio = part_fgd_acc(generated, gt, points)
-            cells += [f"{avg:,.0f} ({low:,.0f}-{high:,.0f})", f"{ratio:.2f}"]
-        print(f"| {part} | {len(points)} | " + " | ".join(cells) + " |")
+        print(f"| {part} | {len(points)} | " + " | ".join(
+            f"{fgd_acc_cell(t, part)} | {t.values[part_key(part)].ratio:.2f}" for t in tables) + " |")
 
 
 def gliding_legs(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
@@ -337,7 +317,7 @@ def gliding_legs(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
     out = np.array(motion, dtype=np.float64)
     icosahedra, shell = layout.split(out)  # views into ``out``
     joints = icosahedra.mean(axis=-2)
-    legs = [j for j, name in enumerate(JOINT_NAMES[:BODY_JOINTS]) if any(k in name for k in GLIDING)]
+    legs = [j for j, name in enumerate(JOINT_NAMES[:BODY_JOINTS]) if name in GLIDING]
     points = np.flatnonzero(np.isin(nearest_body_joint(out, layout), legs))
     root = JOINT_NAMES.index(ROOT)
     yaw = yaw_of(icosahedron.decode(icosahedra[:, root])[1])  # the heading the window frame reads
@@ -358,19 +338,17 @@ def chain_steps(clips, layout: MotionLayout, decoding) -> None:
     sarah-eval's "decoded" row)."""
     truth = [c[0] for c in clips]
     gliding = [gliding_legs(m, layout) for m in truth]
-    gt = shell_accelerations(truth, layout)
-    parts = shell_parts(truth[0], layout)
-    print("| clips | FGD_acc (÷1e5) | legs FGD_acc | legs energy / GT | foot slide (95 % over windows) |"
-          "\n|---|---|---|---|---|")
+    parts = reference_parts(truth[0], layout)
+    print("| clips | FGD_acc (÷1e5) | legs FGD_acc | legs energy / GT | feet FGD_acc | feet energy / GT "
+          "| foot slide (95 % over windows) |\n|---|---|---|---|---|---|---|")
     for label, motions in (("ground truth through the chain", [decoding()(m) for m in truth]),
                            ("its legs gliding with the pelvis", gliding),
                            ("the same through the chain", [decoding()(m) for m in gliding])):
-        acc = shell_accelerations(motions, layout)
-        whole, legs = (part_fgd_acc(acc, gt, parts[p]) for p in ("whole shell", "legs"))
+        table = by_part(motions, truth, layout, parts)
         slides = [foot_slide(layout.joint_positions(m)) for m in motions]
-        print(f"| {label} | {whole[0]:,.0f} ({whole[1]:,.0f}-{whole[2]:,.0f}) | "
-              f"{legs[0]:,.0f} ({legs[1]:,.0f}-{legs[2]:,.0f}) | {legs[3]:.2f} | "
-              "{:.4f} ({:.4f}-{:.4f}) |".format(np.mean(slides), *bootstrap_interval(slides)))
+        print(f"| {label} | {fgd_acc_cell(table)} | " + " | ".join(
+            f"{fgd_acc_cell(table, p)} | {table.values[part_key(p)].ratio:.2f}" for p in ("legs", "feet"))
+              + " | {:.4f} ({:.4f}-{:.4f}) |".format(np.mean(slides), *bootstrap_interval(slides)))
 
 
 def main(argv: list[str] | None = None) -> int:

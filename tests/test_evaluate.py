@@ -165,8 +165,21 @@ def test_end_to_end_tables_plots_and_determinism(tiny, tmp_path, capsys):
     beside = md[md.index("**Beside GT on the same windows: difference (this − GT) and, for "
                          "magnitudes, ratio (this ÷ GT) of the means, paired 95 % bootstrap "
                          "intervals.**"):]
-    assert [line.split("|")[1].strip() for line in beside[4:]] == [
-        r["method"] for r in (real, random, nn, model)]
+    rows_of = lambda table: [line.split("|")[1].strip()  # noqa: E731
+                             for line in table[4:table.index("", 4)]]
+    assert rows_of(beside) == [r["method"] for r in (real, random, nn, model)]
+    by_part = md[next(i for i, line in enumerate(md) if "by body part" in line):]
+    assert rows_of(by_part + [""]) == [r["method"] for r in (real, random, nn, model)]
+    whole, *heads = (cell.strip()[:-1].split(" (") for cell in by_part[2].split("|")[2:-1])
+    parts = [name for name, _ in heads]
+    assert whole[0] == "whole shell" and parts and sum(int(n) for _, n in heads) == int(whole[1])
+    for row in (real, random, nn, model):  # FGD_acc of every part, its energy beside GT's
+        shown = row["shown"]
+        for part in parts:
+            avg, low, high, ratio = (shown[f"fgd_acc@{part}/{k}"]
+                                     for k in ("avg", "low", "high", "ratio"))
+            assert avg >= 0 and low <= avg + 1e-9 <= high + 2e-9 and ratio > 0
+    assert all(f"fgd_acc@{part}/avg" not in gt["shown"] for part in parts)  # GT: no distance
     for row in (real, random, nn, model):  # each per-clip metric paired with GT's, same windows
         shown = row["shown"]
         for name in ("wrist_speed", "head_angle"):

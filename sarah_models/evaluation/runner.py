@@ -28,6 +28,10 @@ FPS = T / median seconds to produce one window's motion (the paper: "generating 
 in one go and then dividing the total time taken by 400"; the median ignores warm-up). R
 (real-time) is FPS >= 30, the motion's frame rate; C (causal) is a property of the method.
 
+Every row but GT's is scored on FGD_acc by body part too (``metrics.body_parts``; the shell split
+by the first window's first frame), each part's acceleration energy against GT's beside it:
+table1.md's last table, and the rows' ``fgd_acc@<part>`` values in table1.json.
+
 Outputs in ``out``: table1.md/.json, table2.md/.json, windows.json (the windows evaluated and
 their S/NS flags), plots/metric_<name>.png (bars across methods), plots/gaze_control.png and
 plots/paths.png (top views of where each method's agent walks, ``paths.py``);
@@ -61,6 +65,7 @@ from .metrics import (
     reference_table,
     registered,
 )
+from .metrics.body_parts import shell_parts
 from .tables import (
     MethodResult,
     fps_of,
@@ -351,9 +356,12 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
 
     # Windows are in their window frame already: re-normalizing to a decoded frame-0 pelvis
     # would rotate a whole clip by that frame's yaw error. Seams are looked for at the run's
-    # latent blocks.
+    # latent blocks. FGD_acc is scored by body part too, the shell split once, by the first
+    # window's first frame, for every method alike.
+    icosahedra, shell = layout.split(windows[0]["motion"].numpy()[0])
     metrics_config = MetricsConfig(batch_clips=config.batch_clips, normalize_window=False,
-                                   block_frames=loaded.vae.stride if loaded else STRIDE)
+                                   block_frames=loaded.vae.stride if loaded else STRIDE,
+                                   shell_parts=shell_parts(icosahedra, shell, layout.joint_names))
     train_windows = None
     if "random" in config.methods or "nn" in config.methods:
         library = shards if config.library_shards is None else Path(config.library_shards)
@@ -385,10 +393,9 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
                     echo(f"{label}: {len(ridged)} Fréchet distance(s) needed a covariance ridge "
                          f"(near-singular covariances; see metrics.frechet_distance_from_moments)")
         if not pooled:  # a row whose clips are the ground truth's own, permuted
-            for metric in registered():
-                if metric.kind == "frechet":
-                    values = table.values[metric.name]
-                    values.pooled = values.pooled_low = values.pooled_high = math.nan
+            for name in table.distances():
+                values = table.values[name]
+                values.pooled = values.pooled_low = values.pooled_high = math.nan
         fps = fps_of(clips.seconds, config.window) if timed and not reference else None
         result = MethodResult(key, label, causal, fps, table, gaze, reference, floor_paths)
         shown = result.shown()

@@ -20,6 +20,7 @@ from sarah_data.constants import FPS
 
 from ..generation.plots import save_figure
 from .metrics import MetricsTable, registered
+from .metrics.body_parts import SCORED_METRIC, part_key
 
 
 @dataclass
@@ -125,7 +126,7 @@ def table1_markdown(rows: Sequence[MethodResult], caption: str) -> str:
             if metric.kind == "frechet":
                 cells.append(interval(shown, name, d, ("pooled", "pooled_low", "pooled_high")))
         lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n" + beside_gt_markdown(rows)
+    return "\n".join(lines) + "\n" + beside_gt_markdown(rows) + parts_markdown(rows)
 
 
 def beside_gt_markdown(rows: Sequence[MethodResult]) -> str:
@@ -150,6 +151,33 @@ def beside_gt_markdown(rows: Sequence[MethodResult]) -> str:
             if shown.get(f"{metric.name}/ratio") is not None:
                 cell += f"; {interval(shown, metric.name, 2, ('ratio', 'ratio_low', 'ratio_high'))}×"
             cells.append(cell)
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def parts_markdown(rows: Sequence[MethodResult]) -> str:
+    """FGD_acc of the whole shell and of each body part's shell points (``metrics.body_parts``),
+    Avg with its 95 % bootstrap interval, and each part's acceleration energy ÷ GT's on the same
+    windows with its paired 95 % interval; "" when no row has parts."""
+    scored_rows = [r for r in rows if not r.reference and r.table.part_points]
+    if not scored_rows:
+        return ""
+    metric = next(m for m in registered() if m.name == SCORED_METRIC)
+    points = scored_rows[0].table.part_points
+    header = metric_header(metric.name, scored_rows[0].table.display_scale[metric.name])
+    head = ["Method", f"whole shell ({sum(points.values())})"] + [
+        f"{part} ({count})" for part, count in points.items()]
+    lines = ["", f"**{header} by body part (the shell points nearest each part's joints in the "
+             "first window; points in brackets): Avg (95 % bootstrap); e = acceleration energy "
+             "÷ GT's on the same windows (paired 95 %).**", "",
+             "| " + " | ".join(head) + " |", "|" + "|".join([":---"] + [":---:"] * (len(head) - 1)) + "|"]
+    for row in scored_rows:
+        shown = row.shown()
+        cells = [row.label, interval(shown, metric.name, metric.decimals)]
+        for part in points:
+            key = part_key(part)
+            cells.append(f"{interval(shown, key, metric.decimals)}; e "
+                         f"{interval(shown, key, 2, ('ratio', 'ratio_low', 'ratio_high'))}")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

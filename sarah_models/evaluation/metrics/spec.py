@@ -19,7 +19,7 @@ import importlib
 import pkgutil
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 from sarah_data.skeleton import FEET, HEAD, ROOT, WRISTS
 
@@ -103,5 +103,8 @@ class MetricsConfig:
     # 768 dimensions each takes ~0.8 s. Each group keeps a full covariance per metric and side:
     # ~0.57 GB at 20 groups of 768-dimensional samples, whatever the number of clips.
     pooled_groups: int = 20
+    # FGD_acc by body part as well (``body_parts``): each part's shell point indices, e.g.
+    # ``body_parts.shell_parts`` of one ground-truth frame. None: the whole shell only.
+    shell_parts: Mapping[str, tuple[int, ...]] | None = None
     display_scale: dict[str, float] = field(
         default_factory=lambda: {m.name: m.scale for m in registered()})

@@ -7,7 +7,8 @@
   NS and usually exceeds both; ``pooled`` is one distance over every clip, the figure that can
   tell methods apart. Avg's 95 % interval bootstraps the batch values; pooled's is a
   delete-one-group jackknife (``pooled_interval``), generated and ground-truth clips left out
-  together.
+  together. With ``MetricsConfig.shell_parts`` FGD_acc is scored on each body part's shell
+  points too, the same way (``body_parts``), with the part's acceleration energy ÷ GT's.
 * Per-clip metrics (foot slide, wrist speed, head angle): one value per generated clip; S and
   NS are the means over the clips of each category; Avg is their clip-count-weighted mean, with
   a 95 % bootstrap interval over clips; beside GT on the same windows, the difference of the
@@ -22,13 +23,14 @@ as "shown in units of 10^1": shown = raw / 10.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import Mapping, Sequence
 
 import numpy as np
 
 from sarah_data.moments import Moments
 
+from .body_parts import SCORED_METRIC, energy, part_key, part_samples
 from .clips import Clip, DecodedClip, as_numpy
 from .frechet import moments_distance
 from .spec import MetricsConfig, registered, unit_name
@@ -82,7 +84,8 @@ def paired_comparison(values, reference, ratio: bool = True, seed: int = 0,
     """``values`` against ``reference``, clip i of each from the same window: the difference of
     their means and (with ``ratio``) their ratio, each with its 95 % percentile-bootstrap
     interval, both means of every draw taken over the same resampled windows (no ratio where
-    GT's mean is 0)."""
+    GT's mean is 0; the ratio's interval from the draws whose GT mean is not 0: a few windows
+    where a part stands perfectly still now and then draw only such windows)."""
     values = np.asarray(values, dtype=np.float64)
     reference = np.asarray(reference, dtype=np.float64)
     if len(values) == 0 or values.shape != reference.shape:
@@ -92,10 +95,11 @@ def paired_comparison(values, reference, ratio: bool = True, seed: int = 0,
     means, gt_means = values[picks].mean(axis=1), reference[picks].mean(axis=1)
     out = {"gap": float(values.mean() - reference.mean())}
     out["gap_low"], out["gap_high"] = (float(v) for v in np.percentile(means - gt_means, [2.5, 97.5]))
-    if ratio and reference.mean() != 0 and np.all(gt_means != 0):
+    if ratio and reference.mean() != 0:
+        defined = gt_means != 0
         out["ratio"] = float(values.mean() / reference.mean())
-        out["ratio_low"], out["ratio_high"] = (float(v) for v in
-                                               np.percentile(means / gt_means, [2.5, 97.5]))
+        out["ratio_low"], out["ratio_high"] = (float(v) for v in np.percentile(
+            means[defined] / gt_means[defined], [2.5, 97.5]))
     return out
 
 
@@ -138,6 +142,15 @@ class MetricsTable:
     fps: float
     batch_clips: int
     num_batches: int
+    # FGD_acc by body part (``body_parts``): the shell points each part's values (under
+    # ``part_key(part)`` in ``values``) were scored on; empty when parts were not scored.
+    part_points: dict[str, int] = field(default_factory=dict)
+
+    def distances(self) -> list[str]:
+        """The keys of the Fréchet distances in ``values``: the registered metrics', then the
+        parts'."""
+        return ([m.name for m in registered() if m.kind == "frechet" and m.name in self.values]
+                + [part_key(part) for part in self.part_points])
 
     def to_row(self, scale: bool = True) -> dict[str, float]:
         """{"fgd/avg": ..., "fgd/ns": ..., "fgd/s": ..., ...}; scale=True divides by the table's
@@ -180,12 +193,16 @@ def _check_like(kind: str, index: int, clip: Clip, reference: Clip) -> None:
 
 
 def _table(values: dict[str, CategoryValues], cfg: MetricsConfig, speaking: np.ndarray,
-           reference: Clip, num_batches: int) -> MetricsTable:
+           reference: Clip, num_batches: int, parts: Mapping[str, Sequence[int]] = {}) -> MetricsTable:
+    units, scale = metric_units(cfg.report_unit), dict(cfg.display_scale)
+    for part in parts:  # a part's FGD_acc reads as FGD_acc's
+        units[part_key(part)], scale[part_key(part)] = units[SCORED_METRIC], scale[SCORED_METRIC]
     return MetricsTable(
-        values=values, units=metric_units(cfg.report_unit), display_scale=dict(cfg.display_scale),
+        values=values, units=units, display_scale=scale,
         num_clips=len(speaking), num_speaking=int(speaking.sum()),
         num_non_speaking=int((~speaking).sum()), window_frames=reference.num_frames,
-        fps=float(reference.fps), batch_clips=cfg.batch_clips, num_batches=num_batches)
+        fps=float(reference.fps), batch_clips=cfg.batch_clips, num_batches=num_batches,
+        part_points={part: len(points) for part, points in parts.items()})
 
 
 def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
@@ -214,34 +231,59 @@ def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
         raise ValueError(f"evaluate: {len(generated)} generated clips, {len(ground_truth)} ground-truth "
                          f"clips and {len(speaking)} speaking flags; need equal, non-zero counts")
     reference = generated[0]
+    parts = dict(cfg.shell_parts or {})
+    points = reference.shell.shape[1]
+    for part, indices in parts.items():
+        if not indices or min(indices) < 0 or max(indices) >= points:
+            raise ValueError(f"evaluate: shell part {part!r} names points outside the clips' "
+                             f"{points} shell points")
     frechet = [m for m in registered() if m.kind == "frechet"]
+    distances = [m.name for m in frechet] + [part_key(part) for part in parts]
     per_clip = {m.name: [] for m in registered() if m.kind == "clip"}
     gt_per_clip = {m.name: [] for m in registered() if m.kind == "clip"}
-    pooled = {(m.name, role, cat): Moments(full=True) for m in frechet
+    energies = {(part, role): [] for part in parts for role in ("gen", "gt")}
+    pooled = {(name, role, cat): Moments(full=True) for name in distances
               for role in ("gen", "gt") for cat in (False, True)}
-    batch_values: dict[str, list[float]] = {m.name: [] for m in frechet}
+    batch_values: dict[str, list[float]] = {name: [] for name in distances}
     group_count = min(cfg.pooled_groups, len(generated))
-    groups = {m.name: [(Moments(full=True), Moments(full=True)) for _ in range(group_count)]
-              for m in frechet}
+    groups = {name: [(Moments(full=True), Moments(full=True)) for _ in range(group_count)]
+              for name in distances}
     for start in range(0, len(generated), cfg.batch_clips):
-        batch = {(m.name, role): Moments(full=True) for m in frechet for role in ("gen", "gt")}
+        batch = {(name, role): Moments(full=True) for name in distances for role in ("gen", "gt")}
         for i in range(start, min(start + cfg.batch_clips, len(generated))):
             for role, clip in (("gen", generated[i]), ("gt", ground_truth[i])):
                 _check_like("generated" if role == "gen" else "ground-truth", i, clip, reference)
                 decoded = DecodedClip(clip, cfg.root_joint, cfg.normalize_window)
-                for metric in frechet:
+                samples = {metric.name: metric.function(decoded, cfg) for metric in frechet}
+                for part, values in part_samples(samples[SCORED_METRIC], parts).items():
+                    samples[part_key(part)] = values
+                    energies[part, role].append(energy(values))
+                for name, values in samples.items():
                     moments = Moments(full=True)
-                    moments.add(metric.function(decoded, cfg))
-                    batch[metric.name, role].merge(moments)
-                    pooled[metric.name, role, bool(speaking[i])].merge(moments)
+                    moments.add(values)
+                    batch[name, role].merge(moments)
+                    pooled[name, role, bool(speaking[i])].merge(moments)
                     if group_count:  # consecutive clips, the groups as equal as they go
-                        groups[metric.name][i * group_count // len(generated)][
-                            role == "gt"].merge(moments)
+                        groups[name][i * group_count // len(generated)][role == "gt"].merge(moments)
                 if role == "gen" or reference_values is None:
                     _add_clip_values(per_clip if role == "gen" else gt_per_clip, decoded, cfg)
-        for metric in frechet:
-            batch_values[metric.name].append(moments_distance(
-                batch[metric.name, "gen"], batch[metric.name, "gt"], cfg.fd_ridge))
+        for name in distances:
+            batch_values[name].append(moments_distance(batch[name, "gen"], batch[name, "gt"],
+                                                       cfg.fd_ridge))
+
+    def distance_values(name: str, factor: float) -> CategoryValues:
+        ns, s = (moments_distance(pooled[name, "gen", cat], pooled[name, "gt", cat], cfg.fd_ridge)
+                 for cat in (False, True))
+        everything = {role: Moments(full=True) for role in ("gen", "gt")}
+        for role in everything:
+            for cat in (False, True):
+                everything[role].merge(pooled[name, role, cat])
+        batches = np.asarray(batch_values[name]) * factor
+        low, high = bootstrap_interval(batches)
+        whole = moments_distance(everything["gen"], everything["gt"], cfg.fd_ridge)
+        whole_low, whole_high = pooled_interval(groups[name], cfg.fd_ridge, whole)
+        return CategoryValues(float(batches.mean()), ns * factor, s * factor, low, high,
+                              whole * factor, whole_low * factor, whole_high * factor)
 
     gt_values = gt_per_clip if reference_values is None else reference_values
     length = 1.0 / cfg.report_unit  # metres -> reported unit
@@ -249,26 +291,20 @@ def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
     for metric in registered():
         factor = length ** metric.length_power
         if metric.kind == "frechet":
-            ns, s = (moments_distance(pooled[metric.name, "gen", cat], pooled[metric.name, "gt", cat],
-                                      cfg.fd_ridge) for cat in (False, True))
-            everything = {role: Moments(full=True) for role in ("gen", "gt")}
-            for role in everything:
-                for cat in (False, True):
-                    everything[role].merge(pooled[metric.name, role, cat])
-            batches = np.asarray(batch_values[metric.name]) * factor
-            low, high = bootstrap_interval(batches)
-            whole = moments_distance(everything["gen"], everything["gt"], cfg.fd_ridge)
-            whole_low, whole_high = pooled_interval(groups[metric.name], cfg.fd_ridge, whole)
-            values[metric.name] = CategoryValues(
-                float(batches.mean()), ns * factor, s * factor, low, high, whole * factor,
-                whole_low * factor, whole_high * factor)
+            values[metric.name] = distance_values(metric.name, factor)
         else:
             clips = np.asarray(per_clip[metric.name]) * factor
             values[metric.name] = replace(
                 category_means(clips, speaking),
                 **paired_comparison(clips, np.asarray(gt_values[metric.name]) * factor,
                                     ratio=metric.ratio_to_gt))
-    return _table(values, cfg, speaking, reference, -(-len(generated) // cfg.batch_clips))
+    scored = next(m for m in frechet if m.name == SCORED_METRIC)
+    for part in parts:  # the distance, and the part's energy ÷ GT's (a ratio: no unit)
+        energy_ratio = paired_comparison(energies[part, "gen"], energies[part, "gt"])
+        values[part_key(part)] = replace(
+            distance_values(part_key(part), length ** scored.length_power),
+            **{k: v for k, v in energy_ratio.items() if k in UNSCALED_COLUMNS})
+    return _table(values, cfg, speaking, reference, -(-len(generated) // cfg.batch_clips), parts)
 
 
 def _add_clip_values(per_clip: dict[str, list[float]], decoded: DecodedClip,
