@@ -1,6 +1,7 @@
 """FGD_acc by body part (``metrics.body_parts``) on prepared fixture motion: the shell split into
 parts where they are on the body, and a distance that lands in the part that differs."""
 
+import json
 from dataclasses import asdict
 
 import numpy as np
@@ -9,7 +10,7 @@ import pytest
 from sarah_data.constants import JOINT_NAMES
 from sarah_data.dataset import WindowDataset
 from sarah_data.skeleton import JOINT_GROUPS, MotionLayout
-from sarah_models.evaluation.metrics import MetricsConfig, evaluate
+from sarah_models.evaluation.metrics import MetricsConfig, MetricsTable, evaluate
 from sarah_models.evaluation.metrics.body_parts import part_key, shell_parts
 from sarah_models.evaluation.tables import MethodResult, table1_markdown
 from sarah_models.evaluation.windows import motion_clip
@@ -84,6 +85,8 @@ def test_a_difference_in_the_legs_is_scored_in_the_legs_alone(windows):
             assert values.avg == pytest.approx(0, abs=1e-6 * legs.avg)
             assert values.ratio == pytest.approx(1.0)
     assert table.distances() == ["fgd", "fgd_local", "fgd_acc"] + [part_key(p) for p in parts]
+    written = json.loads(json.dumps(table.to_dict(), allow_nan=False))
+    assert MetricsTable.from_dict(written).to_dict() == table.to_dict()  # table1.json's rows
     markdown = table1_markdown([MethodResult("jitter", "legs jittered", False, None, table)], "T")
     assert "by body part" in markdown
     row = next(line for line in markdown.splitlines() if line.startswith("| legs jittered |")

@@ -12,13 +12,15 @@ from hypothesis import given, strategies as st
 from PIL import Image
 
 from sarah_cli.eval import main
-from helpers import write_split_shards
+from helpers import load_script, write_split_shards
 from sarah_models.training.checkpoint import load_checkpoint, save_checkpoint
 from sarah_models.evaluation.degradations import blurred, jittered
 from sarah_models.evaluation.runner import select_windows
 from sarah_models.evaluation.tables import MethodResult, table1_markdown, table2_markdown
 from sarah_models.evaluation.metrics import METRICS, CategoryValues, MetricsConfig, MetricsTable
 from test_generate import save_run
+
+plot_parts_script = load_script("plot_parts")
 
 WINDOW = 16  # frames per evaluation window (a multiple of the tiny VAE's stride 4)
 
@@ -180,6 +182,21 @@ def test_end_to_end_tables_plots_and_determinism(tiny, tmp_path, capsys):
                                      for k in ("avg", "low", "high", "ratio"))
             assert avg >= 0 and low <= avg + 1e-9 <= high + 2e-9 and ratio > 0
     assert all(f"fgd_acc@{part}/avg" not in gt["shown"] for part in parts)  # GT: no distance
+    for row in t1["rows"]:  # the JSON gives the rows back as they were shown
+        assert MethodResult.from_dict(row).to_dict() == row
+    # rows of evaluations of the same windows, in one figure; a row without parts is refused
+    figure = tmp_path / "parts.png"
+    assert plot_parts_script.main([str(figure), f"{out / 'table1.json'}:random",
+                                   f"{out / 'table1.json'}:model=the model"]) == 0
+    with Image.open(figure) as png:
+        assert png.format == "PNG" and png.size[0] > 200
+    capsys.readouterr()
+    for bad, problem in ((":gt", "not scored by body part"), (":nobody", "no row 'nobody'"),
+                         ("", "want TABLE1_JSON:KEY")):
+        assert plot_parts_script.main([str(tmp_path / "bad.png"), f"{out / 'table1.json'}{bad}"]) == 2
+        message = capsys.readouterr().err.strip()
+        assert problem in message and len(message.splitlines()) == 1
+    assert not (tmp_path / "bad.png").exists()
     for row in (real, random, nn, model):  # each per-clip metric paired with GT's, same windows
         shown = row["shown"]
         for name in ("wrist_speed", "head_angle"):
@@ -194,7 +211,8 @@ def test_end_to_end_tables_plots_and_determinism(tiny, tmp_path, capsys):
     listing = json.loads((out / "windows.json").read_text())["windows"]
     assert len(listing) == 6 and {w["start"] for w in listing} <= {0, 16}
     assert sum(w["speaking"] for w in listing) == t1["num_speaking"]
-    for name in [f"metric_{m}.png" for m in METRICS] + ["gaze_control.png", "paths.png"]:
+    for name in [f"metric_{m}.png" for m in METRICS] + ["gaze_control.png", "paths.png",
+                                                        "fgd_acc_by_part.png"]:
         with Image.open(out / "plots" / name) as png:
             assert png.format == "PNG" and png.size[0] > 200
     assert not [p for p in out.rglob(".*")]  # no temporary files left

@@ -33,8 +33,9 @@ by the first window's first frame), each part's acceleration energy against GT's
 table1.md's last table, and the rows' ``fgd_acc@<part>`` values in table1.json.
 
 Outputs in ``out``: table1.md/.json, table2.md/.json, windows.json (the windows evaluated and
-their S/NS flags), plots/metric_<name>.png (bars across methods), plots/gaze_control.png and
-plots/paths.png (top views of where each method's agent walks, ``paths.py``);
+their S/NS flags), plots/metric_<name>.png (bars across methods), plots/gaze_control.png,
+plots/paths.png (top views of where each method's agent walks, ``paths.py``) and
+plots/fgd_acc_by_part.png (the by-part table as bars, log scale);
 with the "vae" method also reconstruction.md/.json, its error per body part in mm
 (``reconstruction.py``).
 Memory stays at a few clips: clips are produced lazily while the metrics read them.
@@ -73,6 +74,7 @@ from .tables import (
     number,
     plot_gaze_control,
     plot_metric_bars,
+    plot_parts,
     table1_markdown,
     table2_markdown,
     write_json,
@@ -535,6 +537,8 @@ def write_outputs(out: Path, ev: Evaluation, config: EvalConfig, shards: Path, r
                                           "rows": [r.to_dict() for r in ev.table1]})
         paths += [out / "table1.md", out / "table1.json"]
         paths += plot_metric_bars(out / "plots", ev.table1)
+        by_part = plot_parts(out / "plots" / "fgd_acc_by_part.png", ev.table1)
+        paths += [] if by_part is None else [by_part]
     gt = next((r for r in ev.table1 if r.reference), None)
     gt_head = None if gt is None else gt.shown()["head_angle/avg"]
     if ev.table2:

@@ -55,7 +55,15 @@ class MethodResult:
     def to_dict(self) -> dict[str, Any]:
         return {"key": self.key, "method": self.label, "causal": self.causal,
                 "realtime": self.realtime, "fps": self.fps, "gaze": self.gaze,
-                "shown": self.shown(), "raw": self.table.to_dict()}
+                "reference": self.reference, "shown": self.shown(), "raw": self.table.to_dict()}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "MethodResult":
+        """A row ``to_dict`` wrote (one of table1.json's ``rows``); the plotted paths are not
+        stored. Files from before "reference" was written: the "gt" row is the reference."""
+        return cls(data["key"], data["method"], data["causal"], data["fps"],
+                   MetricsTable.from_dict(data["raw"]), data["gaze"],
+                   data.get("reference", data["key"] == "gt"))
 
 
 def fps_of(seconds: Sequence[float], frames: int) -> float | None:
@@ -231,6 +239,44 @@ def plot_metric_bars(folder: Path, rows: Sequence[MethodResult]) -> list[Path]:
         fig.tight_layout()
         paths.append(save_figure(fig, folder / f"metric_{name}.png"))
     return paths
+
+
+def plot_parts(path: Path, rows: Sequence[MethodResult]) -> Path | None:
+    """FGD_acc Avg of the whole shell and of each body part (x) for every row scored by part,
+    with its 95 % bootstrap interval, on a log scale (a part's distance spans decades from the
+    real floor to a raw decoder); None when no row has parts."""
+    scored_rows = [r for r in rows if not r.reference and r.table.part_points]
+    if not scored_rows:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    points = scored_rows[0].table.part_points
+    keys = [SCORED_METRIC] + [part_key(part) for part in points]
+    labels = [f"whole shell\n({sum(points.values())})"] + [
+        f"{part}\n({count})" for part, count in points.items()]
+    fig, ax = plt.subplots(figsize=(2.0 + 1.2 * len(keys), 4.4 + 0.2 * (len(scored_rows) + 2) // 3))
+    width = 0.8 / len(scored_rows)
+    x = np.arange(len(keys))
+    for k, row in enumerate(scored_rows):
+        shown = row.shown()
+        avg, low, high = (np.array([np.nan if shown.get(f"{key}/{c}") is None else shown[f"{key}/{c}"]
+                                    for key in keys]) for c in ("avg", "low", "high"))
+        ax.bar(x + (k - (len(scored_rows) - 1) / 2) * width, avg, width=width, label=row.label,
+               yerr=np.stack([avg - low, high - avg]), capsize=2, error_kw={"lw": 0.8})
+    ax.set_yscale("log")
+    ax.set_xticks(x, labels, fontsize=8)
+    metric = next(m for m in registered() if m.name == SCORED_METRIC)
+    ax.set_ylabel(f"{metric_header(metric.name, scored_rows[0].table.display_scale[metric.name])}"
+                  " Avg (95 %)")
+    ax.set_title("FGD_acc by body part (shell points per part)")
+    ax.grid(axis="y", alpha=0.3, which="both")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16),
+              ncol=min(3, len(scored_rows)))  # below the axes: bars reach every corner
+    fig.tight_layout()
+    return save_figure(fig, path)
 
 
 def plot_gaze_control(path: Path, sweep: Sequence[MethodResult], gt_head: float | None) -> Path:

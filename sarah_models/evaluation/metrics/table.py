@@ -169,6 +169,15 @@ class MetricsTable:
                          for name, values in out["values"].items()}
         return out
 
+    @classmethod
+    def from_dict(cls, data: Mapping) -> "MetricsTable":
+        """The table ``to_dict`` wrote (a table1.json row's ``raw``): None back to NaN."""
+        fields = dict(data)
+        fields["values"] = {name: CategoryValues(**{k: math.nan if v is None else v
+                                                    for k, v in values.items()})
+                            for name, values in data["values"].items()}
+        return cls(**fields)
+
 
 def category_means(per_clip: np.ndarray, speaking: np.ndarray) -> CategoryValues:
     """Avg, NS and S of a per-clip metric: Avg is the mean over all clips, i.e. the clip-count

@@ -1,0 +1,62 @@
+"""FGD_acc by body part of rows from several ``sarah-eval`` runs in one figure: the by-part bars
+``sarah-eval`` draws for one evaluation (plots/fgd_acc_by_part.png), for rows of different
+evaluations of the same windows (a model beside Random, the real floor and its VAE, say).
+
+    python scripts/plot_parts.py parts.png floors/table1.json:real floors/table1.json:random \
+        pick/table1.json:model="the pick" w256/table1.json:model="256-wide flow"
+
+Each ROW is TABLE1_JSON:KEY, optionally =LABEL (the row's own label otherwise); rows must have
+been scored by part and on the same windows (the figure says so only through its source files).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from sarah_models.evaluation.tables import MethodResult, plot_parts
+
+
+def read_row(spec: str) -> MethodResult:
+    """``TABLE1_JSON:KEY[=LABEL]`` -> that row; ValueError naming the file and the problem."""
+    source, _, label = spec.partition("=")
+    path, sep, key = source.rpartition(":")
+    if not sep or not path or not key:
+        raise ValueError(f"{spec}: want TABLE1_JSON:KEY[=LABEL]")
+    try:
+        rows = json.loads(Path(path).read_text())["rows"]
+    except (OSError, ValueError, KeyError) as exc:
+        raise ValueError(f"{path}: not a sarah-eval table1.json ({exc})") from None
+    found = next((row for row in rows if row["key"] == key), None)
+    if found is None:
+        raise ValueError(f"{path}: no row {key!r} (rows: {', '.join(r['key'] for r in rows)})")
+    if not found["raw"].get("part_points"):
+        raise ValueError(f"{path}: row {key!r} was not scored by body part (an older sarah-eval, "
+                         "or the GT row)")
+    row = MethodResult.from_dict(found)
+    return row if not label else MethodResult(row.key, label, row.causal, row.fps, row.table,
+                                              row.gaze, row.reference)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("out", type=Path, help="the PNG to write")
+    parser.add_argument("rows", nargs="+", metavar="ROW", help="TABLE1_JSON:KEY[=LABEL]")
+    args = parser.parse_args(argv)
+    try:
+        rows = [read_row(spec) for spec in args.rows]
+    except ValueError as exc:
+        print(f"plot_parts.py: error: {exc}", file=sys.stderr)
+        return 2
+    if len({tuple(row.table.part_points.items()) for row in rows}) > 1:
+        print("plot_parts.py: error: the rows split the shell differently (other windows or "
+              "shards); score them on the same windows", file=sys.stderr)
+        return 2
+    print(plot_parts(args.out, rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
