@@ -32,7 +32,7 @@ def read_row(spec: str) -> MethodResult:
     found = next((row for row in rows if row["key"] == key), None)
     if found is None:
         raise ValueError(f"{path}: no row {key!r} (rows: {', '.join(r['key'] for r in rows)})")
-    if not found["raw"].get("part_points"):
+    if not found["raw"].get("shell_parts"):
         raise ValueError(f"{path}: row {key!r} was not scored by body part (an older sarah-eval, "
                          "or the GT row)")
     row = MethodResult.from_dict(found)
@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"plot_parts.py: error: {exc}", file=sys.stderr)
         return 2
-    if len({tuple(row.table.part_points.items()) for row in rows}) > 1:
+    if any(row.table.shell_parts != rows[0].table.shell_parts for row in rows):
         print("plot_parts.py: error: the rows split the shell differently (other windows or "
               "shards); score them on the same windows", file=sys.stderr)
         return 2

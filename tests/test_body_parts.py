@@ -75,7 +75,7 @@ def test_a_difference_in_the_legs_is_scored_in_the_legs_alone(windows):
     table = evaluate(noisy, truth, speaking, config=MetricsConfig(
         batch_clips=4, normalize_window=False, pooled_groups=3, shell_parts=parts))
     np.testing.assert_equal(asdict(table.values["fgd_acc"]), asdict(plain.values["fgd_acc"]))
-    assert table.part_points == {part: len(points) for part, points in parts.items()}
+    assert table.shell_parts == {part: list(points) for part, points in parts.items()}
     legs = table.values[part_key("legs")]
     assert legs.avg > 0 and legs.pooled > 0 and legs.low <= legs.avg <= legs.high
     assert legs.ratio > 1.5 and legs.ratio_low > 1

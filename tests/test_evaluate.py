@@ -196,6 +196,14 @@ def test_end_to_end_tables_plots_and_determinism(tiny, tmp_path, capsys):
         assert plot_parts_script.main([str(tmp_path / "bad.png"), f"{out / 'table1.json'}{bad}"]) == 2
         message = capsys.readouterr().err.strip()
         assert problem in message and len(message.splitlines()) == 1
+    other = json.loads((out / "table1.json").read_text())  # another window's split of the shell
+    split = other["rows"][-1]["raw"]["shell_parts"]
+    first, second = list(split)[:2] if len(split) > 1 else (list(split)[0], "elsewhere")
+    split.setdefault(second, []).append(split[first].pop())
+    (tmp_path / "other.json").write_text(json.dumps(other))
+    assert plot_parts_script.main([str(tmp_path / "bad.png"), f"{out / 'table1.json'}:random",
+                                   f"{tmp_path / 'other.json'}:model"]) == 2
+    assert "split the shell differently" in capsys.readouterr().err
     assert not (tmp_path / "bad.png").exists()
     for row in (real, random, nn, model):  # each per-clip metric paired with GT's, same windows
         shown = row["shown"]

@@ -167,11 +167,11 @@ def parts_markdown(rows: Sequence[MethodResult]) -> str:
     """FGD_acc of the whole shell and of each body part's shell points (``metrics.body_parts``),
     Avg with its 95 % bootstrap interval, and each part's acceleration energy ÷ GT's on the same
     windows with its paired 95 % interval; "" when no row has parts."""
-    scored_rows = [r for r in rows if not r.reference and r.table.part_points]
+    scored_rows = [r for r in rows if not r.reference and r.table.shell_parts]
     if not scored_rows:
         return ""
     metric = next(m for m in registered() if m.name == SCORED_METRIC)
-    points = scored_rows[0].table.part_points
+    points = {part: len(indices) for part, indices in scored_rows[0].table.shell_parts.items()}
     header = metric_header(metric.name, scored_rows[0].table.display_scale[metric.name])
     head = ["Method", f"whole shell ({sum(points.values())})"] + [
         f"{part} ({count})" for part, count in points.items()]
@@ -245,7 +245,7 @@ def plot_parts(path: Path, rows: Sequence[MethodResult]) -> Path | None:
     """FGD_acc Avg of the whole shell and of each body part (x) for every row scored by part,
     with its 95 % bootstrap interval, on a log scale (a part's distance spans decades from the
     real floor to a raw decoder); None when no row has parts."""
-    scored_rows = [r for r in rows if not r.reference and r.table.part_points]
+    scored_rows = [r for r in rows if not r.reference and r.table.shell_parts]
     if not scored_rows:
         return None
     import matplotlib
@@ -253,7 +253,7 @@ def plot_parts(path: Path, rows: Sequence[MethodResult]) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    points = scored_rows[0].table.part_points
+    points = {part: len(indices) for part, indices in scored_rows[0].table.shell_parts.items()}
     keys = [SCORED_METRIC] + [part_key(part) for part in points]
     labels = [f"whole shell\n({sum(points.values())})"] + [
         f"{part}\n({count})" for part, count in points.items()]

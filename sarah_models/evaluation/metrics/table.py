@@ -142,15 +142,15 @@ class MetricsTable:
     fps: float
     batch_clips: int
     num_batches: int
-    # FGD_acc by body part (``body_parts``): the shell points each part's values (under
+    # FGD_acc by body part (``body_parts``): the shell point indices each part's values (under
     # ``part_key(part)`` in ``values``) were scored on; empty when parts were not scored.
-    part_points: dict[str, int] = field(default_factory=dict)
+    shell_parts: dict[str, list[int]] = field(default_factory=dict)
 
     def distances(self) -> list[str]:
         """The keys of the Fréchet distances in ``values``: the registered metrics', then the
         parts'."""
         return ([m.name for m in registered() if m.kind == "frechet" and m.name in self.values]
-                + [part_key(part) for part in self.part_points])
+                + [part_key(part) for part in self.shell_parts])
 
     def to_row(self, scale: bool = True) -> dict[str, float]:
         """{"fgd/avg": ..., "fgd/ns": ..., "fgd/s": ..., ...}; scale=True divides by the table's
@@ -211,7 +211,7 @@ def _table(values: dict[str, CategoryValues], cfg: MetricsConfig, speaking: np.n
         num_clips=len(speaking), num_speaking=int(speaking.sum()),
         num_non_speaking=int((~speaking).sum()), window_frames=reference.num_frames,
         fps=float(reference.fps), batch_clips=cfg.batch_clips, num_batches=num_batches,
-        part_points={part: len(points) for part, points in parts.items()})
+        shell_parts={part: [int(p) for p in points] for part, points in parts.items()})
 
 
 def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
