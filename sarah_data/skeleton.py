@@ -40,6 +40,23 @@ JOINT_GROUPS: dict[str, tuple[str, ...]] = {
 }
 
 
+def shell_parts(icosahedra, shell, joint_names: Sequence[str] = JOINT_NAMES
+                ) -> dict[str, tuple[int, ...]]:
+    """One frame's icosahedra (J, 12, 3) and shell points (V, 3) -> the shell point indices of
+    each joint group, by the joint each point lies nearest to; groups in ``JOINT_GROUPS`` order,
+    those no point lies nearest to left out."""
+    icosahedra, shell = np.asarray(icosahedra, np.float64), np.asarray(shell, np.float64)
+    if icosahedra.ndim != 3 or icosahedra.shape[0] != len(joint_names) or shell.ndim != 2:
+        raise ValueError(f"shell_parts: want one frame's icosahedra ({len(joint_names)}, 12, 3) "
+                         f"and shell (V, 3), got {icosahedra.shape} and {shell.shape}")
+    centres = icosahedra.mean(axis=-2)
+    nearest = np.argmin(np.sum((shell[:, None] - centres[None]) ** 2, axis=-1), axis=1)
+    group_of = {name: group for group, names in JOINT_GROUPS.items() for name in names}
+    groups = np.array([group_of.get(joint_names[j], "") for j in nearest])
+    parts = {group: tuple(int(p) for p in np.flatnonzero(groups == group)) for group in JOINT_GROUPS}
+    return {group: points for group, points in parts.items() if points}
+
+
 @dataclass(frozen=True)
 class MotionLayout:
     joint_names: tuple[str, ...] = JOINT_NAMES

@@ -18,6 +18,8 @@ import typing
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Mapping, Sequence, TypeVar
 
+from sarah_data.constants import FPS
+
 T = TypeVar("T")
 
 WINDOW = 400  # T: frames per training window and per evaluated window (A.2)
@@ -202,6 +204,11 @@ class VAEConfig:
     # pelvis goes; "feet": only how far the whole body glides, the standing foot's own moves; the
     # body's moves over its standing foot pass as decoded, so real walking is not held back.
     root_hold_reads: str = "pelvis"
+    # Not in the paper (0 = off): a causal second-order low-pass of this cutoff (Hz) on the arms'
+    # and hands' motion relative to the pelvis (``sampling.limb_lowpass``): the decoder's arms
+    # jitter above 6 Hz, where the data's arms have a tenth of their acceleration power, and the
+    # seam spring damps their beats too (docs/results.md, fifty-sixth run).
+    limb_lowpass: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("boundary_inertia", "root_inertia"):
@@ -214,6 +221,9 @@ class VAEConfig:
         for name in ("foot_lock", "root_hold"):
             if getattr(self, name) < 0:
                 raise ValueError(f"VAEConfig.{name} (metres) must be >= 0, got {getattr(self, name)}")
+        if not 0 <= self.limb_lowpass < FPS / 2:
+            raise ValueError(f"VAEConfig.limb_lowpass (Hz) must be 0 (off) or below the Nyquist "
+                             f"frequency {FPS / 2:g}, got {self.limb_lowpass}")
         if self.root_hold_reads not in HOLD_READS:
             raise ValueError(f"VAEConfig.root_hold_reads must be one of {HOLD_READS}, got "
                              f"{self.root_hold_reads!r}")
@@ -364,7 +374,8 @@ class FlowConfig:
 # again with other values, nothing trained (``sarah-train --stage model``), and a fine-tune may
 # change them.
 DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "seam_mode", "rigid_bones",
-                           "foot_lock", "foot_swing_frames", "root_hold", "root_hold_reads")}
+                           "foot_lock", "foot_swing_frames", "root_hold", "root_hold_reads",
+                           "limb_lowpass")}
 
 
 def decoding_settings() -> list[str]:

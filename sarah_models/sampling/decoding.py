@@ -1,9 +1,9 @@
 """What a stream's decoded motion goes through before anyone sees it, as its VAE config asks.
 
 In order: ``SeamInertia`` (``vae.boundary_inertia``, ``vae.root_inertia``: the seams between
-latent blocks), ``RootHold`` (``vae.root_hold``: a body that stands still until the decoder
+latent blocks), ``LimbLowpass`` (``vae.limb_lowpass``: the arms' and hands' jitter), ``RootHold`` (``vae.root_hold``: a body that stands still until the decoder
 walks it), ``RigidSkeleton`` (``vae.rigid_bones``: bones at the training data's lengths) and
-``FootLock`` (``vae.foot_lock``: planted feet, and steps). All four are causal and off in
+``FootLock`` (``vae.foot_lock``: planted feet, and steps). All five are causal and off in
 the paper's config; one ``StreamDecoding`` per stream, fed its frames in order, whole blocks at a
 time; streaming, the offline protocol and sarah-eval's VAE row all decode through it.
 """
@@ -16,6 +16,7 @@ from sarah_data.skeleton import ROOT, MotionLayout
 
 from .continuity import SeamInertia
 from .foot_lock import FootLock
+from .limb_lowpass import LimbLowpass
 from .rigid_skeleton import RigidSkeleton
 from .root_hold import RootHold
 
@@ -54,6 +55,8 @@ def stream_decoding(vae, normalizer) -> StreamDecoding:
     channels = layout.joint_slice(ROOT)
     filters: list = [SeamInertia(vae.stride, cfg.boundary_inertia, cfg.root_inertia,
                                  slice(channels.start // 3, channels.stop // 3), cfg.seam_mode)]
+    if cfg.limb_lowpass:
+        filters.append(LimbLowpass(layout, cfg.limb_lowpass))
     if cfg.root_hold:
         filters.append(RootHold(layout, cfg.root_hold, reads=cfg.root_hold_reads))
     if cfg.rigid_bones or cfg.foot_lock:

@@ -8,7 +8,7 @@ same part beside it. ``table.evaluate`` scores the parts with FGD_acc's own samp
 pooling and intervals; this module says which shell points make a part.
 
 A shell point belongs to the joint group (``sarah_data.skeleton.JOINT_GROUPS``) of the joint it
-lies nearest to in one reference frame: ``sarah-eval`` takes the first test window's ground
+lies nearest to in one reference frame (``sarah_data.skeleton.shell_parts``): ``sarah-eval`` takes the first test window's ground
 truth, so every method scored against the same windows splits the shell alike (a Fréchet
 distance needs the same points in every clip).
 """
@@ -19,8 +19,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from sarah_data.constants import JOINT_NAMES
-from sarah_data.skeleton import JOINT_GROUPS
+from sarah_data.skeleton import shell_parts  # noqa: F401  (the split, owned with the groups)
 
 SCORED_METRIC = "fgd_acc"  # the registered Fréchet metric whose per-point samples parts slice
 
@@ -28,23 +27,6 @@ SCORED_METRIC = "fgd_acc"  # the registered Fréchet metric whose per-point samp
 def part_key(part: str) -> str:
     """The key of a part's values in a ``MetricsTable`` ("fgd_acc@legs")."""
     return f"{SCORED_METRIC}@{part}"
-
-
-def shell_parts(icosahedra, shell, joint_names: Sequence[str] = JOINT_NAMES
-                ) -> dict[str, tuple[int, ...]]:
-    """One frame's icosahedra (J, 12, 3) and shell points (V, 3) -> the shell point indices of
-    each joint group, by the joint each point lies nearest to; groups in ``JOINT_GROUPS`` order,
-    those no point lies nearest to left out."""
-    icosahedra, shell = np.asarray(icosahedra, np.float64), np.asarray(shell, np.float64)
-    if icosahedra.ndim != 3 or icosahedra.shape[0] != len(joint_names) or shell.ndim != 2:
-        raise ValueError(f"shell_parts: want one frame's icosahedra ({len(joint_names)}, 12, 3) "
-                         f"and shell (V, 3), got {icosahedra.shape} and {shell.shape}")
-    centres = icosahedra.mean(axis=-2)
-    nearest = np.argmin(np.sum((shell[:, None] - centres[None]) ** 2, axis=-1), axis=1)
-    group_of = {name: group for group, names in JOINT_GROUPS.items() for name in names}
-    groups = np.array([group_of.get(joint_names[j], "") for j in nearest])
-    parts = {group: tuple(int(p) for p in np.flatnonzero(groups == group)) for group in JOINT_GROUPS}
-    return {group: points for group, points in parts.items() if points}
 
 
 def part_samples(samples: np.ndarray, parts: Mapping[str, Sequence[int]]) -> dict[str, np.ndarray]:
