@@ -207,7 +207,9 @@ class VAEConfig:
     # Not in the paper (0 = off): a causal second-order low-pass of this cutoff (Hz) on the arms'
     # and hands' motion relative to the pelvis (``sampling.limb_lowpass``): the decoder's arms
     # jitter above 6 Hz, where the data's arms have a tenth of their acceleration power, and the
-    # seam spring damps their beats too (docs/results.md, fifty-sixth run).
+    # seam spring damps their beats too. On the fixture benchmark's pick at 8 Hz it took the arms'
+    # FGD_acc from 51 to 41 and raised the hands' from 49 to 64, the whole shell's unchanged (594,
+    # 589; docs/results.md, fifty-sixth run): 0 in both presets.
     limb_lowpass: float = 0.0
 
     def __post_init__(self) -> None:
