@@ -163,15 +163,23 @@ def beside_gt_markdown(rows: Sequence[MethodResult]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def part_rows(rows: Sequence[MethodResult]) -> tuple[list[MethodResult], dict[str, int]]:
+    """The rows scored by body part (every row but GT's, from a sarah-eval that scores parts)
+    and the shell points of each part, by the first such row."""
+    scored_rows = [r for r in rows if not r.reference and r.table.shell_parts]
+    points = ({part: len(indices) for part, indices in scored_rows[0].table.shell_parts.items()}
+              if scored_rows else {})
+    return scored_rows, points
+
+
 def parts_markdown(rows: Sequence[MethodResult]) -> str:
     """FGD_acc of the whole shell and of each body part's shell points (``metrics.body_parts``),
     Avg with its 95 % bootstrap interval, and each part's acceleration energy ÷ GT's on the same
     windows with its paired 95 % interval; "" when no row has parts."""
-    scored_rows = [r for r in rows if not r.reference and r.table.shell_parts]
+    scored_rows, points = part_rows(rows)
     if not scored_rows:
         return ""
     metric = next(m for m in registered() if m.name == SCORED_METRIC)
-    points = {part: len(indices) for part, indices in scored_rows[0].table.shell_parts.items()}
     header = metric_header(metric.name, scored_rows[0].table.display_scale[metric.name])
     head = ["Method", f"whole shell ({sum(points.values())})"] + [
         f"{part} ({count})" for part, count in points.items()]
@@ -245,7 +253,7 @@ def plot_parts(path: Path, rows: Sequence[MethodResult]) -> Path | None:
     """FGD_acc Avg of the whole shell and of each body part (x) for every row scored by part,
     with its 95 % bootstrap interval, on a log scale (a part's distance spans decades from the
     real floor to a raw decoder); None when no row has parts."""
-    scored_rows = [r for r in rows if not r.reference and r.table.shell_parts]
+    scored_rows, points = part_rows(rows)
     if not scored_rows:
         return None
     import matplotlib
@@ -253,11 +261,11 @@ def plot_parts(path: Path, rows: Sequence[MethodResult]) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    points = {part: len(indices) for part, indices in scored_rows[0].table.shell_parts.items()}
     keys = [SCORED_METRIC] + [part_key(part) for part in points]
     labels = [f"whole shell\n({sum(points.values())})"] + [
         f"{part}\n({count})" for part, count in points.items()]
-    fig, ax = plt.subplots(figsize=(2.0 + 1.2 * len(keys), 4.4 + 0.2 * (len(scored_rows) + 2) // 3))
+    fig, ax = plt.subplots(figsize=(2.0 + 1.2 * len(keys),
+                                    4.4 + 0.2 * ((len(scored_rows) + 2) // 3)))  # legend rows
     width = 0.8 / len(scored_rows)
     x = np.arange(len(keys))
     for k, row in enumerate(scored_rows):
