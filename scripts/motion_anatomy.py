@@ -50,11 +50,11 @@ from sarah_cli.arguments import (IMPUTATION_HELP, NOISE_SCALE_HELP, guide_help, 
 from sarah_data import icosahedron
 from sarah_data.constants import BODY_JOINTS, FPS, JOINT_NAMES
 from sarah_data.frames import rotation_about_y, yaw_of
-from sarah_data.skeleton import FEET, JOINT_GROUPS, ROOT, MotionLayout
+from sarah_data.skeleton import FEET, JOINT_GROUPS, ROOT, MotionLayout, shell_parts
 from sarah_models.config import IMPUTATIONS
 from sarah_models.evaluation.metrics import (MetricsTable, evaluate, foot_slide, foot_steps,
                                              step_paths, step_reaches)
-from sarah_models.evaluation.metrics.body_parts import part_key, shell_parts
+from sarah_models.evaluation.metrics.body_parts import part_key
 from sarah_models.evaluation.metrics.clips import accelerations
 from sarah_models.evaluation.metrics.spec import FOOT_MAX_HEIGHT, FOOT_MIN_SPEED, MetricsConfig
 from sarah_models.evaluation.metrics.table import bootstrap_interval

@@ -9,9 +9,9 @@ import pytest
 
 from sarah_data.constants import JOINT_NAMES
 from sarah_data.dataset import WindowDataset
-from sarah_data.skeleton import JOINT_GROUPS, MotionLayout
+from sarah_data.skeleton import JOINT_GROUPS, MotionLayout, shell_parts
 from sarah_models.evaluation.metrics import MetricsConfig, MetricsTable, evaluate
-from sarah_models.evaluation.metrics.body_parts import part_key, shell_parts
+from sarah_models.evaluation.metrics.body_parts import part_key
 from sarah_models.evaluation.tables import MethodResult, table1_markdown
 from sarah_models.evaluation.windows import motion_clip
 

@@ -53,7 +53,7 @@ import numpy as np
 
 from sarah_data.atomic import atomic_write_text
 from sarah_data.constants import FPS
-from sarah_data.skeleton import MotionLayout
+from sarah_data.skeleton import MotionLayout, shell_parts
 
 from ..config import (CFG_SCALE, HISTORY_TOKENS, HISTORY_WINDOW, IMPUTATIONS, NOISE_SCALE,
                       SOLVER_STEPS, STRIDE, WINDOW, StreamConfig, check_gaze, check_history,
@@ -66,7 +66,6 @@ from .metrics import (
     reference_table,
     registered,
 )
-from .metrics.body_parts import shell_parts
 from .tables import (
     MethodResult,
     fps_of,

@@ -5,12 +5,12 @@ FGD_acc scores the whole shell at once. On the fixture benchmark three quarters 
 distance sat in its legs (docs/results.md, fifty-fifth run), which the whole-shell figure cannot
 say, and a part's distance means little without Random's and the real-vs-real floor's for the
 same part beside it. ``table.evaluate`` scores the parts with FGD_acc's own samples, batches,
-pooling and intervals; this module says which shell points make a part.
+pooling and intervals; this module names their values and slices their samples.
 
 A shell point belongs to the joint group (``sarah_data.skeleton.JOINT_GROUPS``) of the joint it
-lies nearest to in one reference frame (``sarah_data.skeleton.shell_parts``): ``sarah-eval`` takes the first test window's ground
-truth, so every method scored against the same windows splits the shell alike (a Fréchet
-distance needs the same points in every clip).
+lies nearest to in one reference frame (``sarah_data.skeleton.shell_parts``): ``sarah-eval``
+takes the first test window's ground truth, so every method scored against the same windows
+splits the shell alike (a Fréchet distance needs the same points in every clip).
 """
 
 from __future__ import annotations
@@ -18,8 +18,6 @@ from __future__ import annotations
 from typing import Mapping, Sequence
 
 import numpy as np
-
-from sarah_data.skeleton import shell_parts  # noqa: F401  (the split, owned with the groups)
 
 SCORED_METRIC = "fgd_acc"  # the registered Fréchet metric whose per-point samples parts slice
 
