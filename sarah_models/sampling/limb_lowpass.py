@@ -12,17 +12,16 @@ what lies above them.
 points nearest them in the stream's first frame (``sarah_data.skeleton.shell_parts``), with a
 second-order Butterworth low-pass of ``cutoff`` Hz per coordinate, relative to the pelvis: the
 pelvis's translation is taken out before and put back after, so a walking body's arms do not
-lag behind it. Causal, frame by frame (one biquad state per coordinate, started at the first
-frame's value so a still body passes unchanged): a stream decoded in chunks and the same frames
+lag behind it. Causal (``scipy.signal.lfilter`` carrying its state from chunk to chunk, started
+at the first frame's steady state so a still body passes unchanged): a stream decoded in chunks and the same frames
 decoded at once are the same. The price is a delay of about 1 / (2 pi cutoff) s * sqrt(2) at low
 frequencies (37 ms at 6 Hz).
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
+from scipy import signal
 
 from sarah_data.constants import FPS
 from sarah_data.skeleton import ICOSAHEDRON_POINTS, JOINT_GROUPS, ROOT, MotionLayout, shell_parts
@@ -31,15 +30,10 @@ LIMBS = ("arms", "hands")  # the JOINT_GROUPS filtered
 
 
 def butterworth(cutoff: float, fps: float = FPS) -> tuple[np.ndarray, np.ndarray]:
-    """A second-order Butterworth low-pass's (b, a), a[0] = 1 (the bilinear transform, as the RBJ
-    cookbook gives it)."""
+    """A second-order Butterworth low-pass's (b, a), a[0] = 1."""
     if not 0 < cutoff < fps / 2:
         raise ValueError(f"limb low-pass cutoff must be in (0, {fps / 2:g}) Hz, got {cutoff}")
-    w0 = 2 * math.pi * cutoff / fps
-    alpha = math.sin(w0) / math.sqrt(2)  # Q = 1 / sqrt(2)
-    b = np.array([(1 - math.cos(w0)) / 2, 1 - math.cos(w0), (1 - math.cos(w0)) / 2])
-    a = np.array([1 + alpha, -2 * math.cos(w0), 1 - alpha])
-    return b / a[0], a / a[0]
+    return signal.butter(2, cutoff, fs=fps)
 
 
 class LimbLowpass:
@@ -53,12 +47,11 @@ class LimbLowpass:
                   if n in layout.joint_names]
         self.joint_points = (np.asarray(joints)[:, None] * ICOSAHEDRON_POINTS
                              + np.arange(ICOSAHEDRON_POINTS)).ravel()
-        self.root = layout.joint_slice(ROOT)
         self.reset()
 
     def reset(self) -> None:
         self.points: np.ndarray | None = None  # point indices filtered, set at the first frame
-        self.state: np.ndarray | None = None  # (2, points, 3): the biquad's two delays
+        self.state: np.ndarray | None = None  # (2, points * 3): the filter's two delays
 
     def _start(self, frame: np.ndarray) -> None:
         icosahedra, shell = self.layout.split(frame)
@@ -74,14 +67,10 @@ class LimbLowpass:
         if self.points is None:
             self._start(out[0])
         points = out.reshape(len(out), -1, 3)  # a view into ``out``
-        pelvis = out[:, self.root].reshape(len(out), ICOSAHEDRON_POINTS, 3).mean(axis=1)
-        (b0, b1, b2), (_, a1, a2) = self.b, self.a
-        for t in range(len(out)):
-            x = points[t, self.points] - pelvis[t]
-            if self.state is None:  # a still limb passes unchanged: the steady state of x
-                second = (b2 - a2) * x
-                self.state = np.stack([(1 - b0) * x, second])
-            y = b0 * x + self.state[0]
-            self.state = np.stack([b1 * x - a1 * y + self.state[1], b2 * x - a2 * y])
-            points[t, self.points] = y + pelvis[t]
+        pelvis = self.layout.joint_positions(out, [ROOT])[:, 0]
+        x = (points[:, self.points] - pelvis[:, None]).reshape(len(out), -1)
+        if self.state is None:  # a still limb passes unchanged: the steady state of frame 0
+            self.state = signal.lfilter_zi(self.b, self.a)[:, None] * x[0]
+        y, self.state = signal.lfilter(self.b, self.a, x, axis=0, zi=self.state)
+        points[:, self.points] = y.reshape(len(out), -1, 3) + pelvis[:, None]
         return out

@@ -202,7 +202,9 @@ def _check_like(kind: str, index: int, clip: Clip, reference: Clip) -> None:
 
 
 def _table(values: dict[str, CategoryValues], cfg: MetricsConfig, speaking: np.ndarray,
-           reference: Clip, num_batches: int, parts: Mapping[str, Sequence[int]] = {}) -> MetricsTable:
+           reference: Clip, num_batches: int, parts: Mapping[str, Sequence[int]] | None = None
+           ) -> MetricsTable:
+    parts = parts or {}
     units, scale = metric_units(cfg.report_unit), dict(cfg.display_scale)
     for part in parts:  # a part's FGD_acc reads as FGD_acc's
         units[part_key(part)], scale[part_key(part)] = units[SCORED_METRIC], scale[SCORED_METRIC]
