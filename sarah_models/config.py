@@ -429,6 +429,10 @@ class TrainConfig:
     # step 0.23 -> 0.15 s and the VAE's 400-frame step 1.47 -> 0.73 s, its 100-frame step
     # 0.21 -> 0.18 s, each after ~65 s of compiling (docs/performance.md).
     compile: bool = False
+    # Not in the paper (0 = off, the paper): sample with an exponential moving average of the
+    # stage's weights, this decay per step after a warm-up (``training.weight_average``; DiT's
+    # 0.9999 is for 400k steps, a few thousand want ~0.999). Training itself is unchanged.
+    ema_decay: float = 0.0
     seed: int = 0
     split: str = "train"
     audio_features: str = "hubert-large"  # extractor name in the shards (paper: HuBERT-Large)
@@ -448,6 +452,8 @@ class TrainConfig:
         if self.num_workers < 0 or self.warmup_steps < 0 or self.seed < 0 or self.vae_short_steps < 0:
             raise ValueError("TrainConfig.num_workers, warmup_steps, seed and vae_short_steps must be >= 0, "
                              f"got {self.num_workers}, {self.warmup_steps}, {self.seed}, {self.vae_short_steps}")
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise ValueError(f"TrainConfig.ema_decay must be 0 (off) or in (0, 1), got {self.ema_decay}")
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise ValueError(f"TrainConfig.lr must be a positive number, got {self.lr}")
 

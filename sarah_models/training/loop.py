@@ -14,6 +14,7 @@ from torch import Tensor, nn
 from sarah_data.atomic import atomic_write_text
 
 from ..config import TrainConfig
+from .weight_average import WeightAverage
 
 
 def lr_at(step: int, config: TrainConfig, total_steps: int | None = None) -> float:
@@ -52,11 +53,12 @@ def train_loop(objective: nn.Module, batches: Iterable[Mapping[str, Tensor]],
                start_step: int = 0, device: torch.device | str = "cpu", rank: int = 0,
                log: RunLog | None = None,
                on_checkpoint: Callable[[int], None] | None = None,
-               progress: bool = False) -> list[dict[str, float]]:
+               progress: bool = False,
+               average: WeightAverage | None = None) -> list[dict[str, float]]:
     """Optimise ``objective(batch, generator) -> {"loss", ...scalars}`` from ``start_step`` to
     ``total_steps``. ``objective`` may be DDP-wrapped. Returns the logged records (one per
     ``log_every`` steps, scalars averaged over the interval); ``on_checkpoint(step)`` runs every
-    ``checkpoint_every`` steps and at the end."""
+    ``checkpoint_every`` steps and at the end; ``average`` is updated after every step."""
     from tqdm import tqdm
 
     device = torch.device(device)
@@ -87,6 +89,8 @@ def train_loop(objective: nn.Module, batches: Iterable[Mapping[str, Tensor]],
         if config.grad_clip > 0:
             torch.nn.utils.clip_grad_norm_(trainable, config.grad_clip)
         optimizer.step()
+        if average is not None:
+            average.update()
         for key, value in out.items():
             if value.dim() == 0:
                 sums[key] = sums.get(key, 0.0) + value.detach().float()

@@ -50,6 +50,7 @@ from .distributed import DistInfo, setup_distributed
 from .loop import RunLog, make_optimizer, step_generator, train_loop, training_autocast
 from .model_file import read_weights
 from .objectives import FlowObjective, VAEObjective
+from .weight_average import WeightAverage
 
 STAGES = ("vae", "flow")
 
@@ -299,7 +300,7 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
                 _fit_root_relative_stats(normalizer, dataset, tcfg, dims["motion"])
         vae, _ = build_models(config, dims)
         if previous is not None:
-            vae.load_state_dict(previous["vae"])
+            vae.load_state_dict(trained_weights(previous, "vae"))
         elif source is not None:
             vae.load_state_dict(source["vae"])
         if tcfg.freeze_encoder:
@@ -345,7 +346,7 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
         vae.load_state_dict(vae_ckpt["vae"])
         if previous is not None:
             _check_same("flow", config.to_dict()["flow"], stored_config(previous)["flow"], ckpt_path)
-            flow.load_state_dict(previous["flow"])
+            flow.load_state_dict(trained_weights(previous, "flow"))
             normalizer = Normalizer.from_state_dict(previous["normalizer"])
         else:
             if source is not None:
@@ -364,6 +365,11 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
             optimizer.load_state_dict(previous["optimizer"])
             restore_rng_state(previous["rng"])
         start = int(previous["step"])
+    average = None
+    if tcfg.ema_decay > 0:
+        average = WeightAverage(objective.trainable, tcfg.ema_decay, updates=start)
+        if previous is not None and "trained" in previous:
+            average.load_average(previous[stage])
     if info.is_main:
         out_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out_dir / "config.json", json.dumps(
@@ -403,6 +409,8 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
                    "optimizer": optimizer.state_dict(), "rng": capture_rng_state()}
         if stage == "flow":
             payload["flow"] = objective.flow.state_dict()
+        if average is not None:  # generation reads the average; --resume the trained weights
+            payload["trained"], payload[stage] = payload[stage], average.state_dict()
         if origin is not None:
             payload["init_from"] = origin
         save_checkpoint(ckpt_path, payload)
@@ -422,10 +430,16 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
                                 short.steps - done_short, loader)
     train_loop(model, loader, optimizer, tcfg, total_steps=total, start_step=start,
                device=info.device, rank=info.rank, log=log, on_checkpoint=save,
-               progress=progress and info.is_main)
+               progress=progress and info.is_main, average=average)
     if info.world_size > 1:
         dist.barrier()
     return ckpt_path
+
+
+def trained_weights(checkpoint: Mapping[str, Any], stage: str) -> dict[str, Tensor]:
+    """The weights a resumed run continues training: with ``train.ema_decay`` the checkpoint's
+    stage key holds the average (``training.weight_average``), the trained ones ``"trained"``."""
+    return checkpoint.get("trained", checkpoint[stage])
 
 
 @dataclass(frozen=True)
