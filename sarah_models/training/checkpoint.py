@@ -8,6 +8,8 @@ A checkpoint is one dict of plain values and tensors::
     vae        CausalVAE.state_dict()           flow        FlowModel.state_dict() (flow stage)
     optimizer  optimizer.state_dict()           generator   training torch.Generator state
     rng        {"python", "numpy", "torch", "cuda"} global RNG states
+    trained    with train.ema_decay: the stage's trained weights, its own key then holding
+               their average (``weight_average``), which everything but --resume reads
 
 The flow checkpoint carries its frozen VAE, so ``runs/NAME/flow.pt`` alone is enough to generate.
 """

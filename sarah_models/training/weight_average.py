@@ -25,12 +25,9 @@ from typing import Mapping
 import torch
 from torch import Tensor, nn
 
-WARMUP_NUMERATOR, WARMUP_DENOMINATOR = 1.0, 10.0
-
-
 def decay_at(update: int, decay: float) -> float:
     """d_t of the ``update``-th update (0-based): the warmed-up decay."""
-    return min(decay, (WARMUP_NUMERATOR + update) / (WARMUP_DENOMINATOR + update))
+    return min(decay, (1.0 + update) / (10.0 + update))
 
 
 class WeightAverage:
@@ -42,13 +39,16 @@ class WeightAverage:
         self.module, self.decay, self.updates = module, decay, updates
         self.average = {name: value.detach().clone()
                         for name, value in module.state_dict().items() if value.is_floating_point()}
+        # The module's own tensors, which the optimizer updates in place: read every step
+        # without building a state dict.
+        live = module.state_dict()
+        self._pairs = [(self.average[name], live[name]) for name in self.average]
 
     @torch.no_grad()
     def update(self) -> None:
         weight = 1.0 - decay_at(self.updates, self.decay)
-        for name, value in self.module.state_dict().items():
-            if name in self.average:
-                self.average[name].lerp_(value.to(self.average[name].dtype), weight)
+        for average, trained in self._pairs:
+            average.lerp_(trained, weight)
         self.updates += 1
 
     def state_dict(self) -> dict[str, Tensor]:
