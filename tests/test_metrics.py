@@ -358,6 +358,7 @@ def test_pooled_frechet_interval_is_the_jackknife_over_groups_of_consecutive_cli
     assert (values.pooled_low, values.pooled_high) == (
         pytest.approx(max(pooled - error, 0.0), rel=1e-6), pytest.approx(pooled + error, rel=1e-6))
     assert error > 0
+    assert table.per_group["fgd"] == pytest.approx(list(left_out), rel=1e-8)  # kept for pairing
     with pytest.raises(ValueError, match="pooled_groups"):
         evaluate(generated, ground_truth, speaking, config=MetricsConfig(pooled_groups=-1))
     # two groups are too few for an interval; none asked for, none given

@@ -103,16 +103,10 @@ def paired_comparison(values, reference, ratio: bool = True, seed: int = 0,
     return out
 
 
-def pooled_interval(groups: Sequence[tuple[Moments, Moments]], ridge: float,
-                    pooled: float) -> tuple[float, float]:
-    """95 % interval of the Fréchet distance over all clips from a delete-one-group jackknife:
-    ``groups`` holds each group's (generated, ground-truth) moments; each group is left out in
-    turn, both sides together, and the spread of those G distances gives the standard error,
-    sqrt((G - 1) / G * sum (d_g - mean d)^2); the interval is ``pooled`` +- 1.96 of it, its
-    low end at least 0 (a distance is not negative). NaN with fewer than 3 groups (or of two
-    samples each)."""
-    if len(groups) < 3:
-        return math.nan, math.nan
+def left_out_distances(groups: Sequence[tuple[Moments, Moments]], ridge: float) -> list[float]:
+    """The delete-one-group jackknife's distances: ``groups`` holds each group's (generated,
+    ground-truth) moments; group g's value is the Fréchet distance over every other group, both
+    sides left out together."""
     left_out = []
     for skip in range(len(groups)):
         rest = [Moments(full=True), Moments(full=True)]
@@ -121,10 +115,26 @@ def pooled_interval(groups: Sequence[tuple[Moments, Moments]], ridge: float,
                 for side, moments in zip(rest, pair):
                     side.merge(moments)
         left_out.append(moments_distance(rest[0], rest[1], ridge))
-    values = np.asarray(left_out)
-    if not np.all(np.isfinite(values)):
+    return left_out
+
+
+def jackknife_spread(left_out) -> float:
+    """1.96 jackknife standard errors, 1.96 sqrt((G - 1) / G * sum (d_g - mean d)^2), of a
+    statistic whose leave-one-group-out values are ``left_out``; NaN with fewer than 3 groups
+    or a non-finite value."""
+    values = np.asarray(left_out, dtype=np.float64)
+    if len(values) < 3 or not np.all(np.isfinite(values)):
+        return math.nan
+    return 1.96 * math.sqrt((len(values) - 1) / len(values) * np.sum((values - values.mean()) ** 2))
+
+
+def pooled_interval(left_out: Sequence[float], pooled: float) -> tuple[float, float]:
+    """95 % interval of the Fréchet distance over all clips from its delete-one-group jackknife
+    (``left_out_distances``): ``pooled`` +- ``jackknife_spread``, its low end at least 0 (a
+    distance is not negative). NaN with fewer than 3 groups (or of two samples each)."""
+    spread = jackknife_spread(left_out)
+    if math.isnan(spread):
         return math.nan, math.nan
-    spread = 1.96 * math.sqrt((len(values) - 1) / len(values) * np.sum((values - values.mean()) ** 2))
     return max(pooled - spread, 0.0), pooled + spread
 
 
@@ -145,6 +155,14 @@ class MetricsTable:
     # FGD_acc by body part (``body_parts``): the shell point indices each part's values (under
     # ``part_key(part)`` in ``values``) were scored on; empty when parts were not scored.
     shell_parts: dict[str, list[int]] = field(default_factory=dict)
+    # What the intervals resampled, in ``values``' units, so that two evaluations of the same
+    # windows can be compared pair by pair (``evaluation.comparison``), which two separate
+    # intervals cannot: each Fréchet distance's batch values (``per_batch``, Avg's bootstrap)
+    # and leave-one-group-out distances (``per_group``, pooled's jackknife), each per-clip
+    # metric's clip values (``per_clip``, in window order). Empty in files from before them.
+    per_batch: dict[str, list[float]] = field(default_factory=dict)
+    per_group: dict[str, list[float]] = field(default_factory=dict)
+    per_clip: dict[str, list[float]] = field(default_factory=dict)
 
     def distances(self) -> list[str]:
         """The keys of the Fréchet distances in ``values``: the registered metrics', then the
@@ -167,6 +185,9 @@ class MetricsTable:
         out = asdict(self)
         out["values"] = {name: {k: (None if math.isnan(v) else v) for k, v in values.items()}
                          for name, values in out["values"].items()}
+        for kept in ("per_batch", "per_group", "per_clip"):
+            out[kept] = {name: [None if math.isnan(v) else v for v in values]
+                         for name, values in out[kept].items()}
         return out
 
     @classmethod
@@ -176,6 +197,9 @@ class MetricsTable:
         fields["values"] = {name: CategoryValues(**{k: math.nan if v is None else v
                                                     for k, v in values.items()})
                             for name, values in data["values"].items()}
+        for kept in ("per_batch", "per_group", "per_clip"):
+            fields[kept] = {name: [math.nan if v is None else v for v in values]
+                            for name, values in data.get(kept, {}).items()}
         return cls(**fields)
 
 
@@ -202,8 +226,8 @@ def _check_like(kind: str, index: int, clip: Clip, reference: Clip) -> None:
 
 
 def _table(values: dict[str, CategoryValues], cfg: MetricsConfig, speaking: np.ndarray,
-           reference: Clip, num_batches: int, parts: Mapping[str, Sequence[int]] | None = None
-           ) -> MetricsTable:
+           reference: Clip, num_batches: int, parts: Mapping[str, Sequence[int]] | None = None,
+           **kept: dict[str, list[float]]) -> MetricsTable:
     parts = parts or {}
     units, scale = metric_units(cfg.report_unit), dict(cfg.display_scale)
     for part in parts:  # a part's FGD_acc reads as FGD_acc's
@@ -213,7 +237,9 @@ def _table(values: dict[str, CategoryValues], cfg: MetricsConfig, speaking: np.n
         num_clips=len(speaking), num_speaking=int(speaking.sum()),
         num_non_speaking=int((~speaking).sum()), window_frames=reference.num_frames,
         fps=float(reference.fps), batch_clips=cfg.batch_clips, num_batches=num_batches,
-        shell_parts={part: [int(p) for p in points] for part, points in parts.items()})
+        shell_parts={part: [int(p) for p in points] for part, points in parts.items()},
+        **{name: {metric: [float(v) for v in values] for metric, values in by_metric.items()}
+           for name, by_metric in kept.items()})
 
 
 def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
@@ -291,20 +317,25 @@ def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
                 everything[role].merge(pooled[name, role, cat])
         batches = np.asarray(batch_values[name]) * factor
         low, high = bootstrap_interval(batches)
-        whole = moments_distance(everything["gen"], everything["gt"], cfg.fd_ridge)
-        whole_low, whole_high = pooled_interval(groups[name], cfg.fd_ridge, whole)
+        whole = moments_distance(everything["gen"], everything["gt"], cfg.fd_ridge) * factor
+        left_out = np.asarray(left_out_distances(groups[name], cfg.fd_ridge)) * factor
+        per_batch[name], per_group[name] = list(batches), list(left_out)
         return CategoryValues(float(batches.mean()), ns * factor, s * factor, low, high,
-                              whole * factor, whole_low * factor, whole_high * factor)
+                              whole, *pooled_interval(left_out, whole))
 
     gt_values = gt_per_clip if reference_values is None else reference_values
     length = 1.0 / cfg.report_unit  # metres -> reported unit
     values = {}
+    per_batch: dict[str, list[float]] = {}
+    per_group: dict[str, list[float]] = {}
+    kept_clips: dict[str, list[float]] = {}
     for metric in registered():
         factor = length ** metric.length_power
         if metric.kind == "frechet":
             values[metric.name] = distance_values(metric.name, factor)
         else:
             clips = np.asarray(per_clip[metric.name]) * factor
+            kept_clips[metric.name] = list(clips)
             values[metric.name] = replace(
                 category_means(clips, speaking),
                 **paired_comparison(clips, np.asarray(gt_values[metric.name]) * factor,
@@ -315,7 +346,8 @@ def evaluate(generated: Sequence[Clip], ground_truth: Sequence[Clip], speaking,
         values[part_key(part)] = replace(
             distance_values(part_key(part), length ** scored.length_power),
             **{k: v for k, v in energy_ratio.items() if k in UNSCALED_COLUMNS})
-    return _table(values, cfg, speaking, reference, -(-len(generated) // cfg.batch_clips), parts)
+    return _table(values, cfg, speaking, reference, -(-len(generated) // cfg.batch_clips), parts,
+                  per_batch=per_batch, per_group=per_group, per_clip=kept_clips)
 
 
 def _add_clip_values(per_clip: dict[str, list[float]], decoded: DecodedClip,
@@ -344,11 +376,11 @@ def reference_table(clips: Sequence[Clip], speaking: np.ndarray,
     speaking = np.asarray(speaking, bool)
     per_clip = clip_values(clips, config) if per_clip is None else per_clip
     length = 1.0 / config.report_unit
-    values = {}
+    values, kept_clips = {}, {}
     for metric in registered():
         if metric.kind == "frechet":
             values[metric.name] = CategoryValues(math.nan, math.nan, math.nan)
         else:
-            values[metric.name] = category_means(
-                np.asarray(per_clip[metric.name]) * length ** metric.length_power, speaking)
-    return _table(values, config, speaking, clips[0], 0)
+            kept_clips[metric.name] = np.asarray(per_clip[metric.name]) * length ** metric.length_power
+            values[metric.name] = category_means(kept_clips[metric.name], speaking)
+    return _table(values, config, speaking, clips[0], 0, per_clip=kept_clips)
