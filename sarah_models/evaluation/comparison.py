@@ -129,8 +129,10 @@ def comparison_markdown(differences: list[Difference], table: MetricsTable, labe
         def shown(value: float) -> str:
             return "-" if math.isnan(value) else f"{value / scale:,.{decimals}f}"
 
-        gap = (f"{d.gap / scale:+,.{decimals}f}" + ("" if math.isnan(d.gap_low) else
-               f" ({d.gap_low / scale:+,.{decimals}f} to {d.gap_high / scale:+,.{decimals}f})"))
+        # a per-clip difference is usually far smaller than the values: one more decimal
+        places = decimals + (metric.kind == "clip")
+        gap = (f"{d.gap / scale:+,.{places}f}" + ("" if math.isnan(d.gap_low) else
+               f" ({d.gap_low / scale:+,.{places}f} to {d.gap_high / scale:+,.{places}f})"))
         ratio = ("-" if math.isnan(d.ratio) else f"{d.ratio:.2f}" + (
             "" if math.isnan(d.ratio_low) else f" ({d.ratio_low:.2f}-{d.ratio_high:.2f})"))
         column = " pooled" if d.column == "pooled" else ""
