@@ -140,7 +140,9 @@ class VAEConfig:
     # training, as a fraction of the batch's per-channel latent std. The decoder then maps a
     # neighbourhood of each latent to the same motion, so a flow sample that is slightly off
     # the encoder's latents still decodes to smooth motion. With train.freeze_encoder the latent
-    # space (and so a trained flow) stays valid.
+    # space (and so a trained flow) stays valid. Less noise reconstructs the data sharper and
+    # decodes flow samples jumpier; on the fixture benchmark the generated motion's FGD_acc was
+    # lowest at 0.2-0.4 of 0-0.8 (docs/results.md, fifty-eighth run).
     latent_noise: float = 0.0
     # "standardized" (the paper's MSE of standardized channels) or "metres": each channel's
     # squared error weighted by its variance over the mean variance, i.e. an error in metres.
