@@ -20,28 +20,21 @@ from pathlib import Path
 
 from sarah_data.atomic import atomic_write_text
 from sarah_models.evaluation.comparison import ComparisonError, compare, comparison_markdown
-from sarah_models.evaluation.tables import MethodResult
+from sarah_models.evaluation.tables import MethodResult, read_table1_row
 
 
-def read_row(spec: str) -> tuple[MethodResult, list]:
+def read_evaluation(spec: str) -> tuple[MethodResult, list]:
     """``FOLDER[:KEY]`` -> (that row, the folder's window listing); ValueError naming the file
     and the problem."""
     folder, sep, key = spec.rpartition(":")
     if not sep or "/" in key or not folder:
         folder, key = spec, "model"
-    table1, listing = Path(folder) / "table1.json", Path(folder) / "windows.json"
-    try:
-        rows = json.loads(table1.read_text())["rows"]
-    except (OSError, ValueError, KeyError) as exc:
-        raise ValueError(f"{table1}: not a sarah-eval table1.json ({exc})") from None
+    listing = Path(folder) / "windows.json"
     try:
         windows = json.loads(listing.read_text())["windows"]
     except (OSError, ValueError, KeyError) as exc:
         raise ValueError(f"{listing}: not a sarah-eval windows.json ({exc})") from None
-    found = next((row for row in rows if row["key"] == key), None)
-    if found is None:
-        raise ValueError(f"{table1}: no row {key!r} (rows: {', '.join(r['key'] for r in rows)})")
-    return MethodResult.from_dict(found), windows
+    return read_table1_row(Path(folder) / "table1.json", key), windows
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -51,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="also write the table here (.md)")
     args = parser.parse_args(argv)
     try:
-        (row_a, windows_a), (row_b, windows_b) = read_row(args.a), read_row(args.b)
+        (row_a, windows_a), (row_b, windows_b) = read_evaluation(args.a), read_evaluation(args.b)
         if windows_a != windows_b:
             raise ValueError(f"{args.a} and {args.b} evaluated different windows (their "
                              "windows.json differ): score both on the same shards and --windows")

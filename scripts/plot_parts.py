@@ -12,11 +12,10 @@ been scored by part and on the same windows (the figure says so only through its
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
-from sarah_models.evaluation.tables import MethodResult, plot_parts
+from sarah_models.evaluation.tables import MethodResult, plot_parts, read_table1_row
 
 
 def read_row(spec: str) -> MethodResult:
@@ -25,17 +24,10 @@ def read_row(spec: str) -> MethodResult:
     path, sep, key = source.rpartition(":")
     if not sep or not path or not key:
         raise ValueError(f"{spec}: want TABLE1_JSON:KEY[=LABEL]")
-    try:
-        rows = json.loads(Path(path).read_text())["rows"]
-    except (OSError, ValueError, KeyError) as exc:
-        raise ValueError(f"{path}: not a sarah-eval table1.json ({exc})") from None
-    found = next((row for row in rows if row["key"] == key), None)
-    if found is None:
-        raise ValueError(f"{path}: no row {key!r} (rows: {', '.join(r['key'] for r in rows)})")
-    if not found["raw"].get("shell_parts"):
+    row = read_table1_row(path, key)
+    if not row.table.shell_parts:
         raise ValueError(f"{path}: row {key!r} was not scored by body part (an older sarah-eval, "
                          "or the GT row)")
-    row = MethodResult.from_dict(found)
     return row if not label else MethodResult(row.key, label, row.causal, row.fps, row.table,
                                               row.gaze, row.reference)
 

@@ -81,10 +81,10 @@ def _pooled(name: str, a: MetricsTable, b: MetricsTable) -> Difference:
                       ratio, ratio - ratio_spread, ratio + ratio_spread)
 
 
-def _paired(name: str, column: str, values_a, values_b, ratio: bool) -> Difference:
+def _paired(name: str, values_a, values_b, ratio: bool) -> Difference:
     values_a, values_b = np.asarray(values_a, np.float64), np.asarray(values_b, np.float64)
     found = paired_comparison(values_a, values_b, ratio=ratio)
-    return Difference(name, column, float(values_a.mean()), float(values_b.mean()),
+    return Difference(name, "avg", float(values_a.mean()), float(values_b.mean()),
                       **{k: found.get(k, math.nan) for k in ("gap", "gap_low", "gap_high", "ratio",
                                                               "ratio_low", "ratio_high")})
 
@@ -99,12 +99,12 @@ def compare(a: MetricsTable, b: MetricsTable) -> list[Difference]:
         batches_a, batches_b = a.per_batch[name], b.per_batch[name]
         if len(batches_a) != len(batches_b):
             raise ComparisonError(f"{name}: {len(batches_a)} and {len(batches_b)} batches")
-        out.append(_paired(name, "avg", batches_a, batches_b, ratio=True))
+        out.append(_paired(name, batches_a, batches_b, ratio=True))
         out.append(_pooled(name, a, b))
     for metric in registered():
         if metric.kind == "clip" and metric.name in a.per_clip and metric.name in b.per_clip:
-            out.append(_paired(metric.name, "avg", a.per_clip[metric.name],
-                               b.per_clip[metric.name], ratio=metric.ratio_to_gt))
+            out.append(_paired(metric.name, a.per_clip[metric.name], b.per_clip[metric.name],
+                               ratio=metric.ratio_to_gt))
     return out
 
 

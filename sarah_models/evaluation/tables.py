@@ -66,6 +66,18 @@ class MethodResult:
                    data.get("reference", data["key"] == "gt"))
 
 
+def read_table1_row(table1: Path | str, key: str) -> MethodResult:
+    """The row ``key`` of a sarah-eval table1.json; ValueError naming the file and the problem."""
+    try:
+        rows = json.loads(Path(table1).read_text())["rows"]
+    except (OSError, ValueError, KeyError) as exc:
+        raise ValueError(f"{table1}: not a sarah-eval table1.json ({exc})") from None
+    found = next((row for row in rows if row["key"] == key), None)
+    if found is None:
+        raise ValueError(f"{table1}: no row {key!r} (rows: {', '.join(r['key'] for r in rows)})")
+    return MethodResult.from_dict(found)
+
+
 def fps_of(seconds: Sequence[float], frames: int) -> float | None:
     return frames / max(statistics.median(seconds), 1e-12) if seconds else None
 
