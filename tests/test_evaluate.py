@@ -216,11 +216,21 @@ def test_end_to_end_tables_plots_and_determinism(tiny, tmp_path, capsys):
         assert shown["wrist_speed/ratio_low"] <= ratio <= shown["wrist_speed/ratio_high"]
         assert shown["fgd/gap"] is None  # Fréchet metrics are distances to GT already
         assert shown["head_angle/ratio"] is None  # compared by difference only
+    # The Table 1 model row's latents against the encoder's of the same windows.
+    latents = json.loads((out / "latents.json").read_text())
+    assert latents["windows"] == 6 and latents["tokens"] == WINDOW // 4
+    assert sum(band["share"] for band in latents["bands"]) == pytest.approx(1.0)
+    assert latents["bands"][0]["directions"][0] == 0
+    assert latents["bands"][-1]["directions"][1] == latents["channels"]
+    for band in latents["bands"]:
+        assert band["spread_low"] <= band["spread"] <= band["spread_high"]
+    assert "Latent spectrum:" in printed and "Latent spectrum" in (out / "latents.md").read_text()
     listing = json.loads((out / "windows.json").read_text())["windows"]
     assert len(listing) == 6 and {w["start"] for w in listing} <= {0, 16}
     assert sum(w["speaking"] for w in listing) == t1["num_speaking"]
     for name in [f"metric_{m}.png" for m in METRICS] + ["gaze_control.png", "paths.png",
-                                                        "fgd_acc_by_part.png"]:
+                                                        "fgd_acc_by_part.png",
+                                                        "latent_spectrum.png"]:
         with Image.open(out / "plots" / name) as png:
             assert png.format == "PNG" and png.size[0] > 200
     assert not [p for p in out.rglob(".*")]  # no temporary files left

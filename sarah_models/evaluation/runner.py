@@ -79,6 +79,7 @@ from .tables import (
     write_json,
 )
 from .degradations import BLUR_FRAMES, JITTER_MM, blurred, jittered
+from .latent_spectrum import LatentRecorder, plot_spectrum, spectrum_markdown
 from .paths import floor_path_length, pick_windows, plot_paths, recording
 from .reconstruction import ReconstructionErrors, summary_markdown
 from .windows import MethodClips, TestWindows, gt_clips, select_windows
@@ -177,6 +178,7 @@ class Evaluation:
     available_windows: int
     num_speaking: int
     reconstruction: dict | None = None  # the "vae" row's errors per body part (summary, mm)
+    latents: dict | None = None  # the Table 1 model row's latent spectrum (latent_spectrum.py)
     paths: list[Path] = field(default_factory=list)
 
 
@@ -251,9 +253,25 @@ def window_generator(models, config: EvalConfig, gaze: float | None):
     return run
 
 
-def _model_producer(models, config: EvalConfig, gaze: float | None):
+def _model_producer(models, config: EvalConfig, gaze: float | None,
+                    latents: LatentRecorder | None = None):
     run = window_generator(models, config, gaze)
+    if latents is not None:
+        return latents.observe(run)
     return lambda item, index: run(item, index).motion
+
+
+def _encoder_means(models):
+    """A window item -> the run's encoder means of its motion, (1, K, Dz) unstandardized."""
+    device = next(models.vae.parameters()).device
+    nz, vae = models.normalizer, models.vae
+    return lambda item: vae.encode(nz.normalize("motion", item["motion"].to(device))[None])[0]
+
+
+def _encoder_latents(models):
+    """A window item -> its (K, Dz) encoder means, standardized as the flow learned them."""
+    means = _encoder_means(models)
+    return lambda item: models.normalizer.normalize("latent", means(item))[0].float().cpu().numpy()
 
 
 def _vae_producer(models):
@@ -262,12 +280,10 @@ def _vae_producer(models):
     which separates the VAE's error from the flow's."""
     from ..sampling.decoding import stream_decoding
 
-    device = next(models.vae.parameters()).device
-    nz, vae = models.normalizer, models.vae
+    nz, vae, means = models.normalizer, models.vae, _encoder_means(models)
 
     def produce(item: dict, index: int) -> np.ndarray:
-        mu, _ = vae.encode(nz.normalize("motion", item["motion"].to(device))[None])
-        motion = nz.denormalize("motion", vae.decode(mu)[0]).double().cpu().numpy()
+        motion = nz.denormalize("motion", vae.decode(means(item))[0]).double().cpu().numpy()
         return stream_decoding(vae, nz)(motion).astype(np.float32)
 
     return produce
@@ -439,12 +455,23 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
                                       seed=config.seed, progress=progress)
         table1.append(score("nn", "NN", nn.motion, False))
     sweep: dict[float | None, MethodResult] = {}
+    latent_spectrum = None
     if models is not None:
+        # The Table 1 row's samples against the encoder's latents of the same windows.
+        recorder = LatentRecorder(_encoder_latents(models))
         with torch.inference_mode():
             for g in config.model_gazes:
                 label = f"Model (g = {gaze_label(g)}, {config.protocol})"
+                observed = recorder if g == config.table1_gaze else None
                 sweep[g] = score(f"model@{gaze_label(g)}", label,
-                                 _model_producer(models, config, g), True, gaze=g)
+                                 _model_producer(models, config, g, observed), True, gaze=g)
+        latent_spectrum = recorder.summary()
+        if latent_spectrum is not None:
+            lead = latent_spectrum["bands"][0]
+            echo(f"Latent spectrum: {lead['directions'][1]} of {latent_spectrum['channels']} "
+                 f"directions hold {lead['share']:.0%} of the data's latent variance; there the "
+                 f"samples' spread is {lead['spread']:.2f}x the data's, their token-to-token "
+                 f"change {lead['change_ratio']:.2f}x")
         table1.append(replace(sweep[config.table1_gaze], key="model",
                               label=f"Model ({config.protocol}, g = "
                                     f"{gaze_label(config.table1_gaze)})"))
@@ -464,7 +491,7 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
     table2 = [sweep[g] for g in config.gaze] if models is not None else []
 
     result = Evaluation(table1, table2, len(windows), len(dataset), int(speaking.sum()),
-                        reconstruction)
+                        reconstruction, latent_spectrum)
     result.paths = write_outputs(out, result, config, shards, run, features, windows, speaking)
     drawn_rows = [(row.label, row.floor_paths) for row in table1 if row.floor_paths]
     if drawn_rows:
@@ -566,6 +593,18 @@ def write_outputs(out: Path, ev: Evaluation, config: EvalConfig, shards: Path, r
         write_json(out / "reconstruction.json", {"caption": caption, **common,
                                                   "parts": ev.reconstruction})
         paths += [out / "reconstruction.md", out / "reconstruction.json"]
+    if ev.latents is not None:
+        caption = (f"Latent spectrum of the Table 1 model row ({ev.latents['windows']} "
+                   f"{config.split} windows of {ev.latents['tokens']} tokens): the flow's samples "
+                   f"projected on the principal directions of the encoder's latents of the same "
+                   f"windows, in bands by the data's cumulative variance; spread = mean square "
+                   f"about the data's mean, change = mean squared token-to-token step ÷ twice the "
+                   f"data's mean square (0: constant, 1: uncorrelated tokens); 95 % paired "
+                   f"bootstrap over windows.")
+        atomic_write_text(out / "latents.md", spectrum_markdown(ev.latents, caption))
+        write_json(out / "latents.json", {"caption": caption, **common, **ev.latents})
+        paths += [out / "latents.md", out / "latents.json",
+                  plot_spectrum(out / "plots" / "latent_spectrum.png", ev.latents)]
     write_json(out / "windows.json", {**common, "windows": listing})
     paths.append(out / "windows.json")
     return paths

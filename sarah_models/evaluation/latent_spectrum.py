@@ -1,0 +1,201 @@
+"""Latent spectrum: how the flow's samples fill the directions of its VAE's latent space.
+
+The flow learns the frozen encoder's latents standardized channel by channel, and Table 1 scores
+only what the decoder makes of its samples. Between the two, nothing said whether a sample sits
+where the data's latents sit: a flow can fill a direction too little (motion the data has, gone)
+or too much, or move along it from token to token faster than the data does (jitter the decoder
+then smooths, or passes on). The channels are no axes to read this on: they are correlated, and
+on the fixture benchmark's tiny VAE a handful of directions hold nearly all the variance.
+
+So the axes are the principal directions of the data's latents (the encoder means of the
+evaluated windows, standardized as the flow sees them), ordered by the variance they hold. Per
+direction k, with p the projection on it about the data's mean:
+
+* share: the direction's share of the data's latent variance;
+* spread: the samples' mean p² ÷ the data's (1: filled as the data fills it; a sample's mean
+  away from the data's counts too);
+* change: the mean squared token-to-token step of p ÷ twice the data's mean p² (0: the same value
+  all window long; 1: neighbouring tokens uncorrelated), for the data and, in the data's units,
+  for the samples, so that a sample jittering along a direction the data barely uses scores high.
+
+The directions are grouped in bands by the data's cumulative variance (those holding the first
+90 %, the next 9 %, the last 1 %); each band's spread and change ratio carry a 95 % paired
+bootstrap interval over windows (``metrics.table.paired_comparison``; the directions are fixed
+by all windows). The participation ratio, (sum of eigenvalues)² ÷ sum of their squares, says how
+many directions each set of latents effectively fills.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .metrics.table import paired_comparison
+
+BANDS = (0.90, 0.99)  # cumulative data variance at which a band ends; the last band takes the rest
+
+
+def principal_axes(latents: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N, K, D) latents -> (mean (D,), eigenvalues (D,) descending, directions (D, D) as columns)
+    of their covariance over every window's every token."""
+    flat = np.asarray(latents, np.float64).reshape(-1, latents.shape[-1])
+    mean = flat.mean(0)
+    values, vectors = np.linalg.eigh(np.cov(flat, rowvar=False))
+    order = np.argsort(values)[::-1]
+    return mean, np.clip(values[order], 0.0, None), vectors[:, order]
+
+
+def participation(values: np.ndarray) -> float:
+    """How many directions a covariance's eigenvalues effectively fill: (sum)² ÷ sum of squares."""
+    values = np.asarray(values, np.float64)
+    total = float((values ** 2).sum())
+    return float(values.sum() ** 2 / total) if total > 0 else 0.0
+
+
+def band_edges(shares: np.ndarray, bands: tuple[float, ...] = BANDS) -> list[tuple[int, int]]:
+    """[start, end) direction ranges: the directions up to each cumulative share in ``bands``,
+    then the rest; empty ranges are dropped."""
+    cumulative = np.cumsum(shares)
+    ends = [int(np.searchsorted(cumulative, b - 1e-12) + 1) for b in bands] + [len(shares)]
+    edges, start = [], 0
+    for end in ends:
+        end = min(max(end, start), len(shares))
+        if end > start:
+            edges.append((start, end))
+        start = end
+    return edges
+
+
+def spectrum(data: np.ndarray, samples: np.ndarray, bands: tuple[float, ...] = BANDS) -> dict:
+    """The latent spectrum of ``samples`` against ``data``, both (N windows, K tokens, D), window i
+    of each from the same test window: see the module docstring. Raises ValueError for shapes
+    that do not pair up or windows of fewer than 2 tokens."""
+    data, samples = np.asarray(data, np.float64), np.asarray(samples, np.float64)
+    if data.ndim != 3 or data.shape != samples.shape:
+        raise ValueError(f"latent spectrum: data {data.shape} and samples {samples.shape} must be "
+                         "the same (windows, tokens, channels)")
+    if data.shape[1] < 2 or data.shape[0] < 2:
+        raise ValueError(f"latent spectrum: needs at least 2 windows of 2 tokens, got {data.shape}")
+    mean, values, directions = principal_axes(data)
+    p_data, p_samples = (data - mean) @ directions, (samples - mean) @ directions  # (N, K, D)
+    # Per window and direction: mean p² and mean squared token step.
+    energy = {"data": (p_data ** 2).mean(1), "samples": (p_samples ** 2).mean(1)}
+    step = {"data": (np.diff(p_data, axis=1) ** 2).mean(1),
+            "samples": (np.diff(p_samples, axis=1) ** 2).mean(1)}
+    data_energy = energy["data"].mean(0)
+    shares = data_energy / data_energy.sum()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        per_direction = {
+            "share": shares.tolist(),
+            "spread": (energy["samples"].mean(0) / data_energy).tolist(),
+            "data_change": (step["data"].mean(0) / (2 * data_energy)).tolist(),
+            "sample_change": (step["samples"].mean(0) / (2 * data_energy)).tolist(),
+        }
+    rows = []
+    for start, end in band_edges(shares, bands):
+        part = slice(start, end)
+        a, b = energy["data"][:, part].sum(1), energy["samples"][:, part].sum(1)
+        c, d = step["data"][:, part].sum(1), step["samples"][:, part].sum(1)
+        spread = paired_comparison(b, a)
+        change = paired_comparison(d, c)
+        data_change = paired_comparison(c / 2, a)
+        rows.append({"directions": [start, end], "share": float(shares[part].sum()),
+                     **{f"spread{k[5:]}": v for k, v in spread.items() if k.startswith("ratio")},
+                     **{f"data_change{k[5:]}": v for k, v in data_change.items()
+                        if k.startswith("ratio")},
+                     **{f"change_ratio{k[5:]}": v for k, v in change.items()
+                        if k.startswith("ratio")}})
+    _, sample_values, _ = principal_axes(samples)
+    return {"windows": int(data.shape[0]), "tokens": int(data.shape[1]),
+            "channels": int(data.shape[2]),
+            "participation": {"data": participation(values),
+                              "samples": participation(sample_values)},
+            "bands": rows, "per_direction": per_direction}
+
+
+@dataclass
+class LatentRecorder:
+    """The flow's sample latents and the encoder's latents of the same windows, gathered as a
+    model row's windows are generated (``observe``)."""
+
+    encode: Callable[[dict], np.ndarray]  # window item -> its (K, Dz) standardized encoder means
+    data: list[np.ndarray] = field(default_factory=list)
+    samples: list[np.ndarray] = field(default_factory=list)
+
+    def observe(self, run: Callable) -> Callable:
+        """Wrap a ``run(item, index) -> generation Result`` into a ``produce(item, index) ->
+        motion`` that keeps the result's latents and the item's encoder latents on the way."""
+        def produce(item: dict, index: int):
+            result = run(item, index)
+            if result.latents is None:
+                raise ValueError("latent spectrum: the generator kept no latents")
+            self.samples.append(np.asarray(result.latents, np.float32))
+            self.data.append(np.asarray(self.encode(item), np.float32))
+            return result.motion
+
+        return produce
+
+    def summary(self) -> dict | None:
+        """``spectrum`` of what was observed; None before two windows."""
+        if len(self.data) < 2:
+            return None
+        return spectrum(np.stack(self.data), np.stack(self.samples))
+
+
+def _cell(row: dict, key: str, digits: int = 2) -> str:
+    if key not in row:
+        return "-"
+    low, high = row.get(f"{key}_low"), row.get(f"{key}_high")
+    text = f"{row[key]:.{digits}f}"
+    return text if low is None else f"{text} ({low:.{digits}f}-{high:.{digits}f})"
+
+
+def spectrum_markdown(summary: dict, caption: str) -> str:
+    """A ``spectrum`` summary as a markdown table of its bands under ``caption``."""
+    lines = [caption, "",
+             f"Directions effectively filled (participation ratio of {summary['channels']}): data "
+             f"{summary['participation']['data']:.1f}, samples "
+             f"{summary['participation']['samples']:.1f}.", "",
+             "| directions | share of the data's variance | samples' spread ÷ data's | data's "
+             "token-to-token change | samples' change ÷ data's |", "|---|---|---|---|---|"]
+    for row in summary["bands"]:
+        start, end = row["directions"]
+        lines.append(f"| {start + 1}-{end} | {row['share']:.3f} | {_cell(row, 'spread')} | "
+                     f"{_cell(row, 'data_change', 3)} | {_cell(row, 'change_ratio')} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_spectrum(path: Path, summary: dict) -> Path:
+    """Per direction: the data's variance share (log), and the samples' spread and change
+    against the data's (log; 1 = as the data)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..generation.plots import save_figure
+
+    per = summary["per_direction"]
+    k = np.arange(1, len(per["share"]) + 1)
+    fig, (left, right) = plt.subplots(1, 2, figsize=(9.0, 3.6))
+    left.semilogy(k, per["share"], "k.-", lw=1)
+    left.set_xlabel("principal direction of the data's latents")
+    left.set_ylabel("share of the data's variance")
+    left.set_title("Where the data's latents vary")
+    right.semilogy(k, per["spread"], ".-", color="tab:red", lw=1, label="samples' spread ÷ data's")
+    change = np.array(per["sample_change"]) / np.array(per["data_change"])
+    right.semilogy(k, change, ".-", color="tab:blue", lw=1, label="samples' change ÷ data's")
+    right.axhline(1.0, color="k", ls="--", lw=0.8)
+    for row in summary["bands"][:-1]:
+        for axis in (left, right):
+            axis.axvline(row["directions"][1] + 0.5, color="0.7", lw=0.8)
+    right.set_xlabel("principal direction of the data's latents")
+    right.set_title("The flow's samples against the data")
+    right.legend(fontsize=7)
+    for axis in (left, right):
+        axis.grid(alpha=0.3)
+    fig.tight_layout()
+    return save_figure(fig, path)
