@@ -224,13 +224,13 @@ def test_end_to_end_tables_plots_and_determinism(tiny, tmp_path, capsys):
     assert latents["bands"][-1]["directions"][1] == latents["channels"]
     for band in latents["bands"]:
         assert band["spread_low"] <= band["spread"] <= band["spread_high"]
-    assert "Latent spectrum:" in printed and "Latent spectrum" in (out / "latents.md").read_text()
+    assert "Latent directions:" in printed and "Latent directions" in (out / "latents.md").read_text()
     listing = json.loads((out / "windows.json").read_text())["windows"]
     assert len(listing) == 6 and {w["start"] for w in listing} <= {0, 16}
     assert sum(w["speaking"] for w in listing) == t1["num_speaking"]
     for name in [f"metric_{m}.png" for m in METRICS] + ["gaze_control.png", "paths.png",
                                                         "fgd_acc_by_part.png",
-                                                        "latent_spectrum.png"]:
+                                                        "latent_directions.png"]:
         with Image.open(out / "plots" / name) as png:
             assert png.format == "PNG" and png.size[0] > 200
     assert not [p for p in out.rglob(".*")]  # no temporary files left

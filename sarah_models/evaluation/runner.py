@@ -35,10 +35,13 @@ table1.md's last table, and the rows' ``fgd_acc@<part>`` values in table1.json.
 Outputs in ``out``: table1.md/.json, table2.md/.json, windows.json (the windows evaluated and
 their S/NS flags), plots/metric_<name>.png (bars across methods), plots/gaze_control.png,
 plots/paths.png (top views of where each method's agent walks, ``paths.py``) and
-plots/fgd_acc_by_part.png (the by-part table as bars, log scale);
+plots/fgd_acc_by_part.png (the by-part table as bars, log scale); with the model, latents.md/.json
+and plots/latent_directions.png: how the Table 1 row's sampled latents fill the principal
+directions of the encoder's latents of the same windows (``latent_directions.py``);
 with the "vae" method also reconstruction.md/.json, its error per body part in mm
 (``reconstruction.py``).
-Memory stays at a few clips: clips are produced lazily while the metrics read them.
+Memory stays at a few clips: clips are produced lazily while the metrics read them (the model row's
+latents are kept whole, a few floats per token: ``latent_directions.py``).
 """
 
 from __future__ import annotations
@@ -79,7 +82,7 @@ from .tables import (
     write_json,
 )
 from .degradations import BLUR_FRAMES, JITTER_MM, blurred, jittered
-from .latent_spectrum import LatentRecorder, plot_spectrum, spectrum_markdown
+from .latent_directions import LatentRecorder, directions_markdown, plot_directions
 from .paths import floor_path_length, pick_windows, plot_paths, recording
 from .reconstruction import ReconstructionErrors, summary_markdown
 from .windows import MethodClips, TestWindows, gt_clips, select_windows
@@ -178,7 +181,7 @@ class Evaluation:
     available_windows: int
     num_speaking: int
     reconstruction: dict | None = None  # the "vae" row's errors per body part (summary, mm)
-    latents: dict | None = None  # the Table 1 model row's latent spectrum (latent_spectrum.py)
+    latents: dict | None = None  # the Table 1 model row's latent directions (latent_directions.py)
     paths: list[Path] = field(default_factory=list)
 
 
@@ -455,7 +458,7 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
                                       seed=config.seed, progress=progress)
         table1.append(score("nn", "NN", nn.motion, False))
     sweep: dict[float | None, MethodResult] = {}
-    latent_spectrum = None
+    latent_directions = None
     if models is not None:
         # The Table 1 row's samples against the encoder's latents of the same windows.
         recorder = LatentRecorder(_encoder_latents(models))
@@ -465,10 +468,10 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
                 observed = recorder if g == config.table1_gaze else None
                 sweep[g] = score(f"model@{gaze_label(g)}", label,
                                  _model_producer(models, config, g, observed), True, gaze=g)
-        latent_spectrum = recorder.summary()
-        if latent_spectrum is not None:
-            lead = latent_spectrum["bands"][0]
-            echo(f"Latent spectrum: {lead['directions'][1]} of {latent_spectrum['channels']} "
+        latent_directions = recorder.summary()
+        if latent_directions is not None:
+            lead = latent_directions["bands"][0]
+            echo(f"Latent directions: {lead['directions'][1]} of {latent_directions['channels']} "
                  f"directions hold {lead['share']:.0%} of the data's latent variance; there the "
                  f"samples' spread is {lead['spread']:.2f}x the data's, their token-to-token "
                  f"change {lead['change_ratio']:.2f}x")
@@ -491,7 +494,7 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
     table2 = [sweep[g] for g in config.gaze] if models is not None else []
 
     result = Evaluation(table1, table2, len(windows), len(dataset), int(speaking.sum()),
-                        reconstruction, latent_spectrum)
+                        reconstruction, latent_directions)
     result.paths = write_outputs(out, result, config, shards, run, features, windows, speaking)
     drawn_rows = [(row.label, row.floor_paths) for row in table1 if row.floor_paths]
     if drawn_rows:
@@ -594,17 +597,17 @@ def write_outputs(out: Path, ev: Evaluation, config: EvalConfig, shards: Path, r
                                                   "parts": ev.reconstruction})
         paths += [out / "reconstruction.md", out / "reconstruction.json"]
     if ev.latents is not None:
-        caption = (f"Latent spectrum of the Table 1 model row ({ev.latents['windows']} "
+        caption = (f"Latent directions of the Table 1 model row ({ev.latents['windows']} "
                    f"{config.split} windows of {ev.latents['tokens']} tokens): the flow's samples "
                    f"projected on the principal directions of the encoder's latents of the same "
                    f"windows, in bands by the data's cumulative variance; spread = mean square "
                    f"about the data's mean, change = mean squared token-to-token step ÷ twice the "
                    f"data's mean square (0: constant, 1: uncorrelated tokens); 95 % paired "
                    f"bootstrap over windows.")
-        atomic_write_text(out / "latents.md", spectrum_markdown(ev.latents, caption))
+        atomic_write_text(out / "latents.md", directions_markdown(ev.latents, caption))
         write_json(out / "latents.json", {"caption": caption, **common, **ev.latents})
         paths += [out / "latents.md", out / "latents.json",
-                  plot_spectrum(out / "plots" / "latent_spectrum.png", ev.latents)]
+                  plot_directions(out / "plots" / "latent_directions.png", ev.latents)]
     write_json(out / "windows.json", {**common, "windows": listing})
     paths.append(out / "windows.json")
     return paths

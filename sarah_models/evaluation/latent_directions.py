@@ -1,4 +1,4 @@
-"""Latent spectrum: how the flow's samples fill the directions of its VAE's latent space.
+"""Latent directions: how the flow's samples fill the directions of its VAE's latent space.
 
 The flow learns the frozen encoder's latents standardized channel by channel, and Table 1 scores
 only what the decoder makes of its samples. Between the two, nothing said whether a sample sits
@@ -23,6 +23,9 @@ The directions are grouped in bands by the data's cumulative variance (those hol
 bootstrap interval over windows (``metrics.table.paired_comparison``; the directions are fixed
 by all windows). The participation ratio, (sum of eigenvalues)² ÷ sum of their squares, says how
 many directions each set of latents effectively fills.
+
+``scripts/motion_anatomy.py`` reads the same latents along the other axis, by frequency band of
+the token rate, channel by channel.
 """
 
 from __future__ import annotations
@@ -69,16 +72,16 @@ def band_edges(shares: np.ndarray, bands: tuple[float, ...] = BANDS) -> list[tup
     return edges
 
 
-def spectrum(data: np.ndarray, samples: np.ndarray, bands: tuple[float, ...] = BANDS) -> dict:
-    """The latent spectrum of ``samples`` against ``data``, both (N windows, K tokens, D), window i
+def directions_summary(data: np.ndarray, samples: np.ndarray, bands: tuple[float, ...] = BANDS) -> dict:
+    """How ``samples`` fill the principal directions of ``data``, both (N windows, K tokens, D), window i
     of each from the same test window: see the module docstring. Raises ValueError for shapes
     that do not pair up or windows of fewer than 2 tokens."""
     data, samples = np.asarray(data, np.float64), np.asarray(samples, np.float64)
     if data.ndim != 3 or data.shape != samples.shape:
-        raise ValueError(f"latent spectrum: data {data.shape} and samples {samples.shape} must be "
+        raise ValueError(f"latent directions: data {data.shape} and samples {samples.shape} must be "
                          "the same (windows, tokens, channels)")
     if data.shape[1] < 2 or data.shape[0] < 2:
-        raise ValueError(f"latent spectrum: needs at least 2 windows of 2 tokens, got {data.shape}")
+        raise ValueError(f"latent directions: needs at least 2 windows of 2 tokens, got {data.shape}")
     mean, values, directions = principal_axes(data)
     p_data, p_samples = (data - mean) @ directions, (samples - mean) @ directions  # (N, K, D)
     # Per window and direction: mean p² and mean squared token step.
@@ -131,7 +134,7 @@ class LatentRecorder:
         def produce(item: dict, index: int):
             result = run(item, index)
             if result.latents is None:
-                raise ValueError("latent spectrum: the generator kept no latents")
+                raise ValueError("latent directions: the generator kept no latents")
             self.samples.append(np.asarray(result.latents, np.float32))
             self.data.append(np.asarray(self.encode(item), np.float32))
             return result.motion
@@ -139,10 +142,10 @@ class LatentRecorder:
         return produce
 
     def summary(self) -> dict | None:
-        """``spectrum`` of what was observed; None before two windows."""
+        """``directions_summary`` of what was observed; None before two windows."""
         if len(self.data) < 2:
             return None
-        return spectrum(np.stack(self.data), np.stack(self.samples))
+        return directions_summary(np.stack(self.data), np.stack(self.samples))
 
 
 def _cell(row: dict, key: str, digits: int = 2) -> str:
@@ -153,8 +156,8 @@ def _cell(row: dict, key: str, digits: int = 2) -> str:
     return text if low is None else f"{text} ({low:.{digits}f}-{high:.{digits}f})"
 
 
-def spectrum_markdown(summary: dict, caption: str) -> str:
-    """A ``spectrum`` summary as a markdown table of its bands under ``caption``."""
+def directions_markdown(summary: dict, caption: str) -> str:
+    """A ``directions_summary`` as a markdown table of its bands under ``caption``."""
     lines = [caption, "",
              f"Directions effectively filled (participation ratio of {summary['channels']}): data "
              f"{summary['participation']['data']:.1f}, samples "
@@ -168,7 +171,7 @@ def spectrum_markdown(summary: dict, caption: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot_spectrum(path: Path, summary: dict) -> Path:
+def plot_directions(path: Path, summary: dict) -> Path:
     """Per direction: the data's variance share (log), and the samples' spread and change
     against the data's (log; 1 = as the data)."""
     import matplotlib

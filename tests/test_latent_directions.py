@@ -1,4 +1,4 @@
-"""The latent spectrum: samples projected on the principal directions of the data's latents."""
+"""Latent directions: samples projected on the principal directions of the data's latents."""
 
 from __future__ import annotations
 
@@ -7,8 +7,9 @@ import pytest
 from hypothesis import given, settings, strategies as st
 from PIL import Image
 
-from sarah_models.evaluation.latent_spectrum import (
-    LatentRecorder, band_edges, participation, plot_spectrum, spectrum, spectrum_markdown)
+from sarah_models.evaluation.latent_directions import (
+    LatentRecorder, band_edges, directions_markdown, directions_summary, participation,
+    plot_directions)
 
 
 def smooth_latents(rng, windows=60, tokens=50, channels=8):
@@ -22,7 +23,7 @@ def smooth_latents(rng, windows=60, tokens=50, channels=8):
 
 def test_samples_equal_to_the_data_fill_every_direction_as_it_does():
     data, _ = smooth_latents(np.random.default_rng(0))
-    summary = spectrum(data, data.copy())
+    summary = directions_summary(data, data.copy())
     for row in summary["bands"]:
         for key in ("spread", "change_ratio"):
             assert row[key] == pytest.approx(1.0)
@@ -40,7 +41,7 @@ def test_a_shrunk_direction_and_a_jittering_one_are_told_apart():
     along_second = samples @ second
     samples -= 0.5 * along_second[..., None] * second  # half the amplitude: a quarter the spread
     samples += 3.0 * rng.standard_normal(samples.shape[:2])[..., None] * first  # token jitter
-    summary = spectrum(data, samples)
+    summary = directions_summary(data, samples)
     per = summary["per_direction"]
     assert per["spread"][1] == pytest.approx(0.25, rel=0.05)
     assert per["spread"][0] == pytest.approx(1.0, abs=0.1)  # jitter adds little energy there...
@@ -52,7 +53,7 @@ def test_a_shrunk_direction_and_a_jittering_one_are_told_apart():
     assert lead["data_change"] < 0.05  # random walks: slow against the token rate
     # data's change is 0 for a constant and about 1 for tokens drawn independently
     white = rng.standard_normal((40, 30, 4))
-    assert spectrum(white, white)["bands"][0]["data_change"] == pytest.approx(1.0, abs=0.1)
+    assert directions_summary(white, white)["bands"][0]["data_change"] == pytest.approx(1.0, abs=0.1)
 
 
 @settings(max_examples=40, deadline=None)
@@ -75,9 +76,9 @@ def test_participation_counts_equally_filled_directions():
 
 def test_shapes_that_do_not_pair_up_are_refused():
     with pytest.raises(ValueError, match="must be the same"):
-        spectrum(np.zeros((4, 5, 3)), np.zeros((4, 6, 3)))
+        directions_summary(np.zeros((4, 5, 3)), np.zeros((4, 6, 3)))
     with pytest.raises(ValueError, match="at least 2 windows of 2 tokens"):
-        spectrum(np.zeros((4, 1, 3)), np.zeros((4, 1, 3)))
+        directions_summary(np.zeros((4, 1, 3)), np.zeros((4, 1, 3)))
 
 
 class _Result:
@@ -96,9 +97,9 @@ def test_recorder_keeps_both_sides_of_every_window_and_passes_the_motion_on(tmp_
         assert (produce({"i": i}, i) == i).all()
     summary = recorder.summary()
     assert summary["bands"][0]["spread"] == pytest.approx(4.0)  # twice the amplitude
-    text = spectrum_markdown(summary, "caption")
+    text = directions_markdown(summary, "caption")
     assert text.startswith("caption") and "| 1-" in text and "participation ratio of 4" in text
-    with Image.open(plot_spectrum(tmp_path / "spectrum.png", summary)) as png:
+    with Image.open(plot_directions(tmp_path / "directions.png", summary)) as png:
         assert png.format == "PNG" and png.size[0] > 200
     silent = LatentRecorder(encode=lambda item: data[0]).observe(lambda item, index: _Result(None, None))
     with pytest.raises(ValueError, match="kept no latents"):
