@@ -8,8 +8,8 @@ from hypothesis import given, settings, strategies as st
 from PIL import Image
 
 from sarah_models.evaluation.latent_directions import (
-    LatentRecorder, band_edges, directions_markdown, directions_summary, participation,
-    plot_directions)
+    PLACEMENT_R2, LatentRecorder, band_edges, directions_markdown, directions_summary,
+    participation, pelvis_floor, placement_r2, plot_directions, principal_axes)
 
 
 def smooth_latents(rng, windows=60, tokens=50, channels=8):
@@ -104,3 +104,33 @@ def test_recorder_keeps_both_sides_of_every_window_and_passes_the_motion_on(tmp_
     silent = LatentRecorder(encode=lambda item: data[0]).observe(lambda item, index: _Result(None, None))
     with pytest.raises(ValueError, match="kept no latents"):
         silent({}, 0)
+
+
+def test_the_directions_that_carry_where_the_body_stands_are_found():
+    rng = np.random.default_rng(3)
+    data, _ = smooth_latents(rng)
+    mean, _, axes = principal_axes(data)
+    second = (data - mean) @ axes[:, 1]  # where the data's second direction puts each token
+    floor = np.stack([second, 0.5 * second], axis=-1)  # x, z
+    samples = data + second[..., None] * axes[:, 1]  # twice as far along it
+    summary = directions_summary(data, samples, placement=floor)
+    r2 = summary["per_direction"]["placement_r2"]
+    assert r2[1] == pytest.approx(1.0) and max(r2[0], *r2[2:]) < 1e-9
+    placement = summary["placement"]
+    assert placement["directions"] == [1] and placement["spread"] == pytest.approx(4.0, rel=0.05)
+    assert "placement: 2" in directions_markdown(summary, "caption")
+    assert np.allclose(placement_r2(np.zeros((3, 4, 2)), np.zeros((3, 4, 2))), 0.0)
+    with pytest.raises(ValueError, match="placement"):
+        placement_r2(np.zeros((3, 4, 2)), np.zeros((3, 5, 2)))
+
+
+def test_pelvis_floor_is_the_mean_of_each_token_s_frames():
+    from sarah_data.skeleton import MotionLayout, ROOT
+
+    layout = MotionLayout(shell_points=2)
+    rng = np.random.default_rng(4)
+    motion = rng.standard_normal((12, layout.width)).astype(np.float32)
+    floor = pelvis_floor(layout, stride=4)({"motion": motion})
+    pelvis = layout.joint_positions(motion.astype(np.float64), [ROOT])[:, 0]
+    assert floor.shape == (3, 2)
+    assert np.allclose(floor[1], pelvis[4:8][:, [0, 2]].mean(0))

@@ -24,6 +24,12 @@ bootstrap interval over windows (``metrics.table.paired_comparison``; the direct
 by all windows). The participation ratio, (sum of eigenvalues)² ÷ sum of their squares, says how
 many directions each set of latents effectively fills.
 
+Where the body stands is in some of these directions and not others. Given the pelvis's floor
+position (x, z) per token of each window, every direction gets the R² of a line fit of that
+position on it alone, and the directions whose R² reaches ``PLACEMENT_R2`` make one more row,
+"placement": a flow that fills them too widely walks its agent too far, and pooled FGD, which
+reads where the body stands, follows.
+
 ``scripts/motion_anatomy.py`` reads the same latents along the other axis, by frequency band of
 the token rate, channel by channel.
 """
@@ -39,6 +45,7 @@ import numpy as np
 from .metrics.table import paired_comparison
 
 BANDS = (0.90, 0.99)  # cumulative data variance at which a band ends; the last band takes the rest
+PLACEMENT_R2 = 0.05  # a direction carries placement when it alone explains this much of it
 
 
 def principal_axes(latents: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -72,10 +79,13 @@ def band_edges(shares: np.ndarray, bands: tuple[float, ...] = BANDS) -> list[tup
     return edges
 
 
-def directions_summary(data: np.ndarray, samples: np.ndarray, bands: tuple[float, ...] = BANDS) -> dict:
-    """How ``samples`` fill the principal directions of ``data``, both (N windows, K tokens, D), window i
-    of each from the same test window: see the module docstring. Raises ValueError for shapes
-    that do not pair up or windows of fewer than 2 tokens."""
+def directions_summary(data: np.ndarray, samples: np.ndarray, bands: tuple[float, ...] = BANDS,
+                       placement: np.ndarray | None = None) -> dict:
+    """How ``samples`` fill the principal directions of ``data``, both (N windows, K tokens, D),
+    window i of each from the same test window; ``placement`` (N, K, 2), the pelvis's floor
+    position per token, adds each direction's R² of it and the "placement" row. See the module
+    docstring. Raises ValueError for shapes that do not pair up or windows of fewer than 2
+    tokens."""
     data, samples = np.asarray(data, np.float64), np.asarray(samples, np.float64)
     if data.ndim != 3 or data.shape != samples.shape:
         raise ValueError(f"latent directions: data {data.shape} and samples {samples.shape} must be "
@@ -97,26 +107,60 @@ def directions_summary(data: np.ndarray, samples: np.ndarray, bands: tuple[float
             "data_change": (step["data"].mean(0) / (2 * data_energy)).tolist(),
             "sample_change": (step["samples"].mean(0) / (2 * data_energy)).tolist(),
         }
-    rows = []
-    for start, end in band_edges(shares, bands):
-        part = slice(start, end)
-        a, b = energy["data"][:, part].sum(1), energy["samples"][:, part].sum(1)
-        c, d = step["data"][:, part].sum(1), step["samples"][:, part].sum(1)
-        spread = paired_comparison(b, a)
-        change = paired_comparison(d, c)
-        data_change = paired_comparison(c / 2, a)
-        rows.append({"directions": [start, end], "share": float(shares[part].sum()),
-                     **{f"spread{k[5:]}": v for k, v in spread.items() if k.startswith("ratio")},
-                     **{f"data_change{k[5:]}": v for k, v in data_change.items()
-                        if k.startswith("ratio")},
-                     **{f"change_ratio{k[5:]}": v for k, v in change.items()
-                        if k.startswith("ratio")}})
-    _, sample_values, _ = principal_axes(samples)
-    return {"windows": int(data.shape[0]), "tokens": int(data.shape[1]),
-            "channels": int(data.shape[2]),
-            "participation": {"data": participation(values),
-                              "samples": participation(sample_values)},
-            "bands": rows, "per_direction": per_direction}
+
+    def row(chosen) -> dict:
+        a, b = energy["data"][:, chosen].sum(1), energy["samples"][:, chosen].sum(1)
+        c, d = step["data"][:, chosen].sum(1), step["samples"][:, chosen].sum(1)
+        figures = {"spread": paired_comparison(b, a), "data_change": paired_comparison(c / 2, a),
+                   "change_ratio": paired_comparison(d, c)}
+        return {"share": float(shares[chosen].sum()),
+                **{f"{name}{k[5:]}": v for name, out in figures.items()
+                   for k, v in out.items() if k.startswith("ratio")}}
+
+    summary = {"windows": int(data.shape[0]), "tokens": int(data.shape[1]),
+               "channels": int(data.shape[2]),
+               "participation": {"data": participation(values),
+                                 "samples": participation(principal_axes(samples)[1])},
+               "bands": [{"directions": [start, end], **row(slice(start, end))}
+                         for start, end in band_edges(shares, bands)],
+               "per_direction": per_direction}
+    if placement is not None:
+        r2 = placement_r2(p_data, np.asarray(placement, np.float64))
+        per_direction["placement_r2"] = r2.tolist()
+        carriers = np.flatnonzero(r2 >= PLACEMENT_R2)
+        if len(carriers):
+            summary["placement"] = {"directions": carriers.tolist(), **row(carriers)}
+    return summary
+
+
+def placement_r2(projections: np.ndarray, placement: np.ndarray) -> np.ndarray:
+    """(N, K, D) projections and (N, K, 2) floor positions -> (D,) the share of the positions'
+    variance about their mean that a line fit on each direction alone explains."""
+    if placement.shape != projections.shape[:2] + (2,):
+        raise ValueError(f"latent directions: placement {placement.shape} must be (windows, "
+                         f"tokens, 2) for latents {projections.shape}")
+    x = projections.reshape(-1, projections.shape[-1])
+    y = placement.reshape(-1, 2)
+    x, y = x - x.mean(0), y - y.mean(0)
+    total = (y ** 2).sum()
+    if total == 0:
+        return np.zeros(x.shape[1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        explained = ((x.T @ y) ** 2).sum(1) / (x ** 2).sum(0)  # per direction, both coordinates
+    return np.nan_to_num(explained / total)
+
+
+def pelvis_floor(layout, stride: int) -> Callable[[dict], np.ndarray]:
+    """A window item -> its pelvis's floor position (x, z; y is up) per latent token of ``stride``
+    frames, the mean over the token's frames: what ``LatentRecorder.place`` takes."""
+    from sarah_data.skeleton import ROOT
+
+    def place(item: dict) -> np.ndarray:
+        icosahedra, _ = layout.split(np.asarray(item["motion"], np.float64))
+        pelvis = icosahedra[:, layout.joint(ROOT)].mean(-2)[:, [0, 2]]
+        return pelvis.reshape(-1, stride, 2).mean(1)
+
+    return place
 
 
 @dataclass
@@ -125,8 +169,11 @@ class LatentRecorder:
     model row's windows are generated (``observe``)."""
 
     encode: Callable[[dict], np.ndarray]  # window item -> its (K, Dz) standardized encoder means
+    # window item -> the pelvis's floor position (K, 2) per token; None: no placement row
+    place: Callable[[dict], np.ndarray] | None = None
     data: list[np.ndarray] = field(default_factory=list)
     samples: list[np.ndarray] = field(default_factory=list)
+    placement: list[np.ndarray] = field(default_factory=list)
 
     def observe(self, run: Callable) -> Callable:
         """Wrap a ``run(item, index) -> generation Result`` into a ``produce(item, index) ->
@@ -137,6 +184,8 @@ class LatentRecorder:
                 raise ValueError("latent directions: the generator kept no latents")
             self.samples.append(np.asarray(result.latents, np.float32))
             self.data.append(np.asarray(self.encode(item), np.float32))
+            if self.place is not None:
+                self.placement.append(np.asarray(self.place(item), np.float32))
             return result.motion
 
         return produce
@@ -145,7 +194,8 @@ class LatentRecorder:
         """``directions_summary`` of what was observed; None before two windows."""
         if len(self.data) < 2:
             return None
-        return directions_summary(np.stack(self.data), np.stack(self.samples))
+        return directions_summary(np.stack(self.data), np.stack(self.samples),
+                                  placement=np.stack(self.placement) if self.placement else None)
 
 
 def _cell(row: dict, key: str, digits: int = 2) -> str:
@@ -164,10 +214,20 @@ def directions_markdown(summary: dict, caption: str) -> str:
              f"{summary['participation']['samples']:.1f}.", "",
              "| directions | share of the data's variance | samples' spread ÷ data's | data's "
              "token-to-token change | samples' change ÷ data's |", "|---|---|---|---|---|"]
-    for row in summary["bands"]:
-        start, end = row["directions"]
-        lines.append(f"| {start + 1}-{end} | {row['share']:.3f} | {_cell(row, 'spread')} | "
-                     f"{_cell(row, 'data_change', 3)} | {_cell(row, 'change_ratio')} |")
+    def line(name: str, row: dict) -> str:
+        return (f"| {name} | {row['share']:.3f} | {_cell(row, 'spread')} | "
+                f"{_cell(row, 'data_change', 3)} | {_cell(row, 'change_ratio')} |")
+
+    lines += [line(f"{row['directions'][0] + 1}-{row['directions'][1]}", row)
+              for row in summary["bands"]]
+    if "placement" in summary:
+        chosen = summary["placement"]["directions"]
+        r2 = summary["per_direction"]["placement_r2"]
+        lines.append(line("placement: " + ", ".join(str(k + 1) for k in chosen),
+                          summary["placement"]))
+        lines += ["", "Placement: the directions each of which alone explains at least "
+                  f"{PLACEMENT_R2:.0%} of the pelvis's floor position (R²: "
+                  + ", ".join(f"{k + 1}: {r2[k]:.2f}" for k in chosen) + ")."]
     return "\n".join(lines) + "\n"
 
 
@@ -185,6 +245,11 @@ def plot_directions(path: Path, summary: dict) -> Path:
     k = np.arange(1, len(per["share"]) + 1)
     fig, (left, right) = plt.subplots(1, 2, figsize=(9.0, 3.6))
     left.semilogy(k, per["share"], "k.-", lw=1)
+    if "placement" in summary:
+        carriers = np.array(summary["placement"]["directions"])
+        left.semilogy(carriers + 1, np.array(per["share"])[carriers], "o", mfc="none",
+                      color="tab:green", label="carries the pelvis's floor position")
+        left.legend(fontsize=7)
     left.set_xlabel("principal direction of the data's latents")
     left.set_ylabel("share of the data's variance")
     left.set_title("Where the data's latents vary")

@@ -82,7 +82,8 @@ from .tables import (
     write_json,
 )
 from .degradations import BLUR_FRAMES, JITTER_MM, blurred, jittered
-from .latent_directions import LatentRecorder, directions_markdown, plot_directions
+from .latent_directions import (LatentRecorder, directions_markdown, pelvis_floor,
+                                plot_directions)
 from .paths import floor_path_length, pick_windows, plot_paths, recording
 from .reconstruction import ReconstructionErrors, summary_markdown
 from .windows import MethodClips, TestWindows, gt_clips, select_windows
@@ -461,7 +462,8 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
     latent_directions = None
     if models is not None:
         # The Table 1 row's samples against the encoder's latents of the same windows.
-        recorder = LatentRecorder(_encoder_latents(models))
+        recorder = LatentRecorder(_encoder_latents(models),
+                                  pelvis_floor(layout, models.vae.stride))
         with torch.inference_mode():
             for g in config.model_gazes:
                 label = f"Model (g = {gaze_label(g)}, {config.protocol})"
