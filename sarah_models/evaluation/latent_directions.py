@@ -27,8 +27,9 @@ many directions each set of latents effectively fills.
 Where the body stands is in some of these directions and not others. Given the pelvis's floor
 position (x, z) per token of each window, every direction gets the R² of a line fit of that
 position on it alone, and the directions whose R² reaches ``PLACEMENT_R2`` make one more row,
-"placement": a flow that fills them too widely walks its agent too far, and pooled FGD, which
-reads where the body stands, follows.
+"placement": how the samples fill the directions that place the body (pooled FGD reads where
+the body stands, but more than the pelvis: on the fixture benchmark this row did not follow it
+from model to model, docs/results.md, fifty-ninth run).
 
 ``scripts/motion_anatomy.py`` reads the same latents along the other axis, by frequency band of
 the token rate, channel by channel.
