@@ -79,6 +79,21 @@ def test_shapes_that_do_not_pair_up_are_refused():
         directions_summary(np.zeros((4, 5, 3)), np.zeros((4, 6, 3)))
     with pytest.raises(ValueError, match="at least 2 windows of 2 tokens"):
         directions_summary(np.zeros((4, 1, 3)), np.zeros((4, 1, 3)))
+    with pytest.raises(ValueError, match="do not vary"):
+        directions_summary(np.ones((4, 5, 3)), np.zeros((4, 5, 3)))
+
+
+def test_a_direction_the_data_never_moves_along_has_no_ratio_and_the_json_stays_valid(tmp_path):
+    import json
+
+    rng = np.random.default_rng(5)
+    data = np.zeros((10, 6, 3))
+    data[..., :2] = rng.standard_normal((10, 6, 2))  # the third channel never moves
+    summary = directions_summary(data, data + 0.1 * rng.standard_normal(data.shape))
+    assert summary["per_direction"]["spread"][2] is None
+    json.dumps(summary, allow_nan=False)  # what sarah-eval writes
+    with Image.open(plot_directions(tmp_path / "flat.png", summary)) as png:
+        assert png.format == "PNG"
 
 
 class _Result:

@@ -100,13 +100,15 @@ def directions_summary(data: np.ndarray, samples: np.ndarray, bands: tuple[float
     step = {"data": (np.diff(p_data, axis=1) ** 2).mean(1),
             "samples": (np.diff(p_samples, axis=1) ** 2).mean(1)}
     data_energy = energy["data"].mean(0)
+    if not data_energy.sum() > 0:
+        raise ValueError("latent directions: the encoder's latents do not vary over these windows")
     shares = data_energy / data_energy.sum()
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore"):  # a direction the data never moves along
         per_direction = {
             "share": shares.tolist(),
-            "spread": (energy["samples"].mean(0) / data_energy).tolist(),
-            "data_change": (step["data"].mean(0) / (2 * data_energy)).tolist(),
-            "sample_change": (step["samples"].mean(0) / (2 * data_energy)).tolist(),
+            "spread": _finite(energy["samples"].mean(0) / data_energy),
+            "data_change": _finite(step["data"].mean(0) / (2 * data_energy)),
+            "sample_change": _finite(step["samples"].mean(0) / (2 * data_energy)),
         }
 
     def row(chosen) -> dict:
@@ -132,6 +134,11 @@ def directions_summary(data: np.ndarray, samples: np.ndarray, bands: tuple[float
         if len(carriers):
             summary["placement"] = {"directions": carriers.tolist(), **row(carriers)}
     return summary
+
+
+def _finite(values: np.ndarray) -> list[float | None]:
+    """A list for JSON: None where a ratio has no value (its data side is 0)."""
+    return [float(v) if np.isfinite(v) else None for v in values]
 
 
 def placement_r2(projections: np.ndarray, placement: np.ndarray) -> np.ndarray:
@@ -215,6 +222,7 @@ def directions_markdown(summary: dict, caption: str) -> str:
              f"{summary['participation']['samples']:.1f}.", "",
              "| directions | share of the data's variance | samples' spread ÷ data's | data's "
              "token-to-token change | samples' change ÷ data's |", "|---|---|---|---|---|"]
+
     def line(name: str, row: dict) -> str:
         return (f"| {name} | {row['share']:.3f} | {_cell(row, 'spread')} | "
                 f"{_cell(row, 'data_change', 3)} | {_cell(row, 'change_ratio')} |")
@@ -254,8 +262,9 @@ def plot_directions(path: Path, summary: dict) -> Path:
     left.set_xlabel("principal direction of the data's latents")
     left.set_ylabel("share of the data's variance")
     left.set_title("Where the data's latents vary")
-    right.semilogy(k, per["spread"], ".-", color="tab:red", lw=1, label="samples' spread ÷ data's")
-    change = np.array(per["sample_change"]) / np.array(per["data_change"])
+    spread = np.array(per["spread"], dtype=float)  # None (no data along it) -> NaN, not drawn
+    right.semilogy(k, spread, ".-", color="tab:red", lw=1, label="samples' spread ÷ data's")
+    change = np.array(per["sample_change"], dtype=float) / np.array(per["data_change"], dtype=float)
     right.semilogy(k, change, ".-", color="tab:blue", lw=1, label="samples' change ÷ data's")
     right.axhline(1.0, color="k", ls="--", lw=0.8)
     for row in summary["bands"][:-1]:

@@ -470,7 +470,10 @@ def run_evaluation(run: Path | str | None, shards: Path | str, out: Path | str,
                 observed = recorder if g == config.table1_gaze else None
                 sweep[g] = score(f"model@{gaze_label(g)}", label,
                                  _model_producer(models, config, g, observed), True, gaze=g)
-        latent_directions = recorder.summary()
+        try:
+            latent_directions = recorder.summary()
+        except ValueError as error:  # e.g. latents that do not vary: the tables stand without it
+            echo(f"Latent directions: not written ({error})")
         if latent_directions is not None:
             lead = latent_directions["bands"][0]
             echo(f"Latent directions: {lead['directions'][1]} of {latent_directions['channels']} "
