@@ -43,7 +43,10 @@ from typing import Callable
 
 import numpy as np
 
+from sarah_data.skeleton import ROOT
+
 from .metrics.table import paired_comparison
+from .tables import with_interval
 
 BANDS = (0.90, 0.99)  # cumulative data variance at which a band ends; the last band takes the rest
 PLACEMENT_R2 = 0.05  # a direction carries placement when it alone explains this much of it
@@ -161,8 +164,6 @@ def placement_r2(projections: np.ndarray, placement: np.ndarray) -> np.ndarray:
 def pelvis_floor(layout, stride: int) -> Callable[[dict], np.ndarray]:
     """A window item -> its pelvis's floor position (x, z; y is up) per latent token of ``stride``
     frames, the mean over the token's frames: what ``LatentRecorder.place`` takes."""
-    from sarah_data.skeleton import ROOT
-
     def place(item: dict) -> np.ndarray:
         icosahedra, _ = layout.split(np.asarray(item["motion"], np.float64))
         pelvis = icosahedra[:, layout.joint(ROOT)].mean(-2)[:, [0, 2]]
@@ -207,11 +208,7 @@ class LatentRecorder:
 
 
 def _cell(row: dict, key: str, digits: int = 2) -> str:
-    if key not in row:
-        return "-"
-    low, high = row.get(f"{key}_low"), row.get(f"{key}_high")
-    text = f"{row[key]:.{digits}f}"
-    return text if low is None else f"{text} ({low:.{digits}f}-{high:.{digits}f})"
+    return with_interval(row.get(key), row.get(f"{key}_low"), row.get(f"{key}_high"), digits)
 
 
 def directions_markdown(summary: dict, caption: str) -> str:

@@ -24,6 +24,7 @@ import numpy as np
 from sarah_data.skeleton import JOINT_GROUPS, MotionLayout
 
 from .metrics.table import bootstrap_interval
+from .tables import with_interval
 
 SHELL = "shell"
 
@@ -86,7 +87,7 @@ def summary_markdown(summary: dict[str, dict[str, float]], caption: str) -> str:
     def cell(row: dict, kind: str) -> str:
         if kind not in row:
             return "-"
-        return f"{row[kind]:.1f} ({row[kind + '_low']:.1f}-{row[kind + '_high']:.1f})"
+        return with_interval(row[kind], row[kind + "_low"], row[kind + "_high"], 1)
 
     lines = [caption, "", "| part | position error, mm | orientation error, mm |", "|---|---|---|"]
     lines += [f"| {group} | {cell(row, 'position')} | {cell(row, 'orientation')} |"

@@ -118,10 +118,15 @@ def interval(shown: dict, name: str, decimals: int,
              columns: tuple[str, str, str] = ("avg", "low", "high")) -> str:
     """A value with its 95 % interval, "0.58 (0.55-0.61)" (Avg by default; ``columns`` names
     another, e.g. pooled); the value alone where there is no interval."""
-    avg, low, high = (shown.get(f"{name}/{k}") for k in columns)
+    return with_interval(*(shown.get(f"{name}/{k}") for k in columns), decimals)
+
+
+def with_interval(value: float | None, low: float | None, high: float | None,
+                  decimals: int) -> str:
+    """"0.58 (0.55-0.61)"; the value alone where either end is missing (None or NaN)."""
     if any(v is None or (isinstance(v, float) and math.isnan(v)) for v in (low, high)):
-        return number(avg, decimals)
-    return f"{number(avg, decimals)} ({number(low, decimals)}-{number(high, decimals)})"
+        return number(value, decimals)
+    return f"{number(value, decimals)} ({number(low, decimals)}-{number(high, decimals)})"
 
 
 def table1_markdown(rows: Sequence[MethodResult], caption: str) -> str:
