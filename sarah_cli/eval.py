@@ -47,7 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Evaluate GT, the Random and NN baselines and a trained run on a split's "
                     "non-overlapping T-frame windows (paper sec. 4 and A.2). Writes "
                     "table1.md/.json (Table 1, each row beside GT, and FGD_acc by body part), "
-                    "table2.md/.json, windows.json and plots/*.png to --out.")
+                    "table2.md/.json, with the model latents.md/.json (its sampled latents "
+                    "against the encoder's), windows.json and plots/*.png to --out.")
     add_model_arguments(parser, required=False,
                         run_help="training run folder with flow.pt, or a model file (needed for "
                                  "the 'model' method)")
