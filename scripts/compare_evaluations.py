@@ -7,8 +7,9 @@ the rows' own intervals overlap.
     python scripts/compare_evaluations.py run/:vae run/:random
 
 Each EVAL is a sarah-eval --out folder, optionally :KEY (a row's key in its table1.json:
-model, vae, random, nn, real, ...; default model). Both folders must list the same windows in
-their windows.json and have scored them with the same --batch-clips.
+model, vae, random, nn, real, ...; default: the model row, or the folder's only row beside GT,
+as in a --methods vae run). Both folders must list the same windows in their windows.json and
+have scored them with the same --batch-clips.
 """
 
 from __future__ import annotations
@@ -24,11 +25,11 @@ from sarah_models.evaluation.tables import MethodResult, read_table1_row
 
 
 def read_evaluation(spec: str) -> tuple[MethodResult, list]:
-    """``FOLDER[:KEY]`` -> (that row, the folder's window listing); ValueError naming the file
-    and the problem."""
+    """``FOLDER[:KEY]`` -> (that row, the folder's window listing; without KEY the model row or
+    the only other scored one); ValueError naming the file and the problem."""
     folder, sep, key = spec.rpartition(":")
     if not sep or "/" in key or not folder:
-        folder, key = spec, "model"
+        folder, key = spec, None
     listing = Path(folder) / "windows.json"
     try:
         windows = json.loads(listing.read_text())["windows"]

@@ -128,3 +128,26 @@ def test_script_prints_the_table_and_refuses_other_windows_in_one_line(tmp_path,
     assert compare_script.main([f"{first}:vae", str(second)]) == 2
     error = capsys.readouterr().err
     assert "table1.json: no row 'vae'" in error and error.count("\n") == 1
+
+
+def test_script_reads_a_vae_runs_only_row_and_asks_for_a_key_among_several(tmp_path, capsys):
+    _, a, b, _, _ = rows(0.05, 0.15)
+    gt = MethodResult("gt", "GT", False, None, a, reference=True)
+    folder = tmp_path / "vae"
+    folder.mkdir()
+    rows_of = lambda *keys: json.dumps({"rows": [gt.to_dict()] + [
+        MethodResult(k, k.upper(), True, None, a).to_dict() for k in keys]})
+    (folder / "table1.json").write_text(rows_of("vae"))
+    (folder / "windows.json").write_text(json.dumps({"windows": [
+        {"sequence": f"s{i}", "agent": "p", "start": 0} for i in range(CLIPS)]}))
+    model = write_eval(tmp_path / "model", b)
+    assert compare_script.main([str(folder), str(model)]) == 0
+    implicit = capsys.readouterr().out
+    assert compare_script.main([f"{folder}:vae", str(model)]) == 0
+    explicit = capsys.readouterr().out
+    assert implicit.startswith("A = VAE (") and implicit == explicit.replace(f"{folder}:vae", str(folder))
+    (folder / "table1.json").write_text(rows_of("vae", "random"))
+    assert compare_script.main([str(folder), str(model)]) == 2
+    error = capsys.readouterr().err
+    assert "no row 'model' and 2 others (rows: gt, vae, random)" in error and "FOLDER:KEY" in error
+    assert error.count("\n") == 1

@@ -66,15 +66,24 @@ class MethodResult:
                    data.get("reference", data["key"] == "gt"))
 
 
-def read_table1_row(table1: Path | str, key: str) -> MethodResult:
-    """The row ``key`` of a sarah-eval table1.json; ValueError naming the file and the problem."""
+def read_table1_row(table1: Path | str, key: str | None = None) -> MethodResult:
+    """The row ``key`` of a sarah-eval table1.json; None: the "model" row, or the only row that
+    is not the reference (GT) when there is no model row (a ``--methods vae`` run); ValueError
+    naming the file and the problem."""
     try:
         rows = json.loads(Path(table1).read_text())["rows"]
     except (OSError, ValueError, KeyError) as exc:
         raise ValueError(f"{table1}: not a sarah-eval table1.json ({exc})") from None
+    keys = ", ".join(r["key"] for r in rows)
+    if key is None:
+        scored = [r["key"] for r in rows if not r.get("reference", r["key"] == "gt")]
+        if "model" not in scored and len(scored) != 1:
+            raise ValueError(f"{table1}: no row 'model' and {len(scored)} others (rows: {keys}); "
+                             f"name one as FOLDER:KEY")
+        key = "model" if "model" in scored else scored[0]
     found = next((row for row in rows if row["key"] == key), None)
     if found is None:
-        raise ValueError(f"{table1}: no row {key!r} (rows: {', '.join(r['key'] for r in rows)})")
+        raise ValueError(f"{table1}: no row {key!r} (rows: {keys})")
     return MethodResult.from_dict(found)
 
 
