@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
@@ -84,8 +86,6 @@ def test_shapes_that_do_not_pair_up_are_refused():
 
 
 def test_a_direction_the_data_never_moves_along_has_no_ratio_and_the_json_stays_valid(tmp_path):
-    import json
-
     rng = np.random.default_rng(5)
     data = np.zeros((10, 6, 3))
     data[..., :2] = rng.standard_normal((10, 6, 2))  # the third channel never moves

@@ -60,10 +60,15 @@ class MethodResult:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "MethodResult":
         """A row ``to_dict`` wrote (one of table1.json's ``rows``); the plotted paths are not
-        stored. Files from before "reference" was written: the "gt" row is the reference."""
+        stored."""
         return cls(data["key"], data["method"], data["causal"], data["fps"],
-                   MetricsTable.from_dict(data["raw"]), data["gaze"],
-                   data.get("reference", data["key"] == "gt"))
+                   MetricsTable.from_dict(data["raw"]), data["gaze"], stored_reference(data))
+
+
+def stored_reference(row: dict[str, Any]) -> bool:
+    """Whether a table1.json row is the reference (GT); rows from before "reference" was
+    written: the "gt" row is."""
+    return row.get("reference", row["key"] == "gt")
 
 
 def read_table1_row(table1: Path | str, key: str | None = None) -> MethodResult:
@@ -76,7 +81,7 @@ def read_table1_row(table1: Path | str, key: str | None = None) -> MethodResult:
         raise ValueError(f"{table1}: not a sarah-eval table1.json ({exc})") from None
     keys = ", ".join(r["key"] for r in rows)
     if key is None:
-        scored = [r["key"] for r in rows if not r.get("reference", r["key"] == "gt")]
+        scored = [r["key"] for r in rows if not stored_reference(r)]
         if "model" not in scored and len(scored) != 1:
             raise ValueError(f"{table1}: no row 'model' and {len(scored)} others (rows: {keys}); "
                              f"name one as FOLDER:KEY")
