@@ -8,32 +8,27 @@
 #
 #   scripts/fixture_benchmark.sh [BENCH_DIR]          (default: bench/)
 #
-# The recipe is the thirty-fourth run's (docs/results.md): the VAE root-relative with its loss in
-# metres, on 100-frame windows then 400; its decoder alone on noised latents (the encoder, so the
-# latents, frozen); the flow on those latents, each token attending to the 2 before it; then the
-# model file with the decoding settings (seam springs, rigid skeleton, foot lock, root hold;
-# docs/models.md) copied from the shipped model's, whose own script (pretrained_fixture_model.sh)
-# owns their values. FLOW_SETTINGS and DECODING_SETTINGS change the flow's and the decoding's
-# (the forty-third run's variant, a window of 17 with the user's head velocity, no seam springs
-# and 8-frame steps: FLOW_SETTINGS="--set flow.attention_window=17 --set flow.head_velocity=true"
-# DECODING_SETTINGS="--set vae.boundary_inertia=0 --set vae.root_inertia=0
-# --set vae.foot_swing_frames=8"; not the default, docs/results.md says why), VAE_SETTINGS the
-# VAE's (both of its stages; the forty-sixth run's: VAE_SETTINGS="--set vae.root_weight=0.05",
-# measured with that variant only; the forty-eighth run's adds FLOW_STEPS=7000, a 27-minute
-# recipe on the AVX2-only VM). Stages are skipped
-# once their folder has a .done marker, so an interrupted run resumes at the stage it stopped in (that
-# stage starts over). Every step is seeded (train.seed 0): the same code on the same thread count
-# and the same kind of CPU gives the same model file, whose sha256 is printed (another instruction
-# set rounds differently; the file carries the whole config, so a config field added since
-# changes the bytes and not the weights; docs/results.md lists each run's). Settings can be
-# overridden through the environment, e.g. FLOW_STEPS=3000 scripts/fixture_benchmark.sh.
-# Wall-clock times of every stage go to BENCH_DIR/timings.txt; run it on an otherwise idle
-# machine for the training time (2-core AMD EPYC VMs: 27.8 min of training on the AVX2-only one,
-# thirty-fourth run; 12.8 min on the one with AVX-512, thirty-seventh run; 11.7 with the
-# forty-third run's variant), then ~50 min for the
-# 29 (now 33) offline tuning evaluations of trajectory imputation, ~10 min for its five test ones, ~42 min
-# for the ten streamed tuning evaluations of the paper's imputation and ~25 min for its ten
-# test ones (thirty-seventh run).
+# The recipe (docs/results.md, sixty-first run; 27.1 minutes of training on the AVX2-only 2-core
+# AMD EPYC VM, timed in one run): the VAE root-relative with its loss in metres and the root's
+# channels weighted 0.05, on 100-frame windows then 400; its decoder alone on noised latents (the
+# encoder, so the latents, frozen); the flow on those latents for 14,000 steps, each token
+# attending to the 16 before it and reading the user's head velocity; then the model file with
+# the decoding settings (rigid skeleton, foot lock with 8-frame steps, a root hold that reads the
+# feet, no seam springs; docs/models.md) over the shipped model's, whose own script
+# (pretrained_fixture_model.sh) owns their other values. VAE_SETTINGS, FLOW_SETTINGS and
+# DECODING_SETTINGS replace the VAE's (both of its stages), the flow's and the decoding's
+# settings, e.g. the thirty-fourth run's recipe: FLOW_STEPS=3600
+# FLOW_SETTINGS="--set flow.attention_window=3" DECODING_SETTINGS= VAE_SETTINGS=. Stages are
+# skipped once their folder has a .done marker, so an interrupted run resumes at the stage it
+# stopped in (that stage starts over). Every step is seeded (train.seed 0): the same code on the
+# same thread count and the same kind of CPU gives the same model file, whose sha256 is printed
+# (another instruction set rounds differently; the file carries the whole config, so a config
+# field added since changes the bytes and not the weights; docs/results.md lists each run's).
+# Settings can be overridden through the environment, e.g. FLOW_STEPS=7000 (the forty-eighth
+# run's recipe). Wall-clock times of every stage go to BENCH_DIR/timings.txt; run it on an
+# otherwise idle machine for the training time, then ~45 min for the 18 offline tuning
+# evaluations of trajectory imputation and ~25 min for its test ones, ~42 min for the ten
+# streamed tuning evaluations of the paper's imputation and ~25 min for its ten test ones.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -47,26 +42,29 @@ TUNE_SEED=${TUNE_SEED:-3}
 # (noise scale):(CFG) settings tried on the tuning corpus (the thirty-seventh run's grid)
 TUNE_GRID=${TUNE_GRID:-"1.0:1.3 0.7:0.7 0.7:0.6 0.7:0.5 0.6:0.6 0.6:0.5 0.6:0.4 0.5:0.6 0.5:0.5 0.5:0.4"}
 # ... and for streams with trajectory imputation, scored by the offline protocol: the same motion
-# (docs/models.md), in a quarter of the time (the thirty-eighth run's grid and, since the
-# forty-second run chose its highest CFG, two at 1.8; since the forty-eighth run, whose flow
-# faced the user in nearly every window until its guidance of the user's position was 2.5,
-# four guiding that at 2 to 3; a third field is sarah-eval's --guide, the modalities guidance
-# drops, else all four)
-TUNE_GRID_TRAJECTORY=${TUNE_GRID_TRAJECTORY:-"1.0:1.3 1.0:0.6 0.7:1.3 0.7:1.0 0.7:0.7 0.6:1.5
-  0.6:1.3 0.6:1.2 0.6:1.1 0.6:1.0 0.6:0.8 0.6:0.6 0.6:0.5 0.5:1.5 0.5:1.3 0.5:1.1 0.5:0.5 0.4:1.3
-  0.7:1.3:agent_audio,user_audio,gaze 0.6:1.3:agent_audio,user_audio,gaze
-  0.7:1.5:user_head,gaze 0.7:1.3:user_head,gaze 0.6:1.5:user_head,gaze 0.6:1.3:user_head,gaze
-  0.6:1.1:user_head,gaze 0.5:1.3:user_head,gaze 0.5:1.1:user_head,gaze 0.7:1.8 0.6:1.8
-  0.6:2.5:user_head,gaze 0.5:2.0:user_head,gaze 0.5:2.5:user_head,gaze 0.5:3.0:user_head,gaze"}
+# (docs/models.md), in a quarter of the time. A third field is sarah-eval's --guide, the
+# modalities guidance drops (else all four). The flows since the forty-eighth run face the user
+# in nearly every window until the guidance of the user's position reaches 2.5, the 14,000-step
+# one more so (the sixtieth and sixty-first runs): the paper's setting, two lower guidances of
+# the user's position, noise 0.5-0.7 x CFG 2.5-4 guiding it and three beyond (noise 0.4, CFG
+# 4.5), where the sixty-first run's rule first chose an edge of that block. The thirty-eighth to
+# forty-eighth runs' wider grid of lower guidances is in docs/results.md.
+TUNE_GRID_TRAJECTORY=${TUNE_GRID_TRAJECTORY:-"1.0:1.3 0.6:1.5:user_head,gaze 0.6:2.0:user_head,gaze
+  0.5:2.5:user_head,gaze 0.6:2.5:user_head,gaze 0.7:2.5:user_head,gaze
+  0.5:3.0:user_head,gaze 0.6:3.0:user_head,gaze 0.7:3.0:user_head,gaze
+  0.5:3.5:user_head,gaze 0.6:3.5:user_head,gaze 0.7:3.5:user_head,gaze
+  0.5:4.0:user_head,gaze 0.6:4.0:user_head,gaze 0.7:4.0:user_head,gaze
+  0.4:3.5:user_head,gaze 0.4:4.0:user_head,gaze 0.5:4.5:user_head,gaze"}
 JOBS=${JOBS:-2}                      # prep workers, and evaluations run side by side
 VAE_SHORT_STEPS=${VAE_SHORT_STEPS:-2500}  # on 100-frame windows (~1/7 of a 400-frame step)
 VAE_LONG_STEPS=${VAE_LONG_STEPS:-150}     # then on 400-frame windows
 DECODER_STEPS=${DECODER_STEPS:-190}
-FLOW_STEPS=${FLOW_STEPS:-3600}
+FLOW_STEPS=${FLOW_STEPS:-14000}
 STRIDE=${STRIDE:-}                   # frames per latent token (vae.stride), if not the preset's
-FLOW_SETTINGS=${FLOW_SETTINGS:-"--set flow.attention_window=3"}  # more sarah-train --set for the flow
-DECODING_SETTINGS=${DECODING_SETTINGS:-}  # ... and for the model file's decoding
-VAE_SETTINGS=${VAE_SETTINGS:-}       # ... and for both VAE stages
+FLOW_SETTINGS=${FLOW_SETTINGS-"--set flow.attention_window=17 --set flow.head_velocity=true"}  # sarah-train --set for the flow
+# ... for the model file's decoding
+DECODING_SETTINGS=${DECODING_SETTINGS-"--set vae.boundary_inertia=0 --set vae.root_inertia=0 --set vae.foot_swing_frames=8 --set vae.root_hold_reads=feet"}
+VAE_SETTINGS=${VAE_SETTINGS-"--set vae.root_weight=0.05"}  # ... and for both VAE stages
 SWEEP_WINDOWS=${SWEEP_WINDOWS:-104}  # the gaze sweep's windows, evenly spaced over the same split
 UNTIL=${UNTIL:-eval}                 # stop after this stage: prep, train, trajectory (its tuning
                                      # and test) or eval
@@ -121,7 +119,7 @@ train model vae --init-from "$RUN/encoder/vae.pt" --set "train.vae_steps=$DECODE
   --set train.freeze_encoder=true --set vae.latent_noise=0.2 ${VAE_SET[@]+"${VAE_SET[@]}"}
 read -r -a FLOW_SET <<< "$FLOW_SETTINGS"
 read -r -a DECODING_SET <<< "$DECODING_SETTINGS"
-train model flow "${FLOW_SET[@]}" --set "train.flow_steps=$FLOW_STEPS" --set train.flow_echo=8
+train model flow ${FLOW_SET[@]+"${FLOW_SET[@]}"} --set "train.flow_steps=$FLOW_STEPS" --set train.flow_echo=8
 MODEL=$RUN/model/model.safetensors
 if [ ! -f "$RUN/model/model.done" ]; then
   $PYTHON -m sarah_cli.train --stage model --init-from "$RUN/model" --out "$RUN/model" \
