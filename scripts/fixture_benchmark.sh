@@ -9,13 +9,13 @@
 #   scripts/fixture_benchmark.sh [BENCH_DIR]          (default: bench/)
 #
 # The recipe (docs/results.md, sixty-first run; 27.1 minutes of training on the AVX2-only 2-core
-# AMD EPYC VM, timed in one run): the VAE root-relative with its loss in metres and the root's
-# channels weighted 0.05, on 100-frame windows then 400; its decoder alone on noised latents (the
-# encoder, so the latents, frozen); the flow on those latents for 14,000 steps, each token
-# attending to the 16 before it and reading the user's head velocity; then the model file with
-# the decoding settings (rigid skeleton, foot lock with 8-frame steps, a root hold that reads the
-# feet, no seam springs; docs/models.md) over the shipped model's, whose own script
-# (pretrained_fixture_model.sh) owns their other values. VAE_SETTINGS, FLOW_SETTINGS and
+# AMD EPYC VM, timed in one run; the values are the variables below): the VAE root-relative with
+# its loss in metres and its root channels down-weighted, on 100-frame windows then 400; its
+# decoder alone on noised latents (the encoder, so the latents, frozen); the flow on those
+# latents for FLOW_STEPS steps, each token attending to a window of the tokens before it and
+# reading the user's head velocity; then the model file with DECODING_SETTINGS (docs/models.md)
+# over the shipped model's decoding, whose own script (pretrained_fixture_model.sh) owns the
+# other values. VAE_SETTINGS, FLOW_SETTINGS and
 # DECODING_SETTINGS replace the VAE's (both of its stages), the flow's and the decoding's
 # settings, e.g. the thirty-fourth run's recipe: FLOW_STEPS=3600
 # FLOW_SETTINGS="--set flow.attention_window=3" DECODING_SETTINGS= VAE_SETTINGS=. Stages are
@@ -48,7 +48,7 @@ TUNE_GRID=${TUNE_GRID:-"1.0:1.3 0.7:0.7 0.7:0.6 0.7:0.5 0.6:0.6 0.6:0.5 0.6:0.4 
 # one more so (the sixtieth and sixty-first runs): the paper's setting, two lower guidances of
 # the user's position, noise 0.5-0.7 x CFG 2.5-4 guiding it and six beyond (noise 0.3-0.4, CFG
 # 4.5), where the sixty-first run's rule chose an edge of the block before. The thirty-eighth to
-# forty-eighth runs' wider grid of lower guidances is in docs/results.md.
+# forty-eighth runs' wider grid of lower guidances: this script's history (git log -p).
 TUNE_GRID_TRAJECTORY=${TUNE_GRID_TRAJECTORY:-"1.0:1.3 0.6:1.5:user_head,gaze 0.6:2.0:user_head,gaze
   0.5:2.5:user_head,gaze 0.6:2.5:user_head,gaze 0.7:2.5:user_head,gaze
   0.5:3.0:user_head,gaze 0.6:3.0:user_head,gaze 0.7:3.0:user_head,gaze
