@@ -11,7 +11,7 @@ from sarah_models.config import StreamConfig
 from sarah_models.nn.flow import FlowModel
 from sarah_models.nn.normalizer import Normalizer
 from sarah_models.nn.user_offset import pelvis_floor
-from sarah_models.nn.vae import CausalVAE
+from sarah_models.nn.vae import CausalVAE, detail_generator
 from sarah_models.sampling.decoding import stream_decoding
 from sarah_models.sampling.guidance import drop_masks, guided
 from sarah_models.sampling.path import velocity_from_x1
@@ -42,6 +42,8 @@ class NaiveStreamer:
         self._inputs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._latents: list[torch.Tensor] = []  # final latents of every block so far
         self._noise: list[torch.Tensor] = []
+        self._detail = detail_generator(self.config.seed)  # a stochastic decoder's draws
+        self._details: list[torch.Tensor] = []
         self._places: list[np.ndarray] = [np.zeros(2)]  # where the agent stands as each block begins
         self._decoding = stream_decoding(self.vae, self.normalizer)
 
@@ -84,7 +86,11 @@ class NaiveStreamer:
         blocks = cfg.decoder_blocks(self.stride)
         context = self._latents if blocks is None else self._latents[-blocks:]
         latents = nz.denormalize("latent", torch.stack(context))[None]
-        motion = self.vae.decode(latents)[0, -self.stride:]
+        detail = self.vae.detail_noise(1, 1, self._detail)
+        if detail is not None:
+            self._details.append(detail[0, 0])
+            detail = torch.stack(self._details[-len(context):])[None]
+        motion = self.vae.decode(latents, detail)[0, -self.stride:]
         out = self._decoding(nz.denormalize("motion", motion).double().numpy()).astype(np.float32)
         if flow.config.user_relative:
             self._places.append(pelvis_floor(torch.from_numpy(out[-1:]).double())[0].numpy())

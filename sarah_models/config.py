@@ -169,6 +169,23 @@ class VAEConfig:
     # benchmark's VAE, but a flow trained at that budget on its detailed latents generated far
     # worse motion (docs/results.md, fifty-second run): no preset uses it.
     block_code: bool = False
+    # Not in the paper (0 = the paper's deterministic decoder): a stochastic decoder. Each latent
+    # token comes with this many standard normal draws that the decoder reads beside it; training
+    # decodes the same latents twice with independent draws and adds to the two samples' MSE
+    # terms ``energy_weight`` times the energy score of their accelerations (``nn.vae.
+    # energy_score``: second differences over overlapping units of ``energy_frames`` frames, of
+    # the whole body or, ``energy_per_point``, of each point alone). An MSE teaches the decoder
+    # the mean of the motions a latent leaves open, which smooths away the steps and beats the
+    # latent does not pin down (the benchmark VAE keeps a fifth of the data's acceleration
+    # energy, docs/results.md, fifty-second run); the energy score is least when they are
+    # sampled. On positions it would ask the decoder to sample its whole error, most of which a
+    # short run's VAE has for want of training, not because the data leave it open. Generators
+    # draw the detail per token from their own seeded stream, so streaming and offline decode
+    # the same draws.
+    detail_dim: int = 0
+    energy_frames: int = 8
+    energy_weight: float = 1.0
+    energy_per_point: bool = False
     # Not in the paper (0 = the paper): how the generators decode, not how the VAE trains. At the
     # first frame of every latent block each decoded point is offset to continue its last
     # position and velocity, and the offset decays by this factor per frame, as a critically
@@ -240,6 +257,14 @@ class VAEConfig:
         if self.recon_units not in RECON_UNITS:
             raise ValueError(f"VAEConfig.recon_units must be one of {RECON_UNITS}, got "
                              f"{self.recon_units!r}")
+        if self.detail_dim < 0:
+            raise ValueError(f"VAEConfig.detail_dim must be >= 0 (0: a deterministic decoder), "
+                             f"got {self.detail_dim}")
+        if not self.energy_weight >= 0:
+            raise ValueError(f"VAEConfig.energy_weight must be >= 0, got {self.energy_weight}")
+        if self.energy_frames < 3:
+            raise ValueError(f"VAEConfig.energy_frames must be >= 3 (a unit of the energy score "
+                             f"holds the second differences of its frames), got {self.energy_frames}")
 
     @classmethod
     def paper(cls) -> "VAEConfig":

@@ -493,8 +493,28 @@ def test_kv_cache_returns_the_concatenation_of_what_it_keeps(max_tokens, calls):
     assert len(cache) == 0 and cache.k is None
 
 
-def test_naive_reference_computes_what_the_generator_computes(tiny):
-    vae, flow, normalizer = tiny
+def stochastic_tiny():
+    """The tiny random models with a stochastic decoder (``vae.detail_dim``) whose draws move
+    the motion visibly."""
+    models = random_models("tiny", audio_dim=AUDIO_DIM, shell_points=SHELL, seed=0,
+                           overrides=("vae.detail_dim=4",))
+    with torch.no_grad():
+        models[0].detail_in.weight.normal_(0, 0.5, generator=torch.Generator().manual_seed(0))
+    return models
+
+
+def test_a_stochastic_decoder_takes_its_draws_through_the_fast_path():
+    """The optimized copies decode the same per-token draws as the reference: exact in fp32,
+    within the int8 tolerance in int8."""
+    models = stochastic_tiny()
+    assert stream_deviation(models, optimize_for_inference(models, "fp32"), frames=24).max_joint_mm == 0.0
+    deviation = stream_deviation(models, optimize_for_inference(models, "int8"), frames=24)
+    assert deviation.max_joint_mm <= TOLERANCE_MM, deviation
+
+
+@pytest.mark.parametrize("stochastic", [False, True])
+def test_naive_reference_computes_what_the_generator_computes(tiny, stochastic):
+    vae, flow, normalizer = stochastic_tiny() if stochastic else tiny
     head, a, b = stream_inputs(24, AUDIO_DIM, seed=3)
     config = StreamConfig(decoder_frames=400)
     generator = StreamingGenerator(vae, flow, normalizer, config)

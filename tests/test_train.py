@@ -480,6 +480,27 @@ def test_init_from_fine_tunes_with_a_new_loss_and_schedule(tmp_path):
     assert load_checkpoint(tuned / "vae.pt")["init_from"]["step"] == 4
 
 
+def test_a_deterministic_vae_fine_tunes_into_a_stochastic_decoder(tmp_path):
+    """--init-from a VAE without detail draws into --set vae.detail_dim=N keeps every weight
+    it has and adds the decoder's detail input; a stochastic decoder does not fine-tune into
+    another width or back into a deterministic one (weights would be dropped)."""
+    base, tuned = tmp_path / "base", tmp_path / "tuned"
+    run("vae", base, 2)
+    config = tiny_config(2)
+    stochastic = replace(config, vae=replace(config.vae, detail_dim=4))
+    common = dict(device="cpu", dataset=SyntheticWindows(), stats=STATS, progress=False,
+                  echo=lambda _: None)
+    train("vae", stochastic, None, tuned, init_from=base, **common)
+    source, result = load_checkpoint(base / "vae.pt"), load_checkpoint(tuned / "vae.pt")
+    assert set(result["vae"]) == set(source["vae"]) | {"detail_in.weight", "detail_in.bias"}
+    assert result["vae"]["detail_in.weight"].shape[1] == 4
+    assert "energy" in json.loads((tuned / "vae_log.jsonl").read_text().splitlines()[0])
+    for vae_config, out in ((replace(config.vae, detail_dim=8), "wider"), (config.vae, "plain")):
+        with pytest.raises(ValueError, match="detail_dim"):
+            train("vae", replace(config, vae=vae_config), None, tmp_path / out,
+                  init_from=tuned, **common)
+
+
 def test_init_from_takes_a_model_file(tmp_path):
     """A shared model.safetensors (a shipped model too) fine-tunes exactly like the checkpoint it
     was written from: same weights after the same steps, same data statistics."""

@@ -282,12 +282,16 @@ def _vae_producer(models):
     """The run's VAE reconstructing the ground truth (encoder mean, then decoder, decoded the way
     the generators decode: ``sampling.decoding``): the best any flow sample can decode to,
     which separates the VAE's error from the flow's."""
+    from ..nn.vae import detail_generator
     from ..sampling.decoding import stream_decoding
 
     nz, vae, means = models.normalizer, models.vae, _encoder_means(models)
 
     def produce(item: dict, index: int) -> np.ndarray:
-        motion = nz.denormalize("motion", vae.decode(means(item))[0]).double().cpu().numpy()
+        z = means(item)
+        # a stochastic decoder (vae.detail_dim) draws its detail as a stream seeded by the window does
+        detail = vae.detail_noise(1, z.shape[1], detail_generator(index), z.device)
+        motion = nz.denormalize("motion", vae.decode(z, detail)[0]).double().cpu().numpy()
         return stream_decoding(vae, nz)(motion).astype(np.float32)
 
     return produce

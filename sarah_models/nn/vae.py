@@ -36,6 +36,10 @@ beta = 1e-4 keeps its paper meaning of "a small KL weight" independent of T, Dx 
 ``velocity_weight`` times the mean squared error of frame-to-frame differences and
 ``acceleration_weight`` times that of second differences (both 0 in the paper).
 ``latent_noise`` > 0 adds noise to the decoder's input latents in training (0 in the paper).
+``detail_dim`` > 0 makes the decoder stochastic (not in the paper): each latent token comes with
+that many standard normal draws (``detail``); training decodes twice with independent draws and
+adds ``energy_weight`` times the energy score of the two samples' accelerations
+(``energy_score``) to their mean MSE terms.
 ``block_code`` adds a linear code of each block beside both transformers (``nn.block_code``;
 not in the paper).
 ``recon_units="metres"`` weights each channel's squared error by its variance (the objective
@@ -56,6 +60,8 @@ from .block_code import BlockCode
 from .layers import KVCache, TransformerBlock, causal_mask
 
 BLOCK_CODE_LOGVAR = -5.0  # the posterior's initial log-variance with ``vae.block_code``
+DETAIL_INIT_STD = 0.01  # the detail input's initial weights (vae.detail_dim)
+DETAIL_SEED_OFFSET = 0x5EED_DE7A  # detail draws' seed = the generation seed + this
 
 
 def encoder_layout(num_blocks: int, stride: int) -> list[tuple[str, int, int]]:
@@ -105,6 +111,12 @@ class CausalVAE(nn.Module):
         self.logvar_out = nn.Linear(h, config.latent_dim)
 
         self.latent_in = nn.Linear(config.latent_dim, h)
+        # ``vae.detail_dim``: what the latent leaves open, drawn per token (None: deterministic)
+        self.detail_in = nn.Linear(config.detail_dim, h) if config.detail_dim else None
+        if self.detail_in is not None:
+            # Small at first: a trained deterministic decoder (--init-from) starts where it was
+            nn.init.normal_(self.detail_in.weight, std=DETAIL_INIT_STD)
+            nn.init.zeros_(self.detail_in.bias)
         self.queries = nn.Parameter(torch.randn(s, h) * 0.02)
         self.decoder = blocks(config.decoder_layers)
         self.decoder_norm = nn.LayerNorm(h)
@@ -156,10 +168,26 @@ class CausalVAE(nn.Module):
         return [self.frame_in, self.mu_token, self.sigma_token, self.encoder, self.encoder_norm,
                 self.mu_out, self.logvar_out, *code]
 
-    def _decoder_tokens(self, z: Tensor) -> Tensor:
+    def detail_noise(self, batch: int, blocks: int, generator: torch.Generator | None = None,
+                     device: torch.device | str | None = None) -> Tensor | None:
+        """Standard normal detail draws (batch, blocks, detail_dim) for ``decode``, drawn token by
+        token as ``draw_detail`` (so a stream drawing one token at a time gets the same values);
+        None for a deterministic decoder."""
+        if self.detail_in is None:
+            return None
+        draws = [[draw_detail(generator, self.config.detail_dim) for _ in range(blocks)]
+                 for _ in range(batch)]
+        return torch.stack([torch.stack(row) for row in draws]).to(device)
+
+    def _decoder_tokens(self, z: Tensor, detail: Tensor | None = None) -> Tensor:
         b, k, _ = z.shape
         s, h = self.stride, self.config.hidden
-        latent = self.latent_in(z)[:, :, None]
+        latent = self.latent_in(z)
+        if self.detail_in is not None:
+            # No draw given: the draws' mean, zero (a deterministic decode of a stochastic decoder)
+            latent = latent + (self.detail_in.bias if detail is None
+                               else self.detail_in(detail.to(latent.dtype)))
+        latent = latent[:, :, None]
         queries = self.queries.to(latent.dtype).expand(b, k, s, h)
         return torch.cat((latent, queries), dim=2).reshape(b, k * (s + 1), h)
 
@@ -171,9 +199,10 @@ class CausalVAE(nn.Module):
             out = out + self.block_code.decode(z).to(out.dtype)
         return out.reshape(b, -1, self.motion_dim)
 
-    def decode(self, z: Tensor) -> Tensor:
-        """z (B, K, Dz) -> x_hat (B, K*s, Dx)."""
-        tokens = self._decoder_tokens(z)
+    def decode(self, z: Tensor, detail: Tensor | None = None) -> Tensor:
+        """z (B, K, Dz) -> x_hat (B, K*s, Dx); ``detail`` (B, K, detail_dim): the stochastic
+        decoder's draws (``detail_noise``; None: zero draws)."""
+        tokens = self._decoder_tokens(z, detail)
         n = tokens.shape[1]
         mask, positions = causal_mask(n, device=z.device), torch.arange(n, device=z.device)
         for block in self.decoder:
@@ -186,11 +215,13 @@ class CausalVAE(nn.Module):
         max_tokens = None if max_blocks is None else max_blocks * (self.stride + 1)
         return DecoderCache([KVCache(max_tokens) for _ in self.decoder])
 
-    def decoder_step(self, z_k: Tensor, cache: DecoderCache) -> Tensor:
-        """Decode one block: z_k (B, Dz) -> its s frames (B, s, Dx); updates ``cache``.
+    def decoder_step(self, z_k: Tensor, cache: DecoderCache, detail: Tensor | None = None
+                     ) -> Tensor:
+        """Decode one block: z_k (B, Dz) -> its s frames (B, s, Dx); updates ``cache``;
+        ``detail`` (B, detail_dim) as ``decode``'s for this block.
 
-        Calling this for k = 1..K reproduces ``decode(z)`` (without ``max_blocks``)."""
-        tokens = self._decoder_tokens(z_k[:, None])
+        Calling this for k = 1..K reproduces ``decode(z, detail)`` (without ``max_blocks``)."""
+        tokens = self._decoder_tokens(z_k[:, None], None if detail is None else detail[:, None])
         n = tokens.shape[1]
         positions = torch.arange(cache.position, cache.position + n, device=z_k.device)
         mask = causal_mask(n, len(cache.layers[0]) + n, device=z_k.device)
@@ -216,12 +247,25 @@ class CausalVAE(nn.Module):
             spread = mu.detach().flatten(0, 1).std(0)
             z = z + self.config.latent_noise * spread * torch.randn(
                 mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
-        x_hat = self.decode(z)
-        terms = self.loss_terms(x_hat, x, channel_weight)
-        kl = self.kl(mu.float(), logvar.float())
         cfg = self.config
+        kl = self.kl(mu.float(), logvar.float())
+        if self.detail_in is None:
+            x_hat = self.decode(z)
+            terms = self.loss_terms(x_hat, x, channel_weight)
+        else:  # two samples of the decoder for the same latents
+            b, k, _ = z.shape
+            x_hat, twin = (self.decode(z, self.detail_noise(b, k, generator, z.device))
+                           for _ in range(2))
+            terms = {name: (value + other) / 2 for (name, value), other in zip(
+                self.loss_terms(x_hat, x, channel_weight).items(),
+                self.loss_terms(twin, x, channel_weight).values())}
+            # What the MSEs smooth away, sampled: the energy score of the accelerations
+            terms["energy"] = energy_score(x_hat, twin, x, cfg.energy_frames, self.stride,
+                                           channel_weight, (0.0, 0.0, 1.0), cfg.energy_per_point)
         loss = (terms["recon"] + cfg.beta * kl + cfg.velocity_weight * terms["velocity"]
                 + cfg.acceleration_weight * terms["acceleration"])
+        if "energy" in terms:
+            loss = loss + cfg.energy_weight * terms["energy"]
         return {"loss": loss, **terms, "kl": kl, "x_hat": x_hat, "mu": mu, "logvar": logvar}
 
     @staticmethod
@@ -236,3 +280,50 @@ class CausalVAE(nn.Module):
         weight = 1.0 if channel_weight is None else channel_weight
         return {name: (value.square() * weight).mean()
                 for name, value in (("recon", error), ("velocity", step), ("acceleration", bend))}
+
+
+def detail_generator(seed: int) -> torch.Generator:
+    """The generator of a stream's (or an offline solve's) detail draws for seed ``seed``: its
+    own stream of numbers, apart from the flow's noise (which a generator seeded ``seed``
+    draws), so a deterministic decoder's outputs are what they were before detail existed."""
+    return torch.Generator().manual_seed(seed + DETAIL_SEED_OFFSET)
+
+
+def draw_detail(generator: torch.Generator | None, detail_dim: int) -> Tensor:
+    """One token's detail draw (CPU float32): standard normal. Streams and ``detail_noise`` draw
+    token by token in the same order, so one seed gives both the same draws."""
+    return torch.randn(detail_dim, generator=generator, dtype=torch.float32)
+
+
+def energy_score(sample: Tensor, twin: Tensor, x: Tensor, frames: int, hop: int,
+                 channel_weight: Tensor | None = None,
+                 orders: tuple[float, float, float] = (1.0, 0.0, 0.0),
+                 per_point: bool = False) -> Tensor:
+    """The energy score E|Y - x| - E|Y - Y'| / 2 of the decoder's distribution at the data x,
+    estimated from two independent samples (B, T, Dx), over units of ``frames`` consecutive
+    frames every ``hop`` frames (a unit holds the motion's velocities and accelerations across
+    its blocks' seams). A unit's distance is the root mean square of its positions' errors,
+    its frame-to-frame differences' and second differences', squared errors weighted by
+    ``orders`` (as the deterministic VAE weighs its recon, velocity and acceleration MSEs) and
+    each channel's by ``channel_weight``; with ``per_point`` every point (3 channels) of a unit
+    is scored on its own. A strictly proper score: its expectation is least
+    when the samples are drawn as the data are, where an MSE is least at their mean."""
+    if x.shape[1] < frames:
+        raise ValueError(f"the energy score's units span vae.energy_frames = {frames} frames; "
+                         f"the windows have {x.shape[1]}")
+    weight = 1.0 if channel_weight is None else channel_weight
+
+    def distance(a: Tensor, b: Tensor) -> Tensor:  # (B, U, points or 1): weighted RMS
+        # Per-frame sums first, then per unit: no copy of the overlapping units' motion
+        error, total, count = a.float() - b.float(), 0.0, 0
+        for order, scale in enumerate(orders):
+            if scale > 0:
+                per_frame = error.square() * weight  # (B, T - order, Dx)
+                per_frame = (per_frame.unflatten(-1, (-1, 3)).sum(-1) if per_point
+                             else per_frame.sum(-1, keepdim=True))  # (B, T - order, units)
+                total = total + scale * per_frame.unfold(1, frames - order, hop).sum(-1)
+                count += (frames - order) * (3 if per_point else error.shape[-1])
+            error = error.diff(dim=1)
+        return (total / count).clamp_min(1e-12).sqrt()
+
+    return (0.5 * (distance(sample, x) + distance(twin, x)) - 0.5 * distance(sample, twin)).mean()

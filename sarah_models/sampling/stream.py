@@ -55,7 +55,7 @@ from ..nn.head_travel import TravelState
 from ..nn.normalizer import Normalizer
 from ..nn.streams import independent_streams
 from ..nn.user_offset import pelvis_floor, user_offset
-from ..nn.vae import CausalVAE
+from ..nn.vae import CausalVAE, detail_generator
 from .decoding import StreamDecoding, stream_decoding
 from .guidance import combine, drop_masks
 from .path import velocity_from_x1
@@ -228,6 +228,7 @@ class StreamingGenerator:
         """Start a new stream (same seed: the same noise again)."""
         cfg = self.config
         self._generator = torch.Generator().manual_seed(cfg.seed)
+        self._detail = detail_generator(cfg.seed)  # a stochastic decoder's draws (vae.detail_dim)
         keep = kept_history(self._m.flow, cfg)
         self._latents: deque[Tensor] = deque(maxlen=keep)  # final z of history tokens
         self._noise: deque[Tensor] = deque(maxlen=keep)  # their eps
@@ -290,7 +291,9 @@ class StreamingGenerator:
             if states is None:
                 raise ValueError("trajectory imputation needs the new token's solver states")
             self._states.append(states)
-        frames = m.decode(m.vae.decoder_step(m.latent_for_decoder(z)[None], self._decoder)[0],
+        detail = m.vae.detail_noise(1, 1, self._detail, m.device)
+        frames = m.decode(m.vae.decoder_step(m.latent_for_decoder(z)[None], self._decoder,
+                                             None if detail is None else detail[:, 0])[0],
                           self._decoding)
         if m.flow.config.user_relative:  # where the next block's offset is taken from
             self._place = pelvis_floor(torch.from_numpy(frames[-1:]))[0].float()
@@ -386,7 +389,9 @@ def offline_with_latents(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer
     noise = torch.stack([token_noise(generator, flow.latent_dim, config.noise_scale)
                          for _ in range(t // m.stride)]).to(m.device)
     z = solve(flow, m.cond_tokens(cond, config.gaze), noise, None, config)
-    return m.to_world(m.decode(vae.decode(m.latent_for_decoder(z)[None])[0], m.decoding())), z
+    detail = vae.detail_noise(1, len(z), detail_generator(config.seed), m.device)
+    return m.to_world(m.decode(vae.decode(m.latent_for_decoder(z)[None], detail)[0],
+                               m.decoding())), z
 
 
 def _offline_by_blocks(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer, user_head,

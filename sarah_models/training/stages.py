@@ -37,6 +37,7 @@ from sarah_data.skeleton import ICOSAHEDRON_POINTS, ROOT, MotionLayout
 
 from ..config import DECODING_FIELDS, RunConfig, TrainConfig
 from ..nn.normalizer import Normalizer
+from ..nn.vae import CausalVAE
 from .batches import EpochBatches, echoed_batches, phased_batches
 from .checkpoint import (
     build_models,
@@ -166,7 +167,8 @@ def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
 # which (flow.attention_window and flow.streamed_context: masks, no weight), not the weights.
 FINE_TUNE_FIELDS = {
     "vae": ("beta", "velocity_weight", "acceleration_weight", "contact_weight", "head_weight",
-            "spectral_weight", "latent_noise", "recon_units", *DECODING_FIELDS["vae"]),
+            "spectral_weight", "latent_noise", "recon_units", "energy_weight", "energy_frames",
+            "energy_per_point", *DECODING_FIELDS["vae"]),
     "flow": ("drop_prob", "gaze_drop_prob", "min_denominator", "difference_weight", "attention_window",
              "streamed_context", "place_noise")}
 
@@ -206,7 +208,8 @@ def _check_compatible(source: Mapping[str, Any], stage: str, config: RunConfig,
     """Refuse an --init-from source whose weights cannot be this stage's, naming the difference."""
     file = source["path"]
     wanted, stored = config.to_dict()[stage], stored_config(source)[stage]
-    differ = sorted(k for k in wanted if k not in FINE_TUNE_FIELDS[stage] and wanted[k] != stored[k])
+    differ = sorted(k for k in wanted if k not in FINE_TUNE_FIELDS[stage]
+                    and wanted[k] != stored.get(k) and not _gains_detail(stage, k, stored))
     if differ:
         pairs = ", ".join(f"{k}: {stored.get(k)} there, {wanted[k]} here" for k in differ)
         raise ValueError(f"{file}: the {stage} architecture differs ({pairs}); --init-from needs "
@@ -222,6 +225,21 @@ def _check_compatible(source: Mapping[str, Any], stage: str, config: RunConfig,
     if source["features"] != features:
         raise ValueError(f"{file}: trained on audio features {source['features']!r}, this run "
                          f"uses {features!r}")
+
+
+def _gains_detail(stage: str, key: str, stored: Mapping[str, Any]) -> bool:
+    """A deterministic VAE fine-tuned into a stochastic decoder (``vae.detail_dim``): its
+    weights are all kept and the decoder's new detail input starts from its initialisation."""
+    return stage == "vae" and key == "detail_dim" and not stored.get(key)
+
+
+def _with_new_detail_input(vae: CausalVAE, state: Mapping[str, Tensor]) -> dict[str, Tensor]:
+    """``state`` plus the detail input ``vae`` has and ``state`` lacks (``_gains_detail``)."""
+    state = dict(state)
+    if vae.detail_in is not None and "detail_in.weight" not in state:
+        state.update({f"detail_in.{name}": value
+                      for name, value in vae.detail_in.state_dict().items()})
+    return state
 
 
 def source_vae_checkpoint(source: Mapping[str, Any]) -> dict[str, Any]:
@@ -302,7 +320,7 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
         if previous is not None:
             vae.load_state_dict(trained_weights(previous, "vae"))
         elif source is not None:
-            vae.load_state_dict(source["vae"])
+            vae.load_state_dict(_with_new_detail_input(vae, source["vae"]))
         if tcfg.freeze_encoder:
             for part in vae.encoder_modules():
                 part.requires_grad_(False)
