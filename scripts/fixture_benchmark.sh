@@ -8,17 +8,19 @@
 #
 #   scripts/fixture_benchmark.sh [BENCH_DIR]          (default: bench/)
 #
-# The recipe (docs/results.md, sixty-first run; 27.1 minutes of training on the AVX2-only 2-core
-# AMD EPYC VM, timed in one run; the values are the variables below): the VAE root-relative with
-# its loss in metres and its root channels down-weighted, on 100-frame windows then 400; its
-# decoder alone on noised latents (the encoder, so the latents, frozen); the flow on those
+# The recipe (docs/results.md, sixty-second run; 28.8 minutes of training on the AVX2-only
+# 2-core AMD EPYC VM at the speed the sixty-first run timed it at, its stages timed in those two
+# runs; the values are the variables below): the VAE root-relative with its loss in metres and
+# its root channels down-weighted, on 100-frame windows then 400; its decoder alone on noised latents (the encoder, so the latents, frozen),
+# made stochastic (per-token draws, the energy score of its accelerations); the flow on those
 # latents for FLOW_STEPS steps, each token attending to a window of the tokens before it and
 # reading the user's head velocity; then the model file with DECODING_SETTINGS (docs/models.md)
 # over the shipped model's decoding, whose own script (pretrained_fixture_model.sh) owns the
-# other values. VAE_SETTINGS, FLOW_SETTINGS and
-# DECODING_SETTINGS replace the VAE's (both of its stages), the flow's and the decoding's
-# settings, e.g. the thirty-fourth run's recipe: FLOW_STEPS=3600
-# FLOW_SETTINGS="--set flow.attention_window=3" DECODING_SETTINGS= VAE_SETTINGS=. Stages are
+# other values. VAE_SETTINGS, DECODER_SETTINGS, FLOW_SETTINGS and DECODING_SETTINGS replace the
+# VAE's (both of its stages), the decoder stage's own, the flow's and the decoding's settings,
+# e.g. the sixty-first run's recipe: DECODER_SETTINGS= DECODER_STEPS=190; the thirty-fourth
+# run's: FLOW_STEPS=3600 FLOW_SETTINGS="--set flow.attention_window=3" DECODING_SETTINGS=
+# VAE_SETTINGS= DECODER_SETTINGS= DECODER_STEPS=190. Stages are
 # skipped once their folder has a .done marker, so an interrupted run resumes at the stage it
 # stopped in (that stage starts over). Every step is seeded (train.seed 0): the same code on the
 # same thread count and the same kind of CPU gives the same model file, whose sha256 is printed
@@ -59,13 +61,15 @@ TUNE_GRID_TRAJECTORY=${TUNE_GRID_TRAJECTORY:-"1.0:1.3 0.6:1.5:user_head,gaze 0.6
 JOBS=${JOBS:-2}                      # prep workers, and evaluations run side by side
 VAE_SHORT_STEPS=${VAE_SHORT_STEPS:-2500}  # on 100-frame windows (~1/7 of a 400-frame step)
 VAE_LONG_STEPS=${VAE_LONG_STEPS:-150}     # then on 400-frame windows
-DECODER_STEPS=${DECODER_STEPS:-190}
+DECODER_STEPS=${DECODER_STEPS:-150}
 FLOW_STEPS=${FLOW_STEPS:-14000}
 STRIDE=${STRIDE:-}                   # frames per latent token (vae.stride), if not the preset's
 FLOW_SETTINGS=${FLOW_SETTINGS-"--set flow.attention_window=17 --set flow.head_velocity=true"}  # sarah-train --set for the flow
 # ... for the model file's decoding
 DECODING_SETTINGS=${DECODING_SETTINGS-"--set vae.boundary_inertia=0 --set vae.root_inertia=0 --set vae.foot_swing_frames=8 --set vae.root_hold_reads=feet"}
 VAE_SETTINGS=${VAE_SETTINGS-"--set vae.root_weight=0.05"}  # ... and for both VAE stages
+# ... and for the decoder stage alone: a stochastic decoder (docs/models.md)
+DECODER_SETTINGS=${DECODER_SETTINGS-"--set vae.detail_dim=32 --set vae.energy_weight=10 --set vae.energy_per_point=true"}
 SWEEP_WINDOWS=${SWEEP_WINDOWS:-104}  # the gaze sweep's windows, evenly spaced over the same split
 UNTIL=${UNTIL:-eval}                 # stop after this stage: prep, train, trajectory (its tuning
                                      # and test) or eval
@@ -114,10 +118,12 @@ train() {
   stamp "train $name $stage: end"
 }
 read -r -a VAE_SET <<< "$VAE_SETTINGS"
+read -r -a DECODER_SET <<< "$DECODER_SETTINGS"
 train encoder vae --set train.vae_short_window=100 --set "train.vae_short_steps=$VAE_SHORT_STEPS" \
   --set "train.vae_steps=$((VAE_SHORT_STEPS + VAE_LONG_STEPS))" ${VAE_SET[@]+"${VAE_SET[@]}"}
 train model vae --init-from "$RUN/encoder/vae.pt" --set "train.vae_steps=$DECODER_STEPS" \
-  --set train.freeze_encoder=true --set vae.latent_noise=0.2 ${VAE_SET[@]+"${VAE_SET[@]}"}
+  --set train.freeze_encoder=true --set vae.latent_noise=0.2 ${VAE_SET[@]+"${VAE_SET[@]}"} \
+  ${DECODER_SET[@]+"${DECODER_SET[@]}"}
 read -r -a FLOW_SET <<< "$FLOW_SETTINGS"
 read -r -a DECODING_SET <<< "$DECODING_SETTINGS"
 train model flow ${FLOW_SET[@]+"${FLOW_SET[@]}"} --set "train.flow_steps=$FLOW_STEPS" --set train.flow_echo=8
