@@ -170,14 +170,16 @@ class CausalVAE(nn.Module):
 
     def detail_noise(self, batch: int, blocks: int, generator: torch.Generator | None = None,
                      device: torch.device | str | None = None) -> Tensor | None:
-        """Standard normal detail draws (batch, blocks, detail_dim) for ``decode``, drawn token by
-        token as ``draw_detail`` (so a stream drawing one token at a time gets the same values);
-        None for a deterministic decoder."""
+        """Generation's standard normal detail draws (batch, blocks, detail_dim) for ``decode``
+        from a CPU ``generator`` (``detail_generator``), one token at a time, so a stream
+        drawing one token per step gets the offline solve's values whatever ``detail_dim`` is
+        (one call rounds several tokens' draws alike only for multiples of 16); None for a
+        deterministic decoder."""
         if self.detail_in is None:
             return None
-        draws = [[draw_detail(generator, self.config.detail_dim) for _ in range(blocks)]
-                 for _ in range(batch)]
-        return torch.stack([torch.stack(row) for row in draws]).to(device)
+        d = self.config.detail_dim
+        draws = [torch.randn(d, generator=generator) for _ in range(batch * blocks)]
+        return torch.stack(draws).view(batch, blocks, d).to(device)
 
     def _decoder_tokens(self, z: Tensor, detail: Tensor | None = None) -> Tensor:
         b, k, _ = z.shape
@@ -252,13 +254,12 @@ class CausalVAE(nn.Module):
         if self.detail_in is None:
             x_hat = self.decode(z)
             terms = self.loss_terms(x_hat, x, channel_weight)
-        else:  # two samples of the decoder for the same latents
-            b, k, _ = z.shape
-            x_hat, twin = (self.decode(z, self.detail_noise(b, k, generator, z.device))
-                           for _ in range(2))
-            terms = {name: (value + other) / 2 for (name, value), other in zip(
-                self.loss_terms(x_hat, x, channel_weight).items(),
-                self.loss_terms(twin, x, channel_weight).values())}
+        else:  # two samples of the decoder for the same latents, drawn on the training device
+            shape = (*z.shape[:-1], cfg.detail_dim)
+            x_hat, twin = (self.decode(z, torch.randn(shape, generator=generator, device=z.device,
+                                                      dtype=z.dtype)) for _ in range(2))
+            pair = [self.loss_terms(sample, x, channel_weight) for sample in (x_hat, twin)]
+            terms = {name: (pair[0][name] + pair[1][name]) / 2 for name in pair[0]}
             # What the MSEs smooth away, sampled: the energy score of the accelerations
             terms["energy"] = energy_score(x_hat, twin, x, cfg.energy_frames, self.stride,
                                            channel_weight, (0.0, 0.0, 1.0), cfg.energy_per_point)
@@ -287,12 +288,6 @@ def detail_generator(seed: int) -> torch.Generator:
     own stream of numbers, apart from the flow's noise (which a generator seeded ``seed``
     draws), so a deterministic decoder's outputs are what they were before detail existed."""
     return torch.Generator().manual_seed(seed + DETAIL_SEED_OFFSET)
-
-
-def draw_detail(generator: torch.Generator | None, detail_dim: int) -> Tensor:
-    """One token's detail draw (CPU float32): standard normal. Streams and ``detail_noise`` draw
-    token by token in the same order, so one seed gives both the same draws."""
-    return torch.randn(detail_dim, generator=generator, dtype=torch.float32)
 
 
 def energy_score(sample: Tensor, twin: Tensor, x: Tensor, frames: int, hop: int,
