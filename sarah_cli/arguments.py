@@ -64,6 +64,24 @@ def guide_help() -> str:
             "(gaze alone guides only gaze control, a no-op for --gaze none)")
 
 
+def guidance_interval(text: str) -> tuple[float, float]:
+    """--guidance-interval LO,HI: the flow times at which guidance applies."""
+    from sarah_models.config import StreamConfig
+
+    try:
+        lo, hi = (float(part) for part in text.split(","))
+        StreamConfig(guidance_interval=(lo, hi))  # the config owns the rule
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"expected LO,HI with 0 <= LO < HI <= 1, got {text!r}"
+                                         ) from exc
+    return lo, hi
+
+
+GUIDANCE_INTERVAL_HELP = ("LO,HI: guide only the network evaluations at flow times LO <= tau < "
+                          "HI (0 noise, 1 data); the others take the conditional prediction. "
+                          "0,1 guides every evaluation, as the paper")
+
+
 def noise_scale(text: str) -> float:
     """--noise-scale: the temperature of each token's starting noise, a finite number above 0."""
     from sarah_models.config import check_noise_scale

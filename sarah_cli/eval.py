@@ -6,9 +6,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import (HISTORY_HELP, IMPUTATION_HELP, NOISE_SCALE_HELP, HelpFormatter,
-                                 add_model_arguments, guide_help, guided_modalities, history_tokens,
-                                 noise_scale)
+from sarah_cli.arguments import (GUIDANCE_INTERVAL_HELP, HISTORY_HELP, IMPUTATION_HELP,
+                                 NOISE_SCALE_HELP, HelpFormatter, add_model_arguments, guide_help,
+                                 guidance_interval, guided_modalities, history_tokens, noise_scale)
 
 EXIT_ERROR = 2
 
@@ -96,6 +96,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--history", type=history_tokens, default=d.history_tokens,
                         help=HISTORY_HELP + "; the offline protocol ignores it")
     parser.add_argument("--guide", type=guided_modalities, default="all", help=guide_help())
+    parser.add_argument("--guidance-interval", type=guidance_interval, default="0,1",
+                        help=GUIDANCE_INTERVAL_HELP)
     parser.add_argument("--imputation", choices=IMPUTATIONS, default=d.imputation,
                         help=IMPUTATION_HELP + "; the offline protocol ignores it")
     parser.add_argument("--protocol", choices=("offline", "stream"), default=d.protocol,
@@ -129,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
                             batch_clips=args.batch_clips, seed=args.seed, steps=args.steps,
                             cfg_scale=args.cfg, noise_scale=args.noise_scale,
                             history_tokens=args.history, imputation=args.imputation,
-                            guide=args.guide,
+                            guide=args.guide, guidance_interval=args.guidance_interval,
                             protocol=args.protocol, blur_frames=args.blur_frames,
                             jitter_mm=args.jitter_mm,
                             library_size=args.library_size, features=args.features,

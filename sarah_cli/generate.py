@@ -6,9 +6,10 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import (HISTORY_HELP, IMPUTATION_HELP, NOISE_SCALE_HELP, HelpFormatter,
-                                 add_model_arguments, guide_help, guided_modalities,
-                                 history_tokens, noise_scale, positive_int)
+from sarah_cli.arguments import (GUIDANCE_INTERVAL_HELP, HISTORY_HELP, IMPUTATION_HELP,
+                                 NOISE_SCALE_HELP, HelpFormatter, add_model_arguments, guide_help,
+                                 guidance_interval, guided_modalities, history_tokens,
+                                 noise_scale, positive_int)
 from sarah_models.accel import MODE_HELP, MODES
 
 EXIT_ERROR = 2
@@ -76,6 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--history", type=history_tokens, default=d.history_tokens,
                         help=HISTORY_HELP)
     parser.add_argument("--guide", type=guided_modalities, default="all", help=guide_help())
+    parser.add_argument("--guidance-interval", type=guidance_interval, default="0,1",
+                        help=GUIDANCE_INTERVAL_HELP)
     parser.add_argument("--imputation", choices=IMPUTATIONS, default=d.imputation,
                         help=IMPUTATION_HELP)
     parser.add_argument("--seed", type=int, default=d.seed,
@@ -128,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         config = StreamConfig(history_tokens=args.history, imputation=args.imputation,
-                              guide=args.guide,
+                              guide=args.guide, guidance_interval=args.guidance_interval,
                               steps=args.steps, solver=args.solver,
                               cfg_scale=args.cfg, noise_scale=args.noise_scale,
                               gaze=_gaze(args.gaze), seed=args.seed)

@@ -9,9 +9,9 @@ import sys
 from pathlib import Path
 
 from sarah_models.accel import MODE_HELP, MODES
-from sarah_cli.arguments import (IMPUTATION_HELP, NOISE_SCALE_HELP, HelpFormatter,
-                                 add_model_arguments, guide_help, guided_modalities, noise_scale,
-                                 positive_int)
+from sarah_cli.arguments import (GUIDANCE_INTERVAL_HELP, IMPUTATION_HELP, NOISE_SCALE_HELP,
+                                 HelpFormatter, add_model_arguments, guide_help, guidance_interval,
+                                 guided_modalities, noise_scale, positive_int)
 
 EXIT_ERROR = 2
 
@@ -59,6 +59,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help=IMPUTATION_HELP + " (every session's)")
     parser.add_argument("--guide", type=guided_modalities, default="all",
                         help=guide_help() + " (every session's)")
+    parser.add_argument("--guidance-interval", type=guidance_interval, default="0,1",
+                        help=GUIDANCE_INTERVAL_HELP + " (every session's)")
     parser.add_argument("--steps", type=int, default=d.steps, help="default solver steps per chunk")
     parser.add_argument("--cfg", type=float, default=d.cfg_scale, help="default guidance scale w")
     parser.add_argument("--noise-scale", type=noise_scale, default=d.noise_scale,
@@ -138,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         defaults = replace(StreamConfig(), steps=args.steps, cfg_scale=args.cfg,
                            noise_scale=args.noise_scale, imputation=args.imputation,
-                           guide=args.guide)
+                           guide=args.guide, guidance_interval=args.guidance_interval)
         models, path = load_server_models(args.run, args.checkpoint, args.device, args.speed, defaults)
     except (GenerateError, ValueError) as error:
         print(f"sarah-serve: error: {error}", file=sys.stderr)

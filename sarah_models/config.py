@@ -636,6 +636,11 @@ class StreamConfig:
     # conditioning as a whole; guiding the gaze alone was a no-op for g = None), or ("gaze",)
     # to guide gaze control only.
     guide: tuple[str, ...] = ("user_head", "agent_audio", "user_audio", "gaze")
+    # Not in the paper ((0, 1) = the paper: every evaluation guided): the flow times tau (0 noise,
+    # 1 data) at which guidance applies, lo <= tau < hi; the other evaluations take the
+    # conditional prediction alone (Kynkäänniemi et al. 2024, "Applying guidance in a limited
+    # interval"): what a sample becomes is settled at different times for different traits.
+    guidance_interval: tuple[float, float] = (0.0, 1.0)
     seed: int = 0
     # The VAE decoder's attention context in frames (T: one training window), whatever the
     # stride; None: unbounded. Counted in blocks it saw 200 frames at stride 2, and a stream of
@@ -656,6 +661,10 @@ class StreamConfig:
             raise ValueError(f"cfg_scale must be finite, got {self.cfg_scale}")
         check_noise_scale(self.noise_scale)
         check_gaze(self.gaze)
+        lo, hi = self.guidance_interval
+        if not 0.0 <= lo < hi <= 1.0:
+            raise ValueError(f"guidance_interval must be (lo, hi) with 0 <= lo < hi <= 1, got "
+                             f"{self.guidance_interval}")
         unknown = [m for m in self.guide if m not in MODALITIES]
         if unknown:
             raise ValueError(f"guide names unknown modalities {unknown}; choose from {MODALITIES}")

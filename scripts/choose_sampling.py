@@ -4,7 +4,7 @@ before the results are read (docs/results.md, thirty-seventh run):
     python scripts/choose_sampling.py tune/*/ --flags-to sampling.txt
 
 Each folder is one `sarah-eval --methods gt,model` run on the same tuning windows at one
-(--noise-scale, --cfg[, --guide]). The chosen setting is the one whose paired wrist speed and
+(--noise-scale, --cfg[, --guide][, --guidance-interval]). The chosen setting is the one whose paired wrist speed and
 Head Ang. (the "Beside GT" table) lie nearest GT in units of issue #16's tolerances, the larger of
 |wrists / GT - 1| / 0.20 and |Head Ang. - GT| / 0.05, among the settings that keep #16's other
 item-2 figures (foot slide, bone length, frame-0 offset) within theirs. Prints every setting's
@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from sarah_data.atomic import atomic_write_text
+from sarah_models.config import StreamConfig
 from sarah_models.nn.flow import MODALITIES
 
 WRIST_TOLERANCE = 0.20  # #16 item 2: wrist speed within 20 % of GT's
@@ -40,6 +41,7 @@ class Setting:
     noise_scale: float
     cfg: float
     guide: tuple[str, ...]  # what guidance's unconditional pass drops
+    interval: tuple[float, float]  # the flow times guidance applies at (StreamConfig's)
     windows: tuple[str, str, int]  # shards, split, how many windows: settings compare on one
     wrists: tuple[float, float, float]  # ratio to GT, its paired 95 % interval
     head: tuple[float, float, float]  # difference to GT, its paired 95 % interval
@@ -58,14 +60,23 @@ class Setting:
         return set(self.guide) != set(MODALITIES)
 
     @property
+    def guides_some_times(self) -> bool:
+        """Guidance applies at some flow times only (the default, and the paper: all)."""
+        return self.interval != StreamConfig.guidance_interval
+
+    @property
     def name(self) -> str:
         guided = f", guiding {'+'.join(self.guide)}" if self.guides_some else ""
-        return f"{self.noise_scale:g}, {self.cfg:g}{guided}"
+        lo, hi = self.interval
+        timed = f", at {lo:g} <= tau < {hi:g}" if self.guides_some_times else ""
+        return f"{self.noise_scale:g}, {self.cfg:g}{guided}{timed}"
 
     @property
     def flags(self) -> str:
         guided = f" --guide {','.join(self.guide)}" if self.guides_some else ""
-        return f"--noise-scale {self.noise_scale:g} --cfg {self.cfg:g}{guided}"
+        lo, hi = self.interval
+        timed = f" --guidance-interval {lo:g},{hi:g}" if self.guides_some_times else ""
+        return f"--noise-scale {self.noise_scale:g} --cfg {self.cfg:g}{guided}{timed}"
 
     @property
     def eligible(self) -> bool:
@@ -104,6 +115,9 @@ def read_setting(folder: Path) -> Setting:
                    cfg=float(settings["cfg_scale"]),
                    # tables from before --guide guided every modality
                    guide=tuple(settings.get("guide", MODALITIES)),
+                   # ... and at every flow time
+                   interval=tuple(map(float, settings.get("guidance_interval",
+                                                          StreamConfig.guidance_interval))),
                    windows=(str(settings["shards"]), str(settings["split"]), count),
                    wrists=triple("wrist_speed", "ratio"), head=triple("head_angle", "gap"),
                    foot_slide_gap=value("foot_slide/gap"), bone_length=value("bone_length/avg"),
@@ -117,7 +131,7 @@ def choose(settings: list[Setting]) -> Setting | None:
 
 
 def markdown(settings: list[Setting], chosen: Setting | None) -> str:
-    lines = ["| noise scale, CFG[, guided] | wrists ÷ GT (paired) | Head Ang. − GT (paired) | "
+    lines = ["| noise scale, CFG[, guided][, when] | wrists ÷ GT (paired) | Head Ang. − GT (paired) | "
              "distance (≤ 1 meets) | foot slide − GT | bone length % | frame-0 cm |",
              "|---|---|---|---|---|---|---|"]
     for s in settings:
@@ -133,8 +147,8 @@ def markdown(settings: list[Setting], chosen: Setting | None) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        description="Choose the (noise scale, CFG[, guided modalities]) whose wrists and head lie "
-                    "nearest GT on a tuning corpus, from sarah-eval output folders.")
+        description="Choose the (noise scale, CFG[, guided modalities][, flow times]) whose wrists "
+                    "and head lie nearest GT on a tuning corpus, from sarah-eval output folders.")
     parser.add_argument("folders", nargs="+", type=Path,
                         help="sarah-eval --methods gt,model output folders, one per setting")
     parser.add_argument("--flags-to", type=Path, default=None,

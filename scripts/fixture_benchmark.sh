@@ -159,17 +159,18 @@ run_eval() {  # OUT CORPUS ARGS...: in the background, at most JOBS at once
 # The sampling settings: each setting of a grid evaluated (g = none) on the tuning corpus, then
 # the one whose wrists and head lie nearest GT's by a rule fixed beforehand (choose_sampling.py).
 tune_sampling() {  # FLAGS_FILE FOLDER GRID EVAL_FLAGS...
-  local flags=$1 folder=$2 grid=$3 setting noise cfg guide out
+  local flags=$1 folder=$2 grid=$3 setting noise cfg guide interval out
   shift 3
   [ -f "$flags" ] && return 0
   stamp "tune $folder: begin ($(echo $grid))"
   local tuned=()
   for setting in $grid; do
-    IFS=: read -r noise cfg guide <<< "$setting"
-    out=$folder/${noise}_${cfg}${guide:+_${guide//,/+}}
+    IFS=: read -r noise cfg guide interval <<< "$setting"
+    out=$folder/${noise}_${cfg}${guide:+_${guide//,/+}}${interval:+_${interval//,/-}}
     tuned+=("$out")
     run_eval "$out" tune --gaze none --table1-gaze none --methods gt,model \
-      --noise-scale "$noise" --cfg "$cfg" --guide "${guide:-all}" "$@"
+      --noise-scale "$noise" --cfg "$cfg" --guide "${guide:-all}" \
+      --guidance-interval "${interval:-0,1}" "$@"
   done
   wait
   $PYTHON scripts/choose_sampling.py "${tuned[@]}" --flags-to "$flags" | tee "$folder/choice.md"

@@ -94,3 +94,22 @@ def test_guided_modalities_are_part_of_a_setting(tiny, folders, tmp_path):  # no
     del t1["settings"]["guide"]
     (old / "table1.json").write_text(json.dumps(t1))
     assert choose_sampling.read_setting(old).guide == choose_sampling.MODALITIES
+
+
+def test_a_guidance_interval_is_part_of_a_setting(tiny, folders, tmp_path):  # noqa: F811
+    """A folder evaluated with --guidance-interval is a setting of its own, and its flags give
+    the chosen interval back to sarah-eval; a table from before the interval guided every time."""
+    timed = choose_sampling.read_setting(
+        _evaluate(tiny, tmp_path / "timed", "1", "1.3", "--guidance-interval", "0,0.5"))
+    paper = choose_sampling.read_setting(folders[0])
+    assert timed.interval == (0.0, 0.5) and paper.interval == (0.0, 1.0)
+    assert timed.wrists != paper.wrists
+    assert timed.flags == "--noise-scale 1 --cfg 1.3 --guidance-interval 0,0.5"
+    assert "| **1, 1.3, at 0 <= tau < 0.5 (chosen)** |" in choose_sampling.markdown(
+        [paper, timed], chosen=timed)
+    old = tmp_path / "old"
+    old.mkdir()
+    t1 = json.loads((folders[0] / "table1.json").read_text())
+    del t1["settings"]["guidance_interval"]
+    (old / "table1.json").write_text(json.dumps(t1))
+    assert choose_sampling.read_setting(old).interval == (0.0, 1.0)

@@ -131,6 +131,23 @@ def test_trajectory_imputation_streams_the_offline_motion(run_dir, raw, tmp_path
     np.testing.assert_allclose(streamed["icosahedra"], offline["icosahedra"], atol=1e-4)
 
 
+def test_guidance_interval_reaches_the_sampler(run_dir, raw, tmp_path):
+    """--guidance-interval holding none of the solver's flow times is --cfg 1; one holding all
+    of them is the whole guidance."""
+    def motion(name, *extra):
+        assert main(raw_args(run_dir, raw, tmp_path / name, "--no-animation", "--threads", "1",
+                             "--gaze", "none", *extra)) == 0
+        return np.load(tmp_path / name / "motion.npz")["icosahedra"]
+
+    guided = motion("guided", "--cfg", "4")
+    unguided = motion("unguided", "--cfg", "1")
+    assert np.abs(guided - unguided).max() > 1e-4
+    np.testing.assert_allclose(motion("none", "--cfg", "4", "--guidance-interval", "0.9,1"),
+                               unguided, atol=1e-4)
+    np.testing.assert_array_equal(motion("all", "--cfg", "4", "--guidance-interval", "0,0.9"),
+                                  guided)
+
+
 def _error(capsys, argv) -> str:
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()

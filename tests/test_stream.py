@@ -16,7 +16,7 @@ from sarah_data.frames import rotation_about_y, window_transform
 from sarah_models.config import HISTORY_WINDOW, RunConfig, StreamConfig
 from sarah_models.nn.flow import MODALITIES
 from sarah_models.sampling.decoding import stream_decoding
-from sarah_models.sampling.guidance import drop_masks
+from sarah_models.sampling.guidance import drop_masks, scale_at
 from sarah_models.sampling.solver import imputer, integrate
 from sarah_models.sampling.stream import (
     StreamingGenerator,
@@ -145,6 +145,27 @@ def test_default_guidance_guides_the_whole_conditioning(models):
     assert np.abs(guided - unguided).max() > 1e-4
 
 
+def test_guidance_interval_guides_only_the_evaluations_inside_it(models):
+    """Four midpoint steps evaluate at tau = 0, 1/8, ..., 7/8: an interval holding none of them
+    is the conditional model alone; one holding all of them is full guidance; one holding some
+    is neither."""
+    inputs = make_inputs(12)
+    config = StreamConfig(gaze=None, cfg_scale=4.0, noise_scale=0.6)
+    conditional = stream(models, inputs, dataclasses.replace(config, cfg_scale=1.0))
+    full = stream(models, inputs, config)
+    np.testing.assert_allclose(
+        stream(models, inputs, dataclasses.replace(config, guidance_interval=(0.9, 1.0))),
+        conditional, atol=1e-5)
+    np.testing.assert_array_equal(
+        stream(models, inputs, dataclasses.replace(config, guidance_interval=(0.0, 0.9))), full)
+    early = stream(models, inputs, dataclasses.replace(config, guidance_interval=(0.0, 0.5)))
+    late = stream(models, inputs, dataclasses.replace(config, guidance_interval=(0.5, 1.0)))
+    for other in (conditional, full, late):
+        assert np.abs(early - other).max() > 1e-4
+    assert np.abs(late - conditional).max() > 1e-4 and np.abs(late - full).max() > 1e-4
+    assert [scale_at(t, 4.0, (0.25, 0.5)) for t in (0.0, 0.25, 0.375, 0.5)] == [1.0, 4.0, 4.0, 1.0]
+
+
 def test_position_embedding_gives_streaming_the_offline_indices(models):
     """Token k of a stream gets the position embedding offline generation gives it, also past
     the training window's tokens (they share the last one), and the first token is told apart
@@ -211,9 +232,10 @@ def test_streaming_equals_offline_where_the_maths_says_so(models):
     assert np.abs(streamed[S:] - offline[S:]).max() > 1e-4
 
 
-@pytest.mark.parametrize("gaze, cfg, solver", [(0.8, 1.3, "midpoint"), (None, 0.6, "midpoint"),
-                                               (0.3, 1.0, "euler")])
-def test_trajectory_imputation_streams_the_offline_solve(models, gaze, cfg, solver):
+@pytest.mark.parametrize("gaze, cfg, solver, interval", [
+    (0.8, 1.3, "midpoint", (0.0, 1.0)), (None, 0.6, "midpoint", (0.0, 1.0)),
+    (0.3, 1.0, "euler", (0.0, 1.0)), (None, 4.0, "midpoint", (0.3, 0.7))])
+def test_trajectory_imputation_streams_the_offline_solve(models, gaze, cfg, solver, interval):
     """With each history token's own trajectory replayed, and as many history tokens as the
     tiny flow's stacked attention windows reach, a stream is offline generation computed
     causally: the same latents and frames, past the position embedding's last index too."""
@@ -221,7 +243,7 @@ def test_trajectory_imputation_streams_the_offline_solve(models, gaze, cfg, solv
     assert flow.context_tokens == 5  # 2 layers of windows of 3 tokens
     inputs = make_inputs(4 * 22)  # 22 tokens: past the 16 position indices
     config = StreamConfig(imputation="trajectory", gaze=gaze, cfg_scale=cfg, solver=solver,
-                          noise_scale=0.6)
+                          noise_scale=0.6, guidance_interval=interval)
     gen = StreamingGenerator(*models, config)
     streamed, latents = [], []
     for i in range(0, len(inputs[0]), S):
@@ -419,7 +441,8 @@ def test_bad_inputs_and_settings_are_refused(models):
     with pytest.raises(ValueError, match=r"\[-1, 1\]"):
         gen.set_gaze(1.5)
     for bad in ({"gaze": -1.01}, {"steps": 0}, {"solver": "rk4"}, {"guide": ("face",)},
-                {"history_tokens": -1}):
+                {"history_tokens": -1}, {"guidance_interval": (0.5, 0.5)},
+                {"guidance_interval": (-0.1, 1.0)}, {"guidance_interval": (0.0, 1.5)}):
         with pytest.raises(ValueError):
             StreamConfig(**bad)
 

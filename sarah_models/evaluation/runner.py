@@ -119,6 +119,8 @@ class EvalConfig:
     imputation: str = StreamConfig.imputation  # a stream's history ("final": the paper's eq. 4)
     # modalities guidance's unconditional pass drops (StreamConfig.guide; all four: the paper)
     guide: tuple[str, ...] = StreamConfig.guide
+    # flow times at which guidance applies (StreamConfig.guidance_interval; (0, 1): the paper)
+    guidance_interval: tuple[float, float] = StreamConfig.guidance_interval
     library_size: int = 2048  # NN library and Random pool of training windows
     train_split: str = "train"
     # The shards the Random pool and NN library are drawn from (default: the evaluated ones).
@@ -251,6 +253,7 @@ def window_generator(models, config: EvalConfig, gaze: float | None):
                               noise_scale=config.noise_scale,
                               history_tokens=config.history_tokens,
                               imputation=config.imputation, guide=config.guide,
+                              guidance_interval=config.guidance_interval,
                               seed=_window_seed(config.seed, index))
         return generate(models, inputs, stream, offline=config.protocol == "offline")
 
@@ -534,9 +537,11 @@ def _caption1(ev: Evaluation, config: EvalConfig, shards: Path) -> str:
 
 
 def _guide_note(config: EvalConfig) -> str:
+    lo, hi = config.guidance_interval
+    interval = "" if (lo, hi) == StreamConfig.guidance_interval else f" at {lo:g} <= tau < {hi:g}"
     if set(config.guide) == set(StreamConfig.guide):  # all four, in any order
-        return ""
-    return f" (guiding {', '.join(config.guide)} only)"
+        return interval and f" (guiding{interval})"
+    return f" (guiding {', '.join(config.guide)} only{interval})"
 
 
 def _noise_note(config: EvalConfig) -> str:

@@ -11,7 +11,8 @@ default). Then
 
     x1 = x1_uncond + w (x1_cond - x1_uncond),     w = cfg_scale (1.3)
 
-Both passes run as one batch of 2. At fixed tau and z_tau the velocity is affine in x1 with the
+With ``StreamConfig.guidance_interval`` (lo, hi) only evaluations at flow times lo <= tau < hi
+are guided; the others take x1_cond (w = 1). Both passes run as one batch of 2. At fixed tau and z_tau the velocity is affine in x1 with the
 same offset for both passes, so guiding x1 or guiding v is the same thing. ``gaze=None`` drops g
 in the conditional pass too (the paper's row "no gaze"); whenever both passes would be
 identical (or w = 1) only one pass is run.
@@ -52,6 +53,12 @@ def drop_masks(gaze: float | None, guide: tuple[str, ...], cfg_scale: float) -> 
     return torch.stack((cond, uncond))
 
 
+def scale_at(tau: float, cfg_scale: float, interval: tuple[float, float]) -> float:
+    """The guidance scale of an evaluation at flow time tau: w inside the interval, else 1."""
+    lo, hi = interval
+    return cfg_scale if lo <= tau < hi else 1.0
+
+
 def guided(cond: Tensor, uncond: Tensor, cfg_scale: float) -> Tensor:
     """x1 = x1_uncond + w (x1_cond - x1_uncond)."""
     return uncond + cfg_scale * (cond - uncond)
@@ -60,6 +67,6 @@ def guided(cond: Tensor, uncond: Tensor, cfg_scale: float) -> Tensor:
 def combine(x1: Tensor, cfg_scale: float) -> Tensor:
     """The guided prediction from branches in ``drop_masks`` order (1 or 2) on axis -3:
     x1 (B, L, Dz) -> (L, Dz), or per stream (G, B, L, Dz) -> (G, L, Dz)."""
-    if x1.shape[-3] == 2:
+    if x1.shape[-3] == 2 and cfg_scale != 1.0:
         return guided(x1[..., 0, :, :], x1[..., 1, :, :], cfg_scale)
     return x1[..., 0, :, :]

@@ -57,7 +57,7 @@ from ..nn.streams import independent_streams
 from ..nn.user_offset import pelvis_floor, user_offset
 from ..nn.vae import CausalVAE, detail_generator
 from .decoding import StreamDecoding, stream_decoding
-from .guidance import combine, drop_masks
+from .guidance import combine, drop_masks, scale_at
 from .path import velocity_from_x1
 from .solver import imputer, integrate, replayer, token_noise
 
@@ -88,7 +88,8 @@ def solve(flow: FlowModel, cond_tokens: Tensor, noise: Tensor, known: Tensor | N
     def velocity(z: Tensor, tau: float) -> Tensor:
         x = z[:, None].expand(-1, branches, -1, -1).flatten(0, 1)
         x1 = flow(x, tau, cond_tokens=rows).unflatten(0, (streams, branches))
-        return velocity_from_x1(combine(x1, config.cfg_scale), z, tau, flow.config.min_denominator)
+        w = scale_at(tau, config.cfg_scale, config.guidance_interval)
+        return velocity_from_x1(combine(x1, w), z, tau, flow.config.min_denominator)
 
     impute = replayer(known, config) if config.imputation == "trajectory" else imputer(noise, known)
     with independent_streams(streams):
