@@ -512,11 +512,12 @@ def test_a_stochastic_decoder_takes_its_draws_through_the_fast_path():
     assert deviation.max_joint_mm <= TOLERANCE_MM, deviation
 
 
-@pytest.mark.parametrize("stochastic", [False, True])
-def test_naive_reference_computes_what_the_generator_computes(tiny, stochastic):
+@pytest.mark.parametrize("stochastic, interval", [(False, (0.0, 1.0)), (True, (0.0, 1.0)),
+                                                  (False, (0.2, 0.6))])
+def test_naive_reference_computes_what_the_generator_computes(tiny, stochastic, interval):
     vae, flow, normalizer = stochastic_tiny() if stochastic else tiny
     head, a, b = stream_inputs(24, AUDIO_DIM, seed=3)
-    config = StreamConfig(decoder_frames=400)
+    config = StreamConfig(decoder_frames=400, cfg_scale=3.0, guidance_interval=interval)
     generator = StreamingGenerator(vae, flow, normalizer, config)
     naive = NaiveStreamer(vae, flow, normalizer, config)
     for i in range(0, 24, 4):
