@@ -17,7 +17,7 @@ from sarah_models.config import FlowConfig, RunConfig, TrainConfig, VAEConfig, p
 from sarah_models.training.batches import EpochBatches
 from sarah_models.training.distributed import DistInfo
 from sarah_models.training.loop import lr_at
-from sarah_models.training.objectives import (AccelerationSpectrum, HeadFacing, PlantedFeet,
+from sarah_models.training.objectives import (AccelerationSpectrum, FootLift, HeadFacing, PlantedFeet,
                                               VAEObjective)
 from sarah_models.training.stages import model_stats, train
 
@@ -182,6 +182,26 @@ def test_head_facing_term_is_the_squared_error_of_the_horizontal_facing_unit_vec
     assert float(term(nod, true)) == pytest.approx((1 - np.cos(0.3)) ** 2, rel=1e-3)
     with pytest.raises(ValueError, match="icosahedron motion layout"):
         HeadFacing(NUM_JOINTS * 36 - 1)
+
+
+def test_foot_lift_term_is_the_squared_height_error_of_the_feet_in_lock_release_units():
+    from sarah_data.constants import NUM_JOINTS
+    from sarah_data.skeleton import MotionLayout
+
+    true = _head_motion(np.zeros(6))
+    term = FootLift(true.shape[-1])
+    assert float(term(true, true)) == 0.0
+    layout = MotionLayout.from_width(true.shape[-1])
+    lifted = true.clone()
+    left = layout.joint_slice("left_foot")
+    lifted[0, 2:4, left.start + 1:left.stop:3] += 0.06  # the left foot 6 cm up in 2 of 6 frames
+    # (0.06 / 0.02)^2 = 9 in 2 of the 6 frames x 2 feet
+    assert float(term(lifted, true)) == pytest.approx(9 * 2 / 12, rel=1e-4)
+    sideways = true.clone()
+    sideways[0, :, left.start:left.stop:3] += 0.5  # only heights count
+    assert float(term(sideways, true)) == pytest.approx(0.0, abs=1e-9)
+    with pytest.raises(ValueError, match="vae.lift_weight"):
+        FootLift(NUM_JOINTS * 36 - 1)
 
 
 def _beating_motion(frames: int, hz: float, phase: float, amplitude: float = 0.02,

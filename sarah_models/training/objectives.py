@@ -2,8 +2,9 @@
 
 * ``VAEObjective``: standardize the motion, the VAE's reconstruction + KL (``CausalVAE.forward``),
   plus the planted-foot term (``PlantedFeet``) when ``vae.contact_weight`` > 0, the
-  head-facing term (``HeadFacing``) when ``vae.head_weight`` > 0 and the acceleration-spectrum
-  term (``AccelerationSpectrum``) when ``vae.spectral_weight`` > 0.
+  head-facing term (``HeadFacing``) when ``vae.head_weight`` > 0, the foot-lift term
+  (``FootLift``) when ``vae.lift_weight`` > 0 and the acceleration-spectrum term
+  (``AccelerationSpectrum``) when ``vae.spectral_weight`` > 0.
 * ``FlowObjective``: encode with the frozen VAE, standardize the latents, then
   ``flow_matching_loss`` (eq. 4-5: x1-prediction on the straight path with CFG dropout).
 """
@@ -25,20 +26,21 @@ from ..nn.flow import FlowModel, build_block_mask
 from ..nn.normalizer import Normalizer
 from ..nn.user_offset import block_starts, pelvis_floor, user_offset
 from ..nn.vae import CausalVAE
+from ..sampling.foot_lock import RELEASE
 from ..sampling.guidance import drop_probs, sample_drop_mask
 from ..sampling.path import interpolate
 
 
 class VAEObjective(nn.Module):
-    """Standardize the motion of a batch and return the VAE loss dict (plus the planted-foot
-    term when ``vae.config.contact_weight`` > 0, the head-facing term when
-    ``vae.config.head_weight`` > 0)."""
+    """Standardize the motion of a batch and return the VAE loss dict (plus each extra term whose
+    ``vae.config`` weight is above 0)."""
 
     def __init__(self, vae: CausalVAE, normalizer: Normalizer) -> None:
         super().__init__()
         self.vae, self.normalizer = vae, normalizer
         self.contact = PlantedFeet(vae.motion_dim) if vae.config.contact_weight > 0 else None
         self.head = HeadFacing(vae.motion_dim) if vae.config.head_weight > 0 else None
+        self.lift = FootLift(vae.motion_dim) if vae.config.lift_weight > 0 else None
         self.spectrum = AccelerationSpectrum(vae.motion_dim) if vae.config.spectral_weight > 0 else None
         weight = None
         if vae.config.recon_units == "metres":
@@ -56,13 +58,14 @@ class VAEObjective(nn.Module):
         device = self.normalizer.motion_mean.device
         motion = self.normalizer.normalize_batch({"motion": batch["motion"]}, device)["motion"]
         out = self.vae(motion, generator, self.channel_weight)
-        if self.contact is None and self.head is None and self.spectrum is None:
+        if all(term is None for term in (self.contact, self.head, self.lift, self.spectrum)):
             return out
         decoded = self.normalizer.denormalize("motion", out["x_hat"].float())
         true = self.normalizer.denormalize("motion", motion.float())
         loss, terms = out["loss"], {}
         for name, term, weight in (("contact", self.contact, self.vae.config.contact_weight),
                                    ("head", self.head, self.vae.config.head_weight),
+                                   ("lift", self.lift, self.vae.config.lift_weight),
                                    ("spectrum", self.spectrum, self.vae.config.spectral_weight)):
             if term is not None:
                 terms[name] = term(decoded, true)
@@ -140,6 +143,23 @@ class HeadFacing(nn.Module):
         radius = gt.norm(dim=-1, keepdim=True).clamp_min(1e-6)
         error = (self.facing(decoded) - gt)[..., [0, 2]] / radius
         return error.square().sum(-1).mean()
+
+
+class FootLift(nn.Module):
+    """Squared error of the feet's heights in units of ``sampling.foot_lock.RELEASE``.
+
+    The feet are the foot joints' icosahedron centroids; their heights are y in the window frame
+    (floor at y = 0). A decoder whose feet lift as the data's do hands the foot lock steps it
+    lets through as they came, where a gliding foot gets the lock's arc. Inputs: motion in
+    metres, icosahedra first."""
+
+    def __init__(self, motion_dim: int) -> None:
+        super().__init__()
+        self.layout, self.unit = term_layout(motion_dim, "vae.lift_weight"), RELEASE
+
+    def forward(self, decoded: Tensor, true: Tensor) -> Tensor:
+        heights = [self.layout.joint_positions(m, FEET)[..., 1] for m in (decoded, true)]
+        return ((heights[0] - heights[1]) / self.unit).square().mean()
 
 
 class AccelerationSpectrum(nn.Module):
