@@ -132,7 +132,9 @@ class VAEConfig:
     # a step (``sampling.foot_lock.RELEASE``, 2 cm). The fixtures' feet lift 7.9 cm per step in
     # 12 % of frames; the feet are 2 of 55 joints, so a position loss leaves their timing
     # loose: every VAE the benchmark trained decoded them lifting at most 0.2 cm, gliding every
-    # step, and the foot lock replaced every step with its arc (docs/results.md, sixty-third run).
+    # step, and the foot lock replaced every step with its arc. At 0.2 in the benchmark's recipe
+    # the feet lift (4.7 cm per step, in 13 % of frames) and the agent walks less (pelvis 0.82x),
+    # but FGD_acc rose 10 %, the legs' 15 % (docs/results.md, sixty-third run): 0 in both presets.
     lift_weight: float = 0.0
     # Not in the paper (0 = the paper): weight of the acceleration-spectrum term, the distance
     # between the short-time spectra of the decoded and true accelerations, magnitudes only
