@@ -28,7 +28,7 @@
 # field added since changes the bytes and not the weights; docs/results.md lists each run's).
 # Settings can be overridden through the environment, e.g. FLOW_STEPS=7000 (the forty-eighth
 # run's recipe). Wall-clock times of every stage go to BENCH_DIR/timings.txt; run it on an
-# otherwise idle machine for the training time, then ~55 min for the 21 offline tuning
+# otherwise idle machine for the training time, then ~75 min for the 29 offline tuning
 # evaluations of trajectory imputation and ~25 min for its test ones, ~42 min for the ten
 # streamed tuning evaluations of the paper's imputation and ~25 min for its ten test ones.
 set -euo pipefail
@@ -49,15 +49,21 @@ TUNE_GRID=${TUNE_GRID:-"1.0:1.3 0.7:0.7 0.7:0.6 0.7:0.5 0.6:0.6 0.6:0.5 0.6:0.4 
 # in nearly every window until the guidance of the user's position reaches 2.5, the 14,000-step
 # one more so (the sixtieth and sixty-first runs): the paper's setting, two lower guidances of
 # the user's position, noise 0.5-0.7 x CFG 2.5-4 guiding it and six beyond (noise 0.3-0.4, CFG
-# 4.5), where the sixty-first run's rule chose an edge of the block before. The thirty-eighth to
-# forty-eighth runs' wider grid of lower guidances: this script's history (git log -p).
+# 4.5), where the sixty-first run's rule chose an edge of the block before. A fourth field is
+# sarah-eval's --guidance-interval, the flow times guided (else all): the sixty-third run's eight
+# guide the first half of the solve (or three quarters) at CFG 4-5, or all of it at 4.5. The
+# thirty-eighth to forty-eighth runs' wider grid of lower guidances: this script's history
+# (git log -p).
 TUNE_GRID_TRAJECTORY=${TUNE_GRID_TRAJECTORY:-"1.0:1.3 0.6:1.5:user_head,gaze 0.6:2.0:user_head,gaze
   0.5:2.5:user_head,gaze 0.6:2.5:user_head,gaze 0.7:2.5:user_head,gaze
   0.5:3.0:user_head,gaze 0.6:3.0:user_head,gaze 0.7:3.0:user_head,gaze
   0.5:3.5:user_head,gaze 0.6:3.5:user_head,gaze 0.7:3.5:user_head,gaze
   0.5:4.0:user_head,gaze 0.6:4.0:user_head,gaze 0.7:4.0:user_head,gaze
   0.4:3.5:user_head,gaze 0.4:4.0:user_head,gaze 0.5:4.5:user_head,gaze
-  0.3:3.5:user_head,gaze 0.3:4.0:user_head,gaze 0.4:4.5:user_head,gaze"}
+  0.3:3.5:user_head,gaze 0.3:4.0:user_head,gaze 0.4:4.5:user_head,gaze
+  0.3:4.5:user_head,gaze 0.3:4.0:user_head,gaze:0,0.5 0.3:4.5:user_head,gaze:0,0.5
+  0.3:5.0:user_head,gaze:0,0.5 0.4:4.5:user_head,gaze:0,0.5 0.4:5.0:user_head,gaze:0,0.5
+  0.3:4.0:user_head,gaze:0,0.75 0.3:4.5:user_head,gaze:0,0.75"}
 JOBS=${JOBS:-2}                      # prep workers, and evaluations run side by side
 VAE_SHORT_STEPS=${VAE_SHORT_STEPS:-2500}  # on 100-frame windows (~1/7 of a 400-frame step)
 VAE_LONG_STEPS=${VAE_LONG_STEPS:-150}     # then on 400-frame windows
