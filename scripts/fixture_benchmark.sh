@@ -11,8 +11,8 @@
 # The recipe (docs/results.md, sixty-second run; 28.8 minutes of training on the AVX2-only
 # 2-core AMD EPYC VM at the speed the sixty-first run timed it at, its stages timed in those two
 # runs; the values are the variables below): the VAE root-relative with its loss in metres and
-# its root channels down-weighted, on 100-frame windows then 400; its decoder alone on noised latents (the encoder, so the latents, frozen),
-# made stochastic (per-token draws, the energy score of its accelerations); the flow on those
+# its root channels down-weighted, on 100-frame windows then 400; its decoder alone on noised
+# latents (the encoder, so the latents, frozen), made stochastic (per-token draws, the energy score of its accelerations); the flow on those
 # latents for FLOW_STEPS steps, each token attending to a window of the tokens before it and
 # reading the user's head velocity; then the model file with DECODING_SETTINGS (docs/models.md)
 # over the shipped model's decoding, whose own script (pretrained_fixture_model.sh) owns the

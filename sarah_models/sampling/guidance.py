@@ -12,7 +12,8 @@ default). Then
     x1 = x1_uncond + w (x1_cond - x1_uncond),     w = cfg_scale (1.3)
 
 With ``StreamConfig.guidance_interval`` (lo, hi) only evaluations at flow times lo <= tau < hi
-are guided; the others take x1_cond (w = 1). Both passes run as one batch of 2. At fixed tau and z_tau the velocity is affine in x1 with the
+are guided; the others take x1_cond (w = 1). Both passes run as one batch of 2. At fixed tau
+and z_tau the velocity is affine in x1 with the
 same offset for both passes, so guiding x1 or guiding v is the same thing. ``gaze=None`` drops g
 in the conditional pass too (the paper's row "no gaze"); whenever both passes would be
 identical (or w = 1) only one pass is run.
@@ -60,13 +61,13 @@ def scale_at(tau: float, cfg_scale: float, interval: tuple[float, float]) -> flo
 
 
 def guided(cond: Tensor, uncond: Tensor, cfg_scale: float) -> Tensor:
-    """x1 = x1_uncond + w (x1_cond - x1_uncond)."""
-    return uncond + cfg_scale * (cond - uncond)
+    """x1 = x1_uncond + w (x1_cond - x1_uncond); x1_cond itself at w = 1 (not rounded)."""
+    return cond if cfg_scale == 1.0 else uncond + cfg_scale * (cond - uncond)
 
 
 def combine(x1: Tensor, cfg_scale: float) -> Tensor:
     """The guided prediction from branches in ``drop_masks`` order (1 or 2) on axis -3:
     x1 (B, L, Dz) -> (L, Dz), or per stream (G, B, L, Dz) -> (G, L, Dz)."""
-    if x1.shape[-3] == 2 and cfg_scale != 1.0:
+    if x1.shape[-3] == 2:
         return guided(x1[..., 0, :, :], x1[..., 1, :, :], cfg_scale)
     return x1[..., 0, :, :]
