@@ -105,8 +105,9 @@ class NaiveStreamer:
 
         def velocity(z: torch.Tensor, tau: float) -> torch.Tensor:
             # naive on purpose: one network call per guidance branch instead of one batch
-            x1 = [flow(z[None], tau, cond_tokens=tokens)[0] for tokens in branches]
             w = scale_at(tau, cfg.cfg_scale, cfg.guidance_interval)
+            used = branches if w != 1.0 else branches[:1]
+            x1 = [flow(z[None], tau, cond_tokens=tokens)[0] for tokens in used]
             x1 = guided(x1[0], x1[1], w) if len(x1) == 2 else x1[0]
             return velocity_from_x1(x1, z, tau, flow.config.min_denominator)
 

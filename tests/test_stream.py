@@ -166,6 +166,21 @@ def test_guidance_interval_guides_only_the_evaluations_inside_it(models):
     assert [scale_at(t, 4.0, (0.25, 0.5)) for t in (0.0, 0.25, 0.375, 0.5)] == [1.0, 4.0, 4.0, 1.0]
 
 
+def test_unguided_evaluations_run_the_conditional_branch_alone(models):
+    """Outside the guidance interval the unconditional branch would be computed and dropped:
+    those evaluations run the conditional rows only, inside it both branches run as one batch."""
+    _, flow, _ = models
+    rows: list[int] = []
+    hook = flow.register_forward_pre_hook(lambda module, args: rows.append(args[0].shape[0]))
+    try:
+        stream(models, make_inputs(2 * S), StreamConfig(gaze=None, cfg_scale=4.0,
+                                                        guidance_interval=(0.0, 0.5)))
+    finally:
+        hook.remove()
+    # 4 midpoint steps evaluate at tau = 0, 1/8, ..., 7/8: the first four are guided
+    assert rows == [2, 2, 2, 2, 1, 1, 1, 1] * 2
+
+
 def test_position_embedding_gives_streaming_the_offline_indices(models):
     """Token k of a stream gets the position embedding offline generation gives it, also past
     the training window's tokens (they share the last one), and the first token is told apart

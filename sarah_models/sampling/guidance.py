@@ -13,10 +13,10 @@ default). Then
 
 With ``StreamConfig.guidance_interval`` (lo, hi) only evaluations at flow times lo <= tau < hi
 are guided; the others take x1_cond (w = 1). Both passes run as one batch of 2. At fixed tau
-and z_tau the velocity is affine in x1 with the
-same offset for both passes, so guiding x1 or guiding v is the same thing. ``gaze=None`` drops g
-in the conditional pass too (the paper's row "no gaze"); whenever both passes would be
-identical (or w = 1) only one pass is run.
+and z_tau the velocity is affine in x1 with the same offset for both passes, so guiding x1 or
+guiding v is the same thing. ``gaze=None`` drops g in the conditional pass too (the paper's row
+"no gaze"); whenever both passes would be identical, or w = 1 (outside the interval too), only
+the conditional pass is run.
 """
 
 from __future__ import annotations

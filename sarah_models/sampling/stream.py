@@ -83,12 +83,15 @@ def solve(flow: FlowModel, cond_tokens: Tensor, noise: Tensor, known: Tensor | N
             trace.extend(state[0] for state in inner)
         return z
     streams, branches = cond_tokens.shape[:2]
-    rows = cond_tokens.flatten(0, 1)
+    # Outside the guidance interval only the conditional branch is used, so only its rows run
+    # (the unconditional rows would cost as much and be dropped).
+    rows = {branches: cond_tokens.flatten(0, 1), 1: cond_tokens[:, :1].flatten(0, 1)}
 
     def velocity(z: Tensor, tau: float) -> Tensor:
-        x = z[:, None].expand(-1, branches, -1, -1).flatten(0, 1)
-        x1 = flow(x, tau, cond_tokens=rows).unflatten(0, (streams, branches))
         w = scale_at(tau, config.cfg_scale, config.guidance_interval)
+        live = branches if w != 1.0 else 1
+        x = z[:, None].expand(-1, live, -1, -1).flatten(0, 1)
+        x1 = flow(x, tau, cond_tokens=rows[live]).unflatten(0, (streams, live))
         return velocity_from_x1(combine(x1, w), z, tau, flow.config.min_denominator)
 
     impute = replayer(known, config) if config.imputation == "trajectory" else imputer(noise, known)
