@@ -521,6 +521,28 @@ def test_a_deterministic_vae_fine_tunes_into_a_stochastic_decoder(tmp_path):
                   init_from=tuned, **common)
 
 
+def test_a_decoder_stage_leaves_the_flow_trained_on_its_encoder_as_it_was(tmp_path):
+    """The flow's initial weights come from the seed and the flow's config alone: a flow trained
+    on a decoder stage's VAE (the same frozen encoder, so the same latents) is, to the bit, the
+    flow trained on the VAE that stage started from, also when the decoder gained the stochastic
+    detail input, whose construction draws from the RNG before the flow is built."""
+    base, tuned = tmp_path / "base", tmp_path / "tuned"
+    run("vae", base, 2)
+    config = tiny_config(2)
+    stochastic = replace(config, vae=replace(config.vae, detail_dim=4),
+                         train=replace(config.train, freeze_encoder=True))
+    common = dict(device="cpu", dataset=SyntheticWindows(), stats=STATS, progress=False,
+                  echo=lambda _: None)
+    train("vae", stochastic, None, tuned, init_from=base, **common)
+    for out in (base, tuned):
+        train("flow", config, None, out, **common)
+    plain, other = (load_checkpoint(out / "flow.pt") for out in (base, tuned))
+    assert plain["config"]["vae"]["detail_dim"] == 0 and other["config"]["vae"]["detail_dim"] == 4
+    assert plain["flow"].keys() == other["flow"].keys()
+    for key, value in plain["flow"].items():
+        assert torch.equal(value, other["flow"][key]), key
+
+
 def test_init_from_takes_a_model_file(tmp_path):
     """A shared model.safetensors (a shipped model too) fine-tunes exactly like the checkpoint it
     was written from: same weights after the same steps, same data statistics."""

@@ -103,9 +103,15 @@ class LoadedModels:
     stage: str
 
 
-def build_models(config: RunConfig, dims: dict[str, int]) -> tuple[CausalVAE, FlowModel]:
-    """Fresh VAE and flow model for the given configs and feature widths."""
+def build_models(config: RunConfig, dims: dict[str, int],
+                 flow_seed: int | None = None) -> tuple[CausalVAE, FlowModel]:
+    """Fresh VAE and flow model for the given configs and feature widths. ``flow_seed``: the
+    global RNGs are seeded with it just before the flow is built, so the flow's initial weights
+    depend on that seed and the flow's own config only, not on how many draws the VAE's
+    construction took (a stochastic decoder's extra input once gave a flow stage another flow)."""
     vae = CausalVAE(config.vae, dims["motion"])
+    if flow_seed is not None:
+        seed_global_rngs(flow_seed)
     flow = FlowModel(config.flow, config.vae.latent_dim, config.vae.stride, dims["audio"])
     return vae, flow
 

@@ -360,7 +360,7 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
         if feature_dims(dataset, tcfg.window) != dims:
             raise ValueError(f"dataset widths {feature_dims(dataset, tcfg.window)} differ from "
                              f"the VAE's {dims} in {out_dir / 'vae.pt'}")
-        vae, flow = build_models(run_config, dims)
+        vae, flow = build_models(run_config, dims, flow_seed=tcfg.seed + STAGES.index(stage))
         vae.load_state_dict(vae_ckpt["vae"])
         if previous is not None:
             _check_same("flow", config.to_dict()["flow"], stored_config(previous)["flow"], ckpt_path)
