@@ -10,7 +10,9 @@
 # .done marker, so an interrupted run resumes at the stage it stopped in (that stage starts
 # over). Every training step is seeded (train.seed 0, the default): the same code on the same
 # thread count gives the same weights; the final digest is printed to compare with the shipped
-# one (sarah_models/pretrained/__init__.py). Not run in CI.
+# one (sarah_models/pretrained/__init__.py). "The same code" is the code of that run: since
+# 2026-12-03 the flow stage draws the flow's initial weights right after seeding (docs/models.md),
+# so a flow trained from nothing now starts elsewhere than the shipped one did. Not run in CI.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
