@@ -13,7 +13,7 @@ from sarah_models.nn.normalizer import Normalizer
 from sarah_models.nn.user_offset import pelvis_floor
 from sarah_models.nn.vae import CausalVAE, detail_generator
 from sarah_models.sampling.decoding import stream_decoding
-from sarah_models.sampling.guidance import drop_masks, guided, scale_at
+from sarah_models.sampling.guidance import branches_run, drop_masks, guided, scale_at
 from sarah_models.sampling.path import velocity_from_x1
 from sarah_models.sampling.solver import imputer, integrate, token_noise
 from sarah_models.sampling.stream import kept_history
@@ -106,7 +106,7 @@ class NaiveStreamer:
         def velocity(z: torch.Tensor, tau: float) -> torch.Tensor:
             # naive on purpose: one network call per guidance branch instead of one batch
             w = scale_at(tau, cfg.cfg_scale, cfg.guidance_interval)
-            used = branches if w != 1.0 else branches[:1]
+            used = branches[:branches_run(len(branches), w)]
             x1 = [flow(z[None], tau, cond_tokens=tokens)[0] for tokens in used]
             x1 = guided(x1[0], x1[1], w) if len(x1) == 2 else x1[0]
             return velocity_from_x1(x1, z, tau, flow.config.min_denominator)

@@ -6,8 +6,9 @@ before the results are read (docs/results.md, thirty-seventh run):
 Each folder is one `sarah-eval --methods gt,model` run on the same tuning windows at one
 (--noise-scale, --cfg[, --guide][, --guidance-interval]). The chosen setting is the one whose
 paired wrist speed and Head Ang. (the "Beside GT" table) lie nearest GT in units of issue #16's
-tolerances, the larger of |wrists / GT - 1| / 0.20 and |Head Ang. - GT| / 0.05, among the settings that keep #16's other
-item-2 figures (foot slide, bone length, frame-0 offset) within theirs. Prints every setting's
+tolerances, the larger of |wrists / GT - 1| / 0.20 and |Head Ang. - GT| / 0.05, among the
+settings that keep #16's other item-2 figures (foot slide, bone length, frame-0 offset) within
+theirs. Prints every setting's
 figures as a markdown table; with --flags-to, writes the chosen setting as sarah-eval flags.
 
 A test corpus of another seed then reports the chosen setting's figures: the tuning corpus's

@@ -60,6 +60,12 @@ def scale_at(tau: float, cfg_scale: float, interval: tuple[float, float]) -> flo
     return cfg_scale if lo <= tau < hi else 1.0
 
 
+def branches_run(branches: int, cfg_scale: float) -> int:
+    """How many of the ``drop_masks`` branches an evaluation at guidance scale w runs: at w = 1
+    (outside the guidance interval too) the conditional one alone, its result being x1_cond."""
+    return branches if cfg_scale != 1.0 else 1
+
+
 def guided(cond: Tensor, uncond: Tensor, cfg_scale: float) -> Tensor:
     """x1 = x1_uncond + w (x1_cond - x1_uncond); x1_cond itself at w = 1 (not rounded)."""
     return cond if cfg_scale == 1.0 else uncond + cfg_scale * (cond - uncond)

@@ -57,7 +57,7 @@ from ..nn.streams import independent_streams
 from ..nn.user_offset import pelvis_floor, user_offset
 from ..nn.vae import CausalVAE, detail_generator
 from .decoding import StreamDecoding, stream_decoding
-from .guidance import combine, drop_masks, scale_at
+from .guidance import branches_run, combine, drop_masks, scale_at
 from .path import velocity_from_x1
 from .solver import imputer, integrate, replayer, token_noise
 
@@ -83,13 +83,12 @@ def solve(flow: FlowModel, cond_tokens: Tensor, noise: Tensor, known: Tensor | N
             trace.extend(state[0] for state in inner)
         return z
     streams, branches = cond_tokens.shape[:2]
-    # Outside the guidance interval only the conditional branch is used, so only its rows run
-    # (the unconditional rows would cost as much and be dropped).
+    # rows of every branch, and of the conditional one alone (branches_run)
     rows = {branches: cond_tokens.flatten(0, 1), 1: cond_tokens[:, :1].flatten(0, 1)}
 
     def velocity(z: Tensor, tau: float) -> Tensor:
         w = scale_at(tau, config.cfg_scale, config.guidance_interval)
-        live = branches if w != 1.0 else 1
+        live = branches_run(branches, w)
         x = z[:, None].expand(-1, live, -1, -1).flatten(0, 1)
         x1 = flow(x, tau, cond_tokens=rows[live]).unflatten(0, (streams, live))
         return velocity_from_x1(combine(x1, w), z, tau, flow.config.min_denominator)
