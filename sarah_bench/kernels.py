@@ -35,6 +35,7 @@ from sarah_data.features import get_extractor
 from sarah_models.accel import optimize_for_inference
 from sarah_models.accel.linears import (
     BF16Linear,
+    ByRowsLinear,
     Int8Linear,
     PackedLinear,
     PerStreamLinear,
@@ -152,6 +153,8 @@ FLOW_EVALUATION_OUTER = ("latent_in", "out.proj")
 
 def weight_bytes(module: nn.Module) -> int:
     """Bytes of weights one call of a Linear-like module reads (bias left out)."""
+    if isinstance(module, ByRowsLinear):  # a streamed call's few rows: its int8 kernel
+        return weight_bytes(module.few)
     if isinstance(module, Int8Linear):
         return module.in_features * module.out_features
     if isinstance(module, BF16Linear):

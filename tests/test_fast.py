@@ -25,19 +25,21 @@ from hypothesis import given, settings, strategies as st
 import sarah_models.accel.cpu as cpu_module
 import sarah_models.accel.optimize as optimize_module
 from helpers import spinning_processes
+from sarah_data.skeleton import MotionLayout
 from sarah_bench.naive import NaiveStreamer
 from sarah_models.accel import optimize_for_inference, resolve_decoder
 import sarah_models.accel.linears as linears_module
-from sarah_models.accel.linears import (BF16Linear, Int8Linear, PackedLinear, PerStreamLinear,
-                                        decoder_linears, flow_block_linears, flow_outer_linears,
+from sarah_models.accel.linears import (BF16Linear, ByRowsLinear, Int8Linear, PackedLinear,
+                                        PerStreamLinear, decoder_linears, flow_block_linears, flow_outer_linears,
                                         packed_linears_available, worth_packing, worth_quantizing)
 from sarah_models.accel.memo import InputMemo
 from sarah_models.config import RunConfig, StreamConfig
 from sarah_models.nn.layers import KVCache, RopeAngles
 from sarah_models.nn.streams import independent_streams, stream_groups
 from sarah_models.sampling.solver import time_grid
-from sarah_models.sampling.stream import StreamingGenerator, kept_history
-from sarah_models.testing import random_models, stream_deviation, stream_inputs, without_foot_lock
+from sarah_models.sampling.stream import StreamingGenerator, generate_offline, kept_history
+from sarah_models.testing import (generate_stream, random_models, stream_deviation, stream_inputs,
+                                  without_foot_lock)
 from sarah_models.training.checkpoint import LoadedModels
 
 AUDIO_DIM = 8
@@ -141,10 +143,52 @@ def test_int8_within_tolerance_at_paper_size(decoder):
     fast = optimize_for_inference(paper, "int8", decoder=decoder)
     assert any(computes_in_bf16(m) for m in fast[0].modules()) == (decoder == "bf16")
     block_linears = [fast[1].get_submodule(name) for name in flow_block_linears(paper[1])]
-    assert block_linears and all(isinstance(m, Int8Linear) for m in block_linears)
+    int8 = ByRowsLinear if cpu_module.amx_bf16_available() else Int8Linear  # linears.int8_linear
+    assert block_linears and all(isinstance(m, int8) for m in block_linears)
     deviation = stream_deviation(paper, fast, frames=12)
     assert 0.0 < deviation.max_joint_mm <= TOLERANCE_MM, deviation
     assert deviation.head_angle_delta <= METRIC_TOLERANCE
+
+
+def test_by_rows_linear_takes_its_kernel_by_the_rows_of_one_stream():
+    torch.manual_seed(0)
+    linear = torch.nn.Linear(64, 96)
+    layer = ByRowsLinear(PerStreamLinear(linear), BF16Linear(linear), min_rows=8)
+    few, many = torch.randn(6, 64), torch.randn(2, 5, 64)
+    assert torch.equal(layer(few), layer.few(few)) and not torch.equal(layer(few), layer.many(few))
+    assert torch.equal(layer(many), layer.many(many)) and not torch.equal(layer(many), layer.few(many))
+    with independent_streams(2):  # two streams' rows: each computed as alone, by ``few``
+        assert torch.equal(layer(many), layer.few(many))
+    with pytest.raises(ValueError, match="same Linear"):
+        ByRowsLinear(PerStreamLinear(linear), BF16Linear(torch.nn.Linear(64, 32)), min_rows=8)
+    assert flow_block_linears(torch.nn.Module()) == []
+    root = torch.nn.Module()
+    root.blocks = torch.nn.ModuleList([layer])  # listed once, not with its two kernels
+    assert flow_block_linears(root) == ["blocks.0"]
+
+
+@pytest.mark.skipif(not packed_linears_available(torch.bfloat16),
+                    reason="oneDNN packs bfloat16 weights only with AVX-512 BF16 or AVX-NE-CONVERT")
+def test_int8_mode_on_amx_streams_as_int8_and_generates_offline_within_tolerance(monkeypatch):
+    """Where the CPU has AMX the int8 mode's large Linears compute an offline window's rows in
+    bf16 (linears.int8_linear): a stream must not change by a bit, offline stays within 1 mm."""
+    paper = random_models("paper", audio_dim=AUDIO_DIM, shell_points=SHELL, seed=1)
+    monkeypatch.setattr(linears_module, "amx_bf16_available", lambda: False)
+    int8 = optimize_for_inference(paper, "int8")
+    monkeypatch.setattr(linears_module, "amx_bf16_available", lambda: True)
+    amx = optimize_for_inference(paper, "int8")
+    blocks = [amx[1].get_submodule(name) for name in flow_block_linears(paper[1])]
+    assert blocks and all(isinstance(m, ByRowsLinear) and isinstance(m.few, Int8Linear)
+                          and m.many.dtype == torch.bfloat16 for m in blocks)
+    inputs = stream_inputs(160, AUDIO_DIM, seed=2)  # offline: 40 tokens x 2 guidance branches
+    streamed = [inputs[0][:48], inputs[1][:48], inputs[2][:48]]
+    np.testing.assert_array_equal(generate_stream(amx, streamed), generate_stream(int8, streamed))
+    layout = MotionLayout.from_width(paper[0].motion_dim)
+    offline = {name: layout.joint_positions(generate_offline(*models, *inputs))
+               for name, models in (("fp32", paper), ("int8", int8), ("amx", amx))}
+    assert not np.array_equal(offline["amx"], offline["int8"])  # the wide rows ran in bf16
+    deviation_mm = np.linalg.norm(offline["amx"] - offline["fp32"], axis=-1).max() * 1000.0
+    assert 0.0 < deviation_mm <= TOLERANCE_MM
 
 
 def test_bf16_decoder_converts_the_decode_path_only(tiny):

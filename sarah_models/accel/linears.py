@@ -22,19 +22,23 @@ evaluations over 3 tokens x 2 guidance branches), so weight bytes are the first 
   in bf16, 2.4 ms packed fp32, 1.7 ms packed bf16). Packed fp32 differs from ``F.linear`` by
   summation order only (~1e-6). A oneDNN call has a fixed cost of its own, though, and below
   ``PACK_MIN_WEIGHTS`` weights it is larger than the repacking it saves (``worth_packing``).
+* ``ByRowsLinear``: one Linear, two of the above, chosen per call by how many rows it brings:
+  where the CPU has AMX, the int8 one for a streamed evaluation's few rows (bound by reading
+  the weights) and the bf16 one for an offline window's hundreds (bound by arithmetic, which
+  AMX does in bf16 and fbgemm does not).
 """
 
 from __future__ import annotations
 
 import warnings
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Iterator
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ..nn.streams import stream_groups
-from .cpu import int8_full_range, onednn_bf16_available, onednn_linear_ops
+from .cpu import amx_bf16_available, int8_full_range, onednn_bf16_available, onednn_linear_ops
 
 
 class Int8Linear(nn.Module):
@@ -187,6 +191,55 @@ class PackedLinear(nn.Module):
                 f"{str(self.dtype).removeprefix('torch.')}, oneDNN-packed")
 
 
+class ByRowsLinear(nn.Module):
+    """A Linear computed by ``few`` when a call brings fewer than ``min_rows`` rows, or the rows
+    of several streams (``nn.streams``: ``few`` computes each stream's as alone), and by
+    ``many`` otherwise. ``few`` and ``many`` are two replacements of the same Linear."""
+
+    def __init__(self, few: nn.Module, many: nn.Module, min_rows: int) -> None:
+        super().__init__()
+        if (few.in_features, few.out_features) != (many.in_features, many.out_features):
+            raise ValueError("few and many must replace the same Linear")
+        self.few, self.many, self.min_rows = few, many, min_rows
+        self.in_features, self.out_features = few.in_features, few.out_features
+        compute_few, compute_many = linear_function(few), linear_function(many)
+        least = min_rows * self.in_features
+
+        def compute(x: Tensor) -> Tensor:
+            if x.numel() >= least and stream_groups() == 1:
+                return compute_many(x)
+            return compute_few(x)
+        self._compute = compute
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self._compute(x)
+
+    def function(self) -> Callable[[Tensor], Tensor]:
+        return self._compute
+
+    def extra_repr(self) -> str:
+        return f"min_rows={self.min_rows}"
+
+
+# From how many rows of one stream a ``ByRowsLinear`` of the int8 mode computes in bf16 on AMX.
+# The Xeon with AMX of 2026-12-03, one paper-size block's 4 Linears (qkv, out, MLP), int8 /
+# bf16 per call: 6 rows 891 / 1,514 us (1 thread), 614 / 1,023 (2); 24 rows 1,647 / 1,744,
+# 1,033 / 1,152; 32 rows 2,015 / 1,812, 1,217 / 1,222; 100 rows 5,112 / 2,986, 2,925 / 2,193.
+# A streamed evaluation brings 6 rows (3 tokens x 2 guidance branches), an offline window 200.
+AMX_MIN_ROWS = 32
+
+
+def int8_linear(linear: nn.Linear) -> nn.Module:
+    """The int8 mode's replacement of a large Linear (``worth_quantizing``): an ``Int8Linear``,
+    or where the CPU has AMX a ``ByRowsLinear`` that computes ``AMX_MIN_ROWS`` rows or more in
+    bf16 (oneDNN-packed). On the Xeon with AMX of 2026-12-03 (paper size, 1024 -> 4096, 2
+    threads, p50 per call): 6 rows int8 126 us, bf16 454; 400 rows int8 3.4 ms, bf16 1.9 ms;
+    paper-size offline generation 1.3x faster, and nearer fp32 (docs/performance.md)."""
+    if amx_bf16_available() and packed_linears_available(torch.bfloat16):
+        return ByRowsLinear(Int8Linear(linear), PackedLinear(linear, torch.bfloat16), AMX_MIN_ROWS)
+    return Int8Linear(linear)
+
+
 # The smallest weight (in x out entries) worth a ``PackedLinear``. Timed on the AMD EPYC of
 # 2026-11-27 (1 thread, 4-5 rows, us per call, F.linear / packed): 128 x 128 27 / 69,
 # 128 x 512 32 / 53, 512 x 128 51 / 69, 256 x 256 35 / 53 -- oneDNN's per-call cost is larger
@@ -216,7 +269,7 @@ def worth_quantizing(linear: nn.Linear) -> bool:
 
 
 # A Linear as it stands before or after ``optimize_for_inference`` swapped it.
-LINEAR_KINDS = (nn.Linear, Int8Linear, PerStreamLinear, BF16Linear, PackedLinear)
+LINEAR_KINDS = (nn.Linear, Int8Linear, PerStreamLinear, BF16Linear, PackedLinear, ByRowsLinear)
 
 
 def packed_linears_available(dtype: torch.dtype = torch.float32) -> bool:
@@ -233,7 +286,7 @@ def linear_function(module: nn.Module) -> Callable[[Tensor], Tensor]:
     fused blocks call their Linears some 30 times per evaluation, and a module call costs
     ~10 us of Python next to a ~40 us int8 kernel. Take it once the layer is final (after any
     swap): it holds that layer's weights."""
-    if isinstance(module, (Int8Linear, PerStreamLinear, BF16Linear, PackedLinear)):
+    if isinstance(module, (Int8Linear, PerStreamLinear, BF16Linear, PackedLinear, ByRowsLinear)):
         return module.function()
     if type(module) is nn.Linear:
         weight, bias = module.weight, module.bias
@@ -255,21 +308,34 @@ def swap_linears(root: nn.Module, names: Iterable[str],
     return root
 
 
+def named_linears(root: nn.Module) -> Iterator[tuple[str, nn.Module]]:
+    """Every Linear-like module of ``root`` with its name; a ``ByRowsLinear`` counts as one
+    Linear (its two kernels are not listed apart)."""
+    inside: list[str] = []
+    for name, module in root.named_modules():
+        if any(name.startswith(prefix) for prefix in inside):
+            continue
+        if isinstance(module, ByRowsLinear):
+            inside.append(name + ".")
+        if isinstance(module, LINEAR_KINDS):
+            yield name, module
+
+
 def flow_block_linears(flow: nn.Module) -> list[str]:
     """The Linears inside the flow's transformer blocks that run at every evaluation (attention
     and MLP: ~97 % of an evaluation's weights). The AdaLN modulations run once per flow time
     (memoized) and stay fp32, as do input/output projections and condition encoders: quantizing
     them too multiplied the deviation by ten for a 2 % gain in speed."""
-    return [name for name, m in flow.named_modules()
-            if isinstance(m, LINEAR_KINDS) and name.startswith("blocks.") and ".modulation." not in name]
+    return [name for name, _ in named_linears(flow)
+            if name.startswith("blocks.") and ".modulation." not in name]
 
 
 def flow_outer_linears(flow: nn.Module) -> list[str]:
     """The flow's Linears outside its blocks that run at every evaluation or chunk: the
     latent input, the output projection, the condition encoders and ``cond_in`` (not the time
     path or the AdaLN modulations, which the time cache memoizes)."""
-    return [name for name, m in flow.named_modules() if isinstance(m, LINEAR_KINDS)
-            and (name in ("latent_in", "out.proj", "cond_in") or name.startswith("encoders."))]
+    return [name for name, _ in named_linears(flow)
+            if name in ("latent_in", "out.proj", "cond_in") or name.startswith("encoders.")]
 
 
 # The flow's Linears outside its blocks that ``step_together`` calls on many streams' rows at
@@ -284,5 +350,5 @@ BATCHED_OUTER_LINEARS = ("latent_in", "out.proj")
 def decoder_linears(vae: nn.Module) -> list[str]:
     """The Linears a streamed VAE decode step runs: the latent input, every decoder layer's and
     the frame output."""
-    return [name for name, m in vae.named_modules() if isinstance(m, LINEAR_KINDS)
-            and (name.startswith("decoder.") or name in ("latent_in", "frame_out"))]
+    return [name for name, _ in named_linears(vae)
+            if name.startswith("decoder.") or name in ("latent_in", "frame_out")]

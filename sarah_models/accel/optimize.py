@@ -23,7 +23,9 @@ Once those are int8, the many small operations around them are the other half of
 * int8: the Linears of the flow's blocks become ``Int8Linear`` (4x fewer weight bytes) where
   they are large enough for the bytes to be the cost (``linears.worth_quantizing``: the paper
   size's are, the tiny preset's are not); the others stay fp32 as ``PerStreamLinear``, no slower,
-  and ~1000x closer to fp32 on the shipped model (0.005 against 3.6 mm).
+  and ~1000x closer to fp32 on the shipped model (0.005 against 3.6 mm). Where the CPU has AMX,
+  each int8 Linear is a ``ByRowsLinear`` whose calls of many rows (offline generation) run in
+  bf16 on AMX instead (``linears.int8_linear``); a streamed evaluation's few rows stay int8.
 * bf16: the same Linears become ``BF16Linear`` (2x fewer; ``PackedLinear`` in bf16 where
   oneDNN is there).
 * decoder (int8 and bf16 modes): the VAE decoder's Linears in fp32 (``decoder="auto"``, or
@@ -70,12 +72,12 @@ from .fused import FusedAdaLNZeroBlock, FusedAdaLNZeroOutput, FusedTransformerBl
 from .linears import (
     BATCHED_OUTER_LINEARS,
     BF16Linear,
-    Int8Linear,
     PackedLinear,
     PerStreamLinear,
     decoder_linears,
     flow_block_linears,
     flow_outer_linears,
+    int8_linear,
     packed_linears_available,
     swap_linears,
     worth_packing,
@@ -92,8 +94,8 @@ MODE_HELP = {
     "bf16": "fp32 time cache + bfloat16 Linear layers + fused blocks + the other Linears "
             "oneDNN-packed",
     "int8": "fp32 time cache + dynamic int8 Linear layers where large enough to gain "
-            "(per-channel weight scales, 8-bit rows with VNNI) + fused blocks + the other "
-            "Linears oneDNN-packed",
+            "(per-channel weight scales, 8-bit rows with VNNI; offline, bf16 on AMX) + fused "
+            "blocks + the other Linears oneDNN-packed",
 }
 
 
@@ -224,7 +226,7 @@ def optimize_for_inference(models, mode: str = "int8", *, stream_config: StreamC
         if mode == "int8":
             blocks = flow_block_linears(flow)
             large = [name for name in blocks if worth_quantizing(flow.get_submodule(name))]
-            swap_linears(flow, large, Int8Linear)
+            swap_linears(flow, large, int8_linear)
             swap_linears(flow, [name for name in blocks if name not in large], PerStreamLinear)
         elif mode == "fp32":  # exact, and a stream's rows as alone whatever shares the solve
             swap_linears(flow, [*flow_block_linears(flow), *BATCHED_OUTER_LINEARS], PerStreamLinear)
