@@ -41,7 +41,21 @@ from ..nn.streams import stream_groups
 from .cpu import amx_bf16_available, int8_full_range, onednn_bf16_available, onednn_linear_ops
 
 
-class Int8Linear(nn.Module):
+class ComputedLinear(nn.Module):
+    """A Linear replacement whose computation is a plain callable, ``self._compute``, built
+    once with its weights; ``function()`` hands it out (see ``linear_function``)."""
+
+    _compute: Callable[[Tensor], Tensor]
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self._compute(x)
+
+    def function(self) -> Callable[[Tensor], Tensor]:
+        """This layer's computation as a plain callable (see ``linear_function``)."""
+        return self._compute
+
+
+class Int8Linear(ComputedLinear):
     """``reduce_range``: activations quantized to 7 bits (torch's default, and bit-identical to
     ``quantize_dynamic``) or 8; None: 8 where the CPU has VNNI (``cpu.int8_full_range``)."""
 
@@ -63,13 +77,6 @@ class Int8Linear(nn.Module):
                                                  torch.qint8)
         self.packed = torch.ops.quantized.linear_prepack(qweight, bias)
         self._compute = self._computation()
-
-    def forward(self, x: Tensor) -> Tensor:
-        return self._compute(x)
-
-    def function(self) -> Callable[[Tensor], Tensor]:
-        """This layer's computation as a plain callable (see ``linear_function``)."""
-        return self._compute
 
     def _computation(self) -> Callable[[Tensor], Tensor]:
         """The kernel takes one activation scale per call, so a batch of several streams
@@ -97,7 +104,7 @@ def streams_in(x: Tensor) -> int:
     return groups
 
 
-class PerStreamLinear(nn.Module):
+class PerStreamLinear(ComputedLinear):
     """A Linear in fp32 (the same weights) that gives each stream's rows of a batch what they
     get alone. MKL's ``F.linear`` rounds a row differently with the number of rows in the call
     (another path at up to 3), so over all the streams' rows at once a stream would move with
@@ -124,17 +131,11 @@ class PerStreamLinear(nn.Module):
             return y.reshape(*x.shape[:-1], size_out)
         self._compute = compute
 
-    def forward(self, x: Tensor) -> Tensor:
-        return self._compute(x)
-
-    def function(self) -> Callable[[Tensor], Tensor]:
-        return self._compute
-
     def extra_repr(self) -> str:
         return f"in_features={self.in_features}, out_features={self.out_features}, fp32 per stream"
 
 
-class BF16Linear(nn.Module):
+class BF16Linear(ComputedLinear):
     """A Linear computed in bfloat16 (weights stored in bfloat16); output in the input dtype."""
 
     def __init__(self, linear: nn.Linear) -> None:
@@ -143,16 +144,11 @@ class BF16Linear(nn.Module):
         self.weight = nn.Parameter(linear.weight.detach().to(torch.bfloat16), requires_grad=False)
         self.bias = (None if linear.bias is None else
                      nn.Parameter(linear.bias.detach().to(torch.bfloat16), requires_grad=False))
-
-    def forward(self, x: Tensor) -> Tensor:
-        return F.linear(x.to(torch.bfloat16), self.weight, self.bias).to(x.dtype)
-
-    def function(self) -> Callable[[Tensor], Tensor]:
         weight, bias = self.weight, self.bias
-        return lambda x: F.linear(x.to(torch.bfloat16), weight, bias).to(x.dtype)
+        self._compute = lambda x: F.linear(x.to(torch.bfloat16), weight, bias).to(x.dtype)
 
 
-class PackedLinear(nn.Module):
+class PackedLinear(ComputedLinear):
     """A Linear over oneDNN-packed weights (see the module docstring), computed in ``dtype``
     (float32 or bfloat16), output in the input dtype. CPU only; ``packed_linears_available()``
     says whether this torch can build one."""
@@ -180,18 +176,12 @@ class PackedLinear(nn.Module):
         else:
             self._compute = lambda x: op(x.to(dtype), packed, bias, "none", [], "").to(x.dtype)
 
-    def forward(self, x: Tensor) -> Tensor:
-        return self._compute(x)
-
-    def function(self) -> Callable[[Tensor], Tensor]:
-        return self._compute
-
     def extra_repr(self) -> str:
         return (f"in_features={self.in_features}, out_features={self.out_features}, "
                 f"{str(self.dtype).removeprefix('torch.')}, oneDNN-packed")
 
 
-class ByRowsLinear(nn.Module):
+class ByRowsLinear(ComputedLinear):
     """A Linear computed by ``few`` when a call brings fewer than ``min_rows`` rows, or the rows
     of several streams (``nn.streams``: ``few`` computes each stream's as alone), and by
     ``many`` otherwise. ``few`` and ``many`` are two replacements of the same Linear."""
@@ -210,12 +200,6 @@ class ByRowsLinear(nn.Module):
                 return compute_many(x)
             return compute_few(x)
         self._compute = compute
-
-    def forward(self, x: Tensor) -> Tensor:
-        return self._compute(x)
-
-    def function(self) -> Callable[[Tensor], Tensor]:
-        return self._compute
 
     def extra_repr(self) -> str:
         return f"min_rows={self.min_rows}"
@@ -286,7 +270,7 @@ def linear_function(module: nn.Module) -> Callable[[Tensor], Tensor]:
     fused blocks call their Linears some 30 times per evaluation, and a module call costs
     ~10 us of Python next to a ~40 us int8 kernel. Take it once the layer is final (after any
     swap): it holds that layer's weights."""
-    if isinstance(module, (Int8Linear, PerStreamLinear, BF16Linear, PackedLinear, ByRowsLinear)):
+    if isinstance(module, ComputedLinear):
         return module.function()
     if type(module) is nn.Linear:
         weight, bias = module.weight, module.bias
