@@ -10,7 +10,8 @@
 #
 # The recipe (docs/results.md, sixty-second run; on the AVX2-only 2-core AMD EPYC VM 28.8
 # minutes of training at the speed the sixty-first run timed its stages at, 48.3 timed whole by
-# the sixty-fourth run in an hour when that VM ran at 0.6 of that speed; the values are the
+# the sixty-fourth run in an hour when that VM ran at 0.6 of that speed, 27.0 timed whole by the
+# sixty-fifth run on a 2-core Intel Xeon with AMX; the values are the
 # variables below): the VAE root-relative with its loss in metres and
 # its root channels down-weighted, on 100-frame windows then 400; its decoder alone on noised
 # latents (the encoder, so the latents, frozen), made stochastic (per-token draws, the energy score of its accelerations); the flow on those
