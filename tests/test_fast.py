@@ -30,8 +30,9 @@ from sarah_bench.naive import NaiveStreamer
 from sarah_models.accel import optimize_for_inference, resolve_decoder
 import sarah_models.accel.linears as linears_module
 from sarah_models.accel.linears import (BF16Linear, ByRowsLinear, Int8Linear, PackedLinear,
-                                        PerStreamLinear, decoder_linears, flow_block_linears, flow_outer_linears,
-                                        packed_linears_available, worth_packing, worth_quantizing)
+                                        PerStreamLinear, decoder_linears, flow_block_linears,
+                                        flow_outer_linears, packed_linears_available,
+                                        worth_packing, worth_quantizing)
 from sarah_models.accel.memo import InputMemo
 from sarah_models.config import RunConfig, StreamConfig
 from sarah_models.nn.layers import KVCache, RopeAngles
@@ -155,8 +156,10 @@ def test_by_rows_linear_takes_its_kernel_by_the_rows_of_one_stream():
     linear = torch.nn.Linear(64, 96)
     layer = ByRowsLinear(PerStreamLinear(linear), BF16Linear(linear), min_rows=8)
     few, many = torch.randn(6, 64), torch.randn(2, 5, 64)
-    assert torch.equal(layer(few), layer.few(few)) and not torch.equal(layer(few), layer.many(few))
-    assert torch.equal(layer(many), layer.many(many)) and not torch.equal(layer(many), layer.few(many))
+    assert torch.equal(layer(few), layer.few(few))
+    assert not torch.equal(layer(few), layer.many(few))
+    assert torch.equal(layer(many), layer.many(many))
+    assert not torch.equal(layer(many), layer.few(many))
     with independent_streams(2):  # two streams' rows: each computed as alone, by ``few``
         assert torch.equal(layer(many), layer.few(many))
     with pytest.raises(ValueError, match="same Linear"):
