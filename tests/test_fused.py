@@ -19,13 +19,16 @@ from hypothesis import given, settings, strategies as st
 
 from sarah_models.accel import optimize_for_inference
 from sarah_models.accel.fused import FusedAdaLNZeroBlock, FusedAdaLNZeroOutput, FusedAttention
+from sarah_models.accel.linears import PackedLinear, packed_linears_available, replace_module
 from sarah_models.accel.memo import RopeTable
 from sarah_models.accel.optimize import fuse_flow, table_decoder_rope
+from sarah_models.accel.traced import TracedAdaLNZeroBlock
 from sarah_models.config import StreamConfig
 from sarah_models.nn.flow import FlowModel
 from sarah_models.nn.layers import AdaLNZeroBlock, RopeAngles
 from sarah_models.nn.vae import CausalVAE
-from sarah_models.testing import random_models, stream_deviation
+from sarah_models.sampling.stream import StreamingGenerator, generate_offline, step_together
+from sarah_models.testing import random_models, stream_deviation, stream_inputs
 
 AUDIO_DIM = 8
 ROOT = Path(__file__).resolve().parents[1]
@@ -134,6 +137,55 @@ def test_int8_mode_swaps_modules_and_keeps_the_reference_forwards(models):
     assert type(flow) is FlowModel and type(vae) is CausalVAE
     stream_deviation(models, fast, frames=8)
     assert all(block.folded.hits > 0 for block in flow.blocks)
+
+
+def _streamed_and_offline(models) -> list:
+    """A stream alone (8 chunks), two streams served together (8 rounds) and the offline solve
+    of the same inputs, as frames."""
+    vae, flow, normalizer = models
+    head, a, b = stream_inputs(64, AUDIO_DIM, seed=5)
+    first, second = StreamingGenerator(vae, flow, normalizer), StreamingGenerator(vae, flow, normalizer)
+    alone = [first.step(head[i:i + 4], a[i:i + 4], b[i:i + 4]) for i in range(0, 32, 4)]
+    together = [step_together([first, second], [(head[i:i + 4], a[i:i + 4], b[i:i + 4])] * 2)
+                for i in range(32, 64, 4)]
+    return [*alone, *(frames for both in together for frames in both),
+            generate_offline(vae, flow, normalizer, head, a, b)]
+
+
+def test_traced_blocks_give_the_eager_fused_blocks_bits(models):
+    """The int8 mode's default: the flow's fused blocks replayed from traces, against the same
+    blocks computed eagerly (``trace=False``): every frame of a stream, of two streams served
+    together and of the offline solve equal to the bit, each call shape traced once."""
+    traced = optimize_for_inference(models, "int8")
+    eager = optimize_for_inference(models, "int8", trace=False)
+    assert all(isinstance(b, TracedAdaLNZeroBlock) for b in traced[1].blocks)
+    assert not any(isinstance(b, TracedAdaLNZeroBlock) for b in eager[1].blocks)
+    with torch.inference_mode():
+        got, want = _streamed_and_offline(traced), _streamed_and_offline(eager)
+    assert all((g == w).all() for g, w in zip(got, want))
+    for block in traced[1].blocks:
+        assert block.untraced == {}
+        # the warm-up's one row; a stream's windows of 1, 2 and 3 tokens, two streams' of 3;
+        # the offline window
+        assert len(block.traces) == 6
+
+
+@pytest.mark.skipif(not packed_linears_available(), reason="needs torch's oneDNN linear ops")
+def test_a_block_a_trace_cannot_hold_computes_eagerly(models):
+    """oneDNN-packed weights are an opaque tensor no trace holds: such a block says so for the
+    call's key and gives what the eager fused block gives."""
+    _, flow, _ = models
+    eager, traced = copy.deepcopy(flow), copy.deepcopy(flow)
+    for copied, trace in ((eager, False), (traced, True)):
+        replace_module(copied, "blocks.0.mlp.0", PackedLinear(copied.blocks[0].mlp[0]))
+        fuse_flow(copied, traced=trace)
+    z = torch.randn(2, 3, flow.latent_dim)
+    cond = torch.randn(2, 3, flow.config.hidden)
+    with torch.inference_mode():
+        assert torch.equal(traced(z, 0.5, cond_tokens=cond), eager(z, 0.5, cond_tokens=cond))
+    (key, reason), = traced.blocks[0].untraced.items()
+    assert key[0] == (2, 3, flow.config.hidden) and "Tensor" in reason
+    assert traced.blocks[1].untraced == {} and len(traced.blocks[1].traces) == 1
 
 
 # The only private fields of other projects read here, each in one function whose comment names

@@ -60,9 +60,14 @@ class FusedAttention(Attention):
     def attend(self, x: Tensor, mask: Tensor | None, positions: Tensor,
                cache: KVCache | None = None, commit: bool = True) -> Tensor:
         """The fused computation (inference, 1-D positions), without the module call."""
+        cos, sin = self.tables(positions.to(x.device), x.dtype)
+        return self.attend_rotated(x, mask, cos, sin, cache, commit)
+
+    def attend_rotated(self, x: Tensor, mask: Tensor | None, cos: Tensor, sin: Tensor,
+                       cache: KVCache | None = None, commit: bool = True) -> Tensor:
+        """``attend`` with the positions' rotary tables already looked up."""
         b, n, d = x.shape
         qkv = self.project_qkv(x).view(b, n, 3, self.heads, d // self.heads)
-        cos, sin = self.tables(positions.to(x.device), x.dtype)
         qk = apply_rope(qkv[:, :, :2], cos, sin).transpose(1, 3)  # (B, H, 2, L, Dh)
         q, k, v = qk[:, :, 0], qk[:, :, 1], qkv[:, :, 2].transpose(1, 2)
         if cache is not None:
@@ -144,9 +149,17 @@ class FusedAdaLNZeroBlock(AdaLNZeroBlock):
         terms = None if torch.is_grad_enabled() else self.folded.get(cond, self._fold)
         if terms is None or positions.dim() != 1:
             return super().forward(x, cond, mask, positions, cache, commit)
+        cos, sin = self.attn.tables(positions.to(x.device), x.dtype)
+        return self.modulated(x, terms, cos, sin, mask, cache, commit)
+
+    def modulated(self, x: Tensor, terms: FoldedModulation, cos: Tensor, sin: Tensor,
+                  mask: Tensor | None, cache: KVCache | None = None, commit: bool = True) -> Tensor:
+        """The fused computation: the block under its folded modulation ``terms``, with the
+        positions' rotary tables ``cos``, ``sin`` (``RopeTables``)."""
         d = x.shape[-1]
         h = F.layer_norm(x, (d,), terms.attn_weight, terms.attn_bias, self.norm1.eps)
-        x = torch.addcmul(x, terms.attn_gate, self.attn.attend(h, mask, positions, cache, commit))
+        attended = self.attn.attend_rotated(h, mask, cos, sin, cache, commit)
+        x = torch.addcmul(x, terms.attn_gate, attended)
         h = F.layer_norm(x, (d,), terms.mlp_weight, terms.mlp_bias, self.norm2.eps)
         return torch.addcmul(x, terms.mlp_gate, self.mlp_function(h))
 

@@ -119,14 +119,16 @@ class PerStreamLinear(ComputedLinear):
         self.in_features, self.out_features = linear.in_features, linear.out_features
         self.weight, self.bias = linear.weight, linear.bias
         weight, bias = self.weight, self.bias
-        weight_t, size_in, size_out = weight.t(), self.in_features, self.out_features
+        size_in, size_out = self.in_features, self.out_features
 
         def compute(x: Tensor) -> Tensor:
             groups = streams_in(x)
             if groups == 1:
                 return F.linear(x, weight, bias)
             rows = x.reshape(groups, -1, size_in)
-            weights = weight_t.expand(groups, size_in, size_out)
+            # the transpose taken per call, a view: a trace (``traced.py``) can hold the
+            # parameter, not a tensor derived from it that requires grad
+            weights = weight.t().expand(groups, size_in, size_out)
             y = torch.bmm(rows, weights) if bias is None else torch.baddbmm(bias, rows, weights)
             return y.reshape(*x.shape[:-1], size_out)
         self._compute = compute
