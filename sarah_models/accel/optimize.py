@@ -71,9 +71,9 @@ from ..nn.flow import FlowModel
 from ..nn.layers import AdaLNZeroBlock, TransformerBlock
 from ..nn.vae import CausalVAE
 from ..sampling.solver import time_grid
+from ..sampling.stream import kept_history
 from ..training.checkpoint import unpack_models
 from .fused import FusedAdaLNZeroBlock, FusedAdaLNZeroOutput, FusedTransformerBlock
-from .traced import TracedAdaLNZeroBlock
 from .linears import (
     BATCHED_OUTER_LINEARS,
     BF16Linear,
@@ -89,6 +89,7 @@ from .linears import (
     worth_quantizing,
 )
 from .memo import InputMemo, RopeTable, RopeTables
+from .traced import TracedAdaLNZeroBlock
 
 MODES = ("none", "fp32", "bf16", "int8")
 DECODER_PRECISIONS = ("auto", "fp32", "bf16")
@@ -96,11 +97,11 @@ MODE_HELP = {
     "none": "the plain models (only the thread count is set)",
     "fp32": "fp32 with the flow-time path memoized for the solver grid (exact; a served "
             "stream's rows computed on their own)",
-    "bf16": "fp32 time cache + bfloat16 Linear layers + fused blocks + the other Linears "
-            "oneDNN-packed",
+    "bf16": "fp32 time cache + bfloat16 Linear layers + fused blocks (traced on a CPU) + the "
+            "other Linears oneDNN-packed",
     "int8": "fp32 time cache + dynamic int8 Linear layers where large enough to gain "
             "(per-channel weight scales, 8-bit rows with VNNI; offline, bf16 on AMX) + fused "
-            "blocks + the other Linears oneDNN-packed",
+            "blocks (traced on a CPU) + the other Linears oneDNN-packed",
 }
 
 
@@ -176,14 +177,21 @@ def swap_decoder_linears(vae: CausalVAE, precision: str, packed: bool) -> None:
 def warm_up(flow: FlowModel, config: StreamConfig) -> int:
     """Evaluate the flow once at every flow time of ``config``'s solver grid so that every memo
     holds its entries before the first chunk (a scalar flow time's terms are computed for one
-    row and broadcast, so one evaluation serves any batch); returns the number of evaluations."""
+    row and broadcast, so one evaluation serves any batch), then once at every shape a stream's
+    solve brings (1 to history + 1 tokens, one or both guidance branches) so that traced blocks
+    (``traced.py``) trace them now, not in a stream's first chunks (~0.1 s each at paper size);
+    returns the number of evaluations."""
     device = next(flow.parameters()).device
-    count = 0
-    for tau in time_grid(config.steps, config.solver):
-        z = torch.zeros(1, 1, flow.latent_dim, device=device)
-        flow(z, tau, cond_tokens=torch.zeros(1, 1, flow.config.hidden, device=device))
-        count += 1
-    return count
+    grid = time_grid(config.steps, config.solver)
+    calls = [(tau, 1, 1) for tau in grid]  # (flow time, branches, tokens)
+    history = kept_history(flow, config)
+    if history is not None:
+        calls += [(grid[0], branches, tokens) for tokens in range(1, history + 2)
+                  for branches in (1, 2)]
+    for tau, branches, tokens in calls:
+        z = torch.zeros(branches, tokens, flow.latent_dim, device=device)
+        flow(z, tau, cond_tokens=torch.zeros(branches, tokens, flow.config.hidden, device=device))
+    return len(calls)
 
 
 def compile_blocks(module: nn.Module) -> nn.Module:
