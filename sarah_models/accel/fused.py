@@ -66,19 +66,20 @@ class FusedAttention(Attention):
     def attend_rotated(self, x: Tensor, mask: Tensor | None, cos: Tensor, sin: Tensor,
                        cache: KVCache | None = None, commit: bool = True) -> Tensor:
         """``attend`` with the positions' rotary tables already looked up."""
-        b, n, d = x.shape
-        qkv = self.project_qkv(x).view(b, n, 3, self.heads, d // self.heads)
-        qk = apply_rope(qkv[:, :, :2], cos, sin).transpose(1, 3)  # (B, H, 2, L, Dh)
-        q, k, v = qk[:, :, 0], qk[:, :, 1], qkv[:, :, 2].transpose(1, 2)
+        # One view or op per step, no shapes read: a trace (``traced.py``) records each
+        # indexing step and each shape read as operations of its own.
+        qkv = self.project_qkv(x).unflatten(-1, (3, self.heads, -1))  # (B, L, 3, H, Dh)
+        q, k = apply_rope(qkv.narrow(2, 0, 2), cos, sin).transpose(1, 3).unbind(2)  # (B, H, L, Dh)
+        v = qkv.select(2, 2).transpose(1, 2)
         if cache is not None:
             k, v = cache.extend(k, v, commit=commit)
         if mask is None and cache is None:
             out = F.scaled_dot_product_attention(q, k, v, is_causal=True)
         else:
             if mask is None:
-                mask = causal_mask(n, k.shape[2], device=x.device)
+                mask = causal_mask(x.shape[1], k.shape[2], device=x.device)
             out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
-        return self.project_out(out.transpose(1, 2).reshape(b, n, d))
+        return self.project_out(out.transpose(1, 2).flatten(2))
 
 
 def mlp_function(mlp: MLP):

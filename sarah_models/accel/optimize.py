@@ -43,10 +43,12 @@ Once those are int8, the many small operations around them are the other half of
   ``FusedAdaLNZeroBlock`` / ``FusedAdaLNZeroOutput`` and the decoder's attention
   ``FusedAttention`` (fewer operations; rounding differs at the 1e-6 level, so the exact "fp32"
   mode does not use them).
-* traced (int8 and bf16 modes on a CPU, ``trace=True``, the default): the fused flow blocks
-  replay their maths from TorchScript traces, one per call shape (``TracedAdaLNZeroBlock``):
-  no Python between a block's ~25 operations. Bit-identical to the eager fused blocks; a
-  streamed chunk 9-13 % faster side by side (docs/performance.md).
+* traced (int8 mode where the flow's blocks are quantized, ``trace=True``, the default): the
+  fused flow blocks replay their maths from TorchScript traces, one per call shape
+  (``TracedAdaLNZeroBlock``): no Python between a block's ~25 operations. Bit-identical to the
+  eager fused blocks; a streamed paper-size chunk 0.88x side by side. Not the tiny preset's fp32
+  blocks (their chunk measured 1.03-1.04x traced) nor the bf16 mode's (unmeasured; its
+  oneDNN-packed weights cannot be traced) (docs/performance.md).
 * threads: ``torch.set_num_threads`` (process-wide).
 * compile: ``torch.compile`` of the flow's transformer blocks (optional; measured on 2 CPU cores:
   about a minute to compile and no gain over eager, so off by default).
@@ -97,11 +99,11 @@ MODE_HELP = {
     "none": "the plain models (only the thread count is set)",
     "fp32": "fp32 with the flow-time path memoized for the solver grid (exact; a served "
             "stream's rows computed on their own)",
-    "bf16": "fp32 time cache + bfloat16 Linear layers + fused blocks (traced on a CPU) + the "
-            "other Linears oneDNN-packed",
+    "bf16": "fp32 time cache + bfloat16 Linear layers + fused blocks + the other Linears "
+            "oneDNN-packed",
     "int8": "fp32 time cache + dynamic int8 Linear layers where large enough to gain "
             "(per-channel weight scales, 8-bit rows with VNNI; offline, bf16 on AMX) + fused "
-            "blocks (traced on a CPU) + the other Linears oneDNN-packed",
+            "blocks (int8 ones traced) + the other Linears oneDNN-packed",
 }
 
 
@@ -212,8 +214,8 @@ def optimize_for_inference(models, mode: str = "int8", *, stream_config: StreamC
     solver grid to precompute (default the paper's). threads: ``torch.set_num_threads`` when
     given. compile: also ``torch.compile`` the flow's blocks. decoder: the VAE decoder's Linears
     in int8 and bf16 modes, one of ``DECODER_PRECISIONS`` (``resolve_decoder``). trace: in int8
-    and bf16 modes on a CPU, the flow's fused blocks run from TorchScript traces (bit-identical
-    to computing them eagerly; False computes them eagerly)."""
+    mode, where the flow's blocks are quantized (the paper size's), they run from TorchScript
+    traces (bit-identical to computing them eagerly; False computes them eagerly)."""
     if mode not in MODES:
         raise ValueError(f"unknown optimization mode {mode!r}; choose from {MODES}")
     if threads is not None:
@@ -235,6 +237,7 @@ def optimize_for_inference(models, mode: str = "int8", *, stream_config: StreamC
     if mode != "none":
         fused = mode != "fp32"  # fused blocks round differently: not in the exact mode
         packed = fused and device.type == "cpu" and packed_linears_available()
+        traced = False  # where tracing measured faster: int8 blocks (``traced.py``)
         swap_decoder_linears(vae, precision, packed)
         if packed:  # fp32 kept (see the module docstring), packed: summation order only
             outer = flow_outer_linears(flow)
@@ -245,6 +248,7 @@ def optimize_for_inference(models, mode: str = "int8", *, stream_config: StreamC
             large = [name for name in blocks if worth_quantizing(flow.get_submodule(name))]
             swap_linears(flow, large, int8_linear)
             swap_linears(flow, [name for name in blocks if name not in large], PerStreamLinear)
+            traced = trace and bool(large) and not compile
         elif mode == "fp32":  # exact, and a stream's rows as alone whatever shares the solve
             swap_linears(flow, [*flow_block_linears(flow), *BATCHED_OUTER_LINEARS], PerStreamLinear)
         elif mode == "bf16":  # at any size: the solve calls them on many streams' rows
@@ -254,7 +258,7 @@ def optimize_for_inference(models, mode: str = "int8", *, stream_config: StreamC
         table_decoder_rope(vae, fused)
         memoize_time_path(flow, fused)
         if fused:
-            fuse_flow(flow, traced=trace and device.type == "cpu" and not compile)
+            fuse_flow(flow, traced)
         else:
             memoize_flow_rope(flow)
         warm_up(flow, stream_config or StreamConfig())
