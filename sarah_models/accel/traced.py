@@ -5,8 +5,10 @@ tensor operations around 16 kernel calls, on 6 rows each, and each operation cal
 Python costs several microseconds of dispatch before its kernel starts. A trace of the fused
 block (``FusedAdaLNZeroBlock.modulated``, the same code, recorded once) replays those
 operations from C++. Measured side by side on the 2-core Xeon of 2026-12-03 (paper size,
-int8, streamed chunks with the decoder): 40.6 -> 35.4 ms per chunk on 2 threads, 72.4 -> 65.6
-on one, the frames equal to the bit (docs/performance.md).
+int8, 400 streamed chunks with the decoder, mean time traced / eager): 0.88 on 2 threads,
+0.88-0.91 on one, 0.89 beside a busy process, the frames equal to the bit
+(docs/performance.md). The tiny preset's fp32 blocks streamed 1.03-1.04x as long traced, so
+``optimize_for_inference`` traces the int8 mode's quantized blocks only.
 
 Why TorchScript and not ``torch.compile``: dynamo cannot put fbgemm's packed int8 weights (a
 TorchScript class) into a graph ("Failed to convert args/kwargs to proxy"), so a compiled block
@@ -80,9 +82,9 @@ class ModulatedCall(nn.Module):
 
 class TracedAdaLNZeroBlock(FusedAdaLNZeroBlock):
     """A fused flow block that replays its cache-free calls from traces (module docstring).
-    A call that cannot be traced (a Linear over oneDNN-packed weights -- an opaque tensor a
-    trace cannot hold -- as the bf16 mode's, or the int8 mode's offline rows on AMX) computes
-    eagerly, as before; ``untraced`` says which keys and why."""
+    A call that cannot be traced (through a Linear over oneDNN-packed weights, an opaque tensor
+    a trace cannot hold: the int8 mode's offline rows on AMX) computes eagerly, as before;
+    ``untraced`` says which keys and why."""
 
     def __init__(self, block: FusedAdaLNZeroBlock, max_traces: int = 16) -> None:
         nn.Module.__init__(self)
