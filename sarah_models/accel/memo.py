@@ -75,6 +75,34 @@ class TensorMemo:
             self._by_id.clear()
 
 
+class KeyedMemo:
+    """LRU map from hashable keys to values computed once; as thread-safe as ``TensorMemo``
+    (the module docstring): a miss computes outside the lock, and the first value stored is
+    the one every caller gets."""
+
+    def __init__(self, max_entries: int) -> None:
+        self.max_entries = max_entries
+        self._values: OrderedDict[Any, Any] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key: Any, compute: Callable[[], Any]) -> Any:
+        with self._lock:
+            found = self._values.get(key)
+            if found is not None:
+                self._values.move_to_end(key)
+                return found
+        value = compute()
+        with self._lock:
+            value = self._values.setdefault(key, value)
+            self._values.move_to_end(key)
+            if len(self._values) > self.max_entries:
+                self._values.popitem(last=False)
+            return value
+
+    def __len__(self) -> int:
+        return len(self._values)
+
+
 class InputMemo(nn.Module):
     """Wraps a module whose output depends on its input tensor only (no state, fixed weights)."""
 
@@ -107,24 +135,12 @@ class RopeTable(RopeAngles):
     def __init__(self, angles: RopeAngles, block: int = 4096, max_blocks: int = 8) -> None:
         super().__init__(2 * angles.half, angles.base)
         self.block, self.max_blocks = block, max_blocks
-        self._tables: OrderedDict[tuple[int, str], Tensor] = OrderedDict()
-        self._lock = threading.Lock()  # shared by sarah-serve's compute threads (module docstring)
+        self._tables = KeyedMemo(max_blocks)  # shared by sarah-serve's compute threads
 
     def _table(self, index: int, device: torch.device) -> Tensor:
-        key = (index, str(device))
-        with self._lock:
-            table = self._tables.get(key)
-            if table is not None:
-                self._tables.move_to_end(key)
-                return table
         start = index * self.block
-        table = super().forward(torch.arange(start, start + self.block, device=device))
-        with self._lock:
-            table = self._tables.setdefault(key, table)
-            self._tables.move_to_end(key)
-            if len(self._tables) > self.max_blocks:
-                self._tables.popitem(last=False)
-            return table
+        return self._tables.get((index, str(device)), lambda: RopeAngles.forward(
+            self, torch.arange(start, start + self.block, device=device)))
 
     def forward(self, positions: Tensor) -> Tensor:
         if positions.dim() != 1 or positions.numel() == 0 or torch.is_grad_enabled():

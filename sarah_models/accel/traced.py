@@ -25,9 +25,7 @@ itself mutates) compute eagerly; the flow's streamed and offline solves use none
 
 from __future__ import annotations
 
-import threading
 import warnings
-from collections import OrderedDict
 from typing import Callable
 
 import torch
@@ -36,33 +34,7 @@ from torch import Tensor, nn
 from ..nn.layers import KVCache
 from ..nn.streams import stream_groups
 from .fused import FoldedModulation, FusedAdaLNZeroBlock
-
-
-class TraceCache:
-    """LRU map from call keys to traces, shared by threads (``sarah-serve --workers``): a miss
-    traces outside the lock and the first trace stored is the one every caller uses."""
-
-    def __init__(self, max_entries: int) -> None:
-        self.max_entries = max_entries
-        self._traces: OrderedDict[tuple, Callable] = OrderedDict()
-        self._lock = threading.Lock()
-
-    def get(self, key: tuple, trace: Callable[[], Callable]) -> Callable:
-        with self._lock:
-            found = self._traces.get(key)
-            if found is not None:
-                self._traces.move_to_end(key)
-                return found
-        made = trace()
-        with self._lock:
-            made = self._traces.setdefault(key, made)
-            self._traces.move_to_end(key)
-            if len(self._traces) > self.max_entries:
-                self._traces.popitem(last=False)
-            return made
-
-    def __len__(self) -> int:
-        return len(self._traces)
+from .memo import KeyedMemo
 
 
 class ModulatedCall(nn.Module):
@@ -91,7 +63,7 @@ class TracedAdaLNZeroBlock(FusedAdaLNZeroBlock):
         self.norm1, self.norm2, self.attn = block.norm1, block.norm2, block.attn
         self.mlp, self.modulation, self.folded = block.mlp, block.modulation, block.folded
         self.mlp_function = block.mlp_function
-        self.traces = TraceCache(max_traces)
+        self.traces = KeyedMemo(max_traces)  # shared by sarah-serve's compute threads
         self.untraced: dict[tuple, str] = {}
 
     def modulated(self, x: Tensor, terms: FoldedModulation, cos: Tensor, sin: Tensor,
