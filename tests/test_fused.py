@@ -4,8 +4,8 @@ models are the reference models with modules replaced, nothing patched.
 Flow: a flow whose blocks and output layer are the fused subclasses equals the reference forward
 to float32 rounding (relative 1e-5) for any solver call (1 or 2 guidance branches, 1 to 3
 tokens, any tau); calls they do not cover (per-row tau, autograd) run the reference maths
-unchanged (to float rounding: the attention is still the fused one). Traced blocks (the
-default on a CPU) give the eager fused blocks' frames to the bit. Decoder: table lookups of
+unchanged (to float rounding: the attention is still the fused one). Traced blocks (the int8
+mode's quantized ones) give the eager fused blocks' frames to the bit. Decoder: table lookups of
 rotary angles are bit-identical, and fused attention streams the reference decoder's joints to
 within 1e-3 mm."""
 
