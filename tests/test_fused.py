@@ -186,6 +186,47 @@ def test_traced_blocks_give_the_eager_fused_blocks_bits(models, amx, monkeypatch
         assert [key[0] for key in block.untraced] == ([(2, 16, 256)] if on_amx else [])
 
 
+def test_threads_that_trace_the_same_blocks_at_once_get_the_eager_bits():
+    """Two ``sarah-serve`` workers' rounds on one optimized model, each serving a number of
+    streams no trace holds yet, so both trace the same blocks at once: every frame as the
+    eager fused blocks give it, and one trace per key kept."""
+    import threading
+
+    wide = random_models("tiny", audio_dim=AUDIO_DIM, shell_points=4, seed=3, init_std=0.05,
+                         overrides=("flow.hidden=256",))
+    traced = optimize_for_inference(wide, "int8")
+    eager = optimize_for_inference(wide, "int8", trace=False)
+    counts = (2, 3)
+    inputs = {g: [stream_inputs(16, AUDIO_DIM, seed=10 * g + i) for i in range(g)] for g in counts}
+
+    def serve(models, count: int) -> list:
+        torch.set_num_threads(1)  # per thread; a thread's outputs depend on its own count only
+        streams = [StreamingGenerator(*models, StreamConfig(seed=i)) for i in range(count)]
+        return [step_together(streams, [(h[k:k + 4], a[k:k + 4], b[k:k + 4])
+                                        for h, a, b in inputs[count]]) for k in range(0, 16, 4)]
+
+    want = {g: serve(eager, g) for g in counts}
+    got, errors, start = {}, [], threading.Barrier(len(counts))
+
+    def worker(count: int) -> None:
+        try:
+            start.wait()
+            got[count] = serve(traced, count)
+        except Exception as error:  # noqa: BLE001 (collected, asserted empty)
+            errors.append(repr(error))
+
+    pool = [threading.Thread(target=worker, args=(g,)) for g in counts]
+    for thread in pool:
+        thread.start()
+    for thread in pool:
+        thread.join()
+    assert errors == []
+    for g in counts:
+        assert all((x == y).all() for rw, rg in zip(want[g], got[g]) for x, y in zip(rw, rg))
+    for block in traced[1].blocks:  # warm-up's 6, and G streams of 1, 2 and 3 tokens each
+        assert len(block.traces) == 6 + 3 * len(counts) and block.untraced == {}
+
+
 @pytest.mark.skipif(not packed_linears_available(), reason="needs torch's oneDNN linear ops")
 def test_a_block_a_trace_cannot_hold_computes_eagerly(models):
     """oneDNN-packed weights are an opaque tensor no trace holds: such a block says so for the
