@@ -25,6 +25,7 @@ itself mutates) compute eagerly; the flow's streamed and offline solves use none
 
 from __future__ import annotations
 
+import threading
 import warnings
 from typing import Callable
 
@@ -35,6 +36,12 @@ from ..nn.layers import KVCache
 from ..nn.streams import stream_groups
 from .fused import FoldedModulation, FusedAdaLNZeroBlock
 from .memo import KeyedMemo
+
+
+# One trace at a time in the process: ``warnings.catch_warnings`` changes the process's filters
+# and is not thread-safe (two ``sarah-serve`` workers tracing at once let TracerWarnings through),
+# and traces are made once per key, so waiting for one costs nothing that recurs.
+TRACING = threading.Lock()
 
 
 class ModulatedCall(nn.Module):
@@ -80,7 +87,7 @@ class TracedAdaLNZeroBlock(FusedAdaLNZeroBlock):
         """A trace of ``ModulatedCall`` over ``inputs``, or the call itself where tracing fails."""
         call = ModulatedCall(self)
         try:
-            with warnings.catch_warnings():  # deprecation, and shape reads the key pins
+            with TRACING, warnings.catch_warnings():  # deprecation, shape reads the key pins
                 warnings.simplefilter("ignore", FutureWarning)
                 warnings.simplefilter("ignore", torch.jit.TracerWarning)
                 return torch.jit.trace(call, inputs, check_trace=False)
