@@ -220,10 +220,9 @@ def int8_linear(linear: nn.Linear) -> nn.Module:
     or where the CPU has AMX a ``ByRowsLinear`` that computes ``AMX_MIN_ROWS`` rows or more in
     bf16 (oneDNN-packed). On the Xeon with AMX of 2026-12-03 (paper size, 1024 -> 4096, 2
     threads, p50 per call, in turns): 6 rows int8 182 us, bf16 454; 400 rows int8 3.4 ms, bf16
-    1.9 ms;
-    paper-size offline generation 1.3x faster, and nearer fp32 (docs/performance.md). AMX
-    alone: the same VM with oneDNN held to AVX-512 BF16 computed 32-200 rows in bf16 3.9-4.4x
-    slower than int8."""
+    1.9 ms; paper-size offline generation 1.3x faster, and nearer fp32 (docs/performance.md).
+    AMX alone: the same VM with oneDNN held to AVX-512 BF16 computed 32-200 rows in bf16
+    3.9-4.4x slower than int8."""
     if amx_bf16_available() and packed_linears_available(torch.bfloat16):
         return ByRowsLinear(Int8Linear(linear), PackedLinear(linear, torch.bfloat16), AMX_MIN_ROWS)
     return Int8Linear(linear)

@@ -75,7 +75,7 @@ class TracedAdaLNZeroBlock(FusedAdaLNZeroBlock):
 
     def modulated(self, x: Tensor, terms: FoldedModulation, cos: Tensor, sin: Tensor,
                   mask: Tensor | None, cache: KVCache | None = None, commit: bool = True) -> Tensor:
-        if cache is not None or x.device.type != "cpu":
+        if cache is not None:
             return super().modulated(x, terms, cos, sin, mask, cache, commit)
         inputs = (x, terms.attn_weight, terms.attn_bias, terms.attn_gate, terms.mlp_weight,
                   terms.mlp_bias, terms.mlp_gate, cos, sin) + (() if mask is None else (mask,))
