@@ -48,7 +48,8 @@ Once those are int8, the many small operations around them are the other half of
   (``TracedAdaLNZeroBlock``): no Python between a block's ~25 operations. Bit-identical to the
   eager fused blocks; a streamed paper-size chunk 0.88x side by side. Not the tiny preset's fp32
   blocks (their chunk measured 1.03-1.04x traced) nor the bf16 mode's (unmeasured; its
-  oneDNN-packed weights cannot be traced) (docs/performance.md).
+  oneDNN-packed weights, a plain attribute of ``PackedLinear``, are no module state a trace
+  holds) (docs/performance.md).
 * threads: ``torch.set_num_threads`` (process-wide).
 * compile: ``torch.compile`` of the flow's transformer blocks (optional; measured on 2 CPU cores:
   about a minute to compile and no gain over eager, so off by default).

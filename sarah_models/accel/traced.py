@@ -21,6 +21,11 @@ mask presence and number of batched streams (``nn.streams``; the int8 Linears qu
 stream's rows alone, and ``ByRowsLinear`` picks its kernel by rows), so traces are kept per
 such key, the most recent ``max_traces`` of them. Calls with a KV cache (which the cache
 itself mutates) compute eagerly; the flow's streamed and offline solves use none.
+
+Not traced: the VAE decoder's step. Replayed from two traces per layer around its KV cache (its
+packed weights made module state, their op called through a scripted function) it gave the
+same bits and no speed, 1.01 (0.995-1.03) side by side on 2026-12-03: its ops are ~95 % of
+its time (docs/performance.md).
 """
 
 from __future__ import annotations
@@ -61,8 +66,9 @@ class ModulatedCall(nn.Module):
 
 class TracedAdaLNZeroBlock(FusedAdaLNZeroBlock):
     """A fused flow block that replays its cache-free calls from traces (module docstring).
-    A call that cannot be traced (through a Linear over oneDNN-packed weights, an opaque tensor
-    a trace cannot hold: the int8 mode's offline rows on AMX) computes eagerly, as before;
+    A call that cannot be traced (through a ``PackedLinear``, whose oneDNN-packed weights are a
+    plain attribute, not module state a trace holds, and whose op's list argument does not
+    trace: the int8 mode's offline rows on AMX) computes eagerly, as before;
     ``untraced`` says which keys and why."""
 
     def __init__(self, block: FusedAdaLNZeroBlock, max_traces: int = 16) -> None:
