@@ -6,7 +6,8 @@ split and prints eight tables:
     python scripts/motion_anatomy.py --pretrained fixture-tiny --shards test_shards --split train
     # a model at its own sampling setting (sarah-eval's flags of the same names)
     python scripts/motion_anatomy.py --run model.safetensors --shards test_shards --split train \
-        --noise-scale 0.6 --cfg 2.5 --guide user_head,gaze --imputation trajectory
+        --noise-scale 0.3 --cfg 4.5 --guide user_head,gaze --guidance-interval 0,0.75 \
+        --imputation trajectory
 
 1. FGD (pooled), FGD_acc and foot slide of hybrids: the ground truth's pose on the model's root
    trajectory, and the model's pose on the ground truth's root; what each part costs;
@@ -33,7 +34,14 @@ split and prints eight tables:
    through the model's decoding chain; FGD_acc of the whole shell, the legs and the feet, and
    foot slide
    (docs/results.md, fifty-first run): how far the foot lock's steps are from the data's where
-   everything else is the data's.
+   everything else is the data's;
+9. by role and direction: the windows where the ground truth's agent walks (its pelvis's mean
+   floor speed at least ``WALKER_SPEED``) and those where it stands, each motion's pelvis speed
+   there, and the acceleration of the root, legs and feet split along the user's bearing
+   (radial: toward or away from the user's head on the floor; tangential: around them;
+   vertical), as RMS with the energy's ratio to the ground truth's, and FGD_acc pooled over
+   each role's windows (docs/results.md, sixty-eighth run): whether the distance is in what the
+   body does or in which role it does it.
 """
 
 from __future__ import annotations
@@ -45,8 +53,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sarah_cli.arguments import (IMPUTATION_HELP, NOISE_SCALE_HELP, guide_help, guided_modalities,
-                                 noise_scale)
+from sarah_cli.arguments import (GUIDANCE_INTERVAL_HELP, IMPUTATION_HELP, NOISE_SCALE_HELP,
+                                 guidance_interval, guide_help, guided_modalities, noise_scale)
 from sarah_data import icosahedron
 from sarah_data.constants import BODY_JOINTS, FPS, JOINT_NAMES
 from sarah_data.frames import rotation_about_y, yaw_of
@@ -56,6 +64,7 @@ from sarah_models.evaluation.metrics import (MetricsTable, evaluate, foot_slide,
                                              step_paths, step_reaches)
 from sarah_models.evaluation.metrics.body_parts import part_key
 from sarah_models.evaluation.metrics.clips import accelerations
+from sarah_models.evaluation.metrics.frechet import frechet_distance
 from sarah_models.evaluation.metrics.spec import FOOT_MAX_HEIGHT, FOOT_MIN_SPEED, MetricsConfig
 from sarah_models.evaluation.metrics.table import bootstrap_interval
 from sarah_models.evaluation.runner import EvalConfig
@@ -69,6 +78,11 @@ BEATS = (2, 7)  # Hz: the fixtures' syllable-rate gestures (~4.5 Hz) and what bl
 # the pelvis already.
 GLIDING = tuple(name for name in JOINT_GROUPS["legs"] + JOINT_GROUPS["feet"]
                 if not name.endswith("hip"))
+# m/s: a window whose ground-truth pelvis moves this fast on average walks. The fixtures' roles
+# part cleanly: their walking partner averages 0.45 m/s over a window, the standing one 0.06
+# (the 296 seed-7 test windows, docs/results.md, sixty-eighth run).
+WALKER_SPEED = 0.35
+ROLE_PARTS = ("root", "legs", "feet")
 
 
 def streamed_windows(models, shards: Path, split: str, sampling: EvalConfig = EvalConfig()):
@@ -351,6 +365,66 @@ def chain_steps(clips, layout: MotionLayout, decoding) -> None:
               + " | {:.4f} ({:.4f}-{:.4f}) |".format(np.mean(slides), *bootstrap_interval(slides)))
 
 
+def mean_floor_speed(motion: np.ndarray, layout: MotionLayout) -> float:
+    """m/s: the pelvis's mean speed on the floor over a clip."""
+    root = layout.joint_positions(motion, [ROOT])[:, 0, [0, 2]]
+    return float(np.linalg.norm(np.diff(root, axis=0), axis=-1).mean() * FPS)
+
+
+def bearing_accelerations(motion: np.ndarray, user_head: np.ndarray, points,
+                          layout: MotionLayout) -> np.ndarray:
+    """(T - 2, P, 3) accelerations (m/s²) of ``points`` of the shell, as (radial, tangential,
+    vertical): radial along the floor from the clip's pelvis toward the user's head (positive
+    toward), tangential the floor direction 90 degrees from it, each at the frame's own bearing."""
+    shell = layout.split(motion)[1][:, list(points)]
+    a = accelerations(shell)
+    root = layout.joint_positions(motion, [ROOT])[1:-1, 0]
+    toward = np.asarray(user_head, np.float64)[1:-1] - root[:, [0, 2]]
+    toward /= np.maximum(np.linalg.norm(toward, axis=-1, keepdims=True), 1e-9)
+    rx, rz = toward[:, None, 0], toward[:, None, 1]
+    return np.stack([a[..., 0] * rx + a[..., 2] * rz, a[..., 2] * rx - a[..., 0] * rz, a[..., 1]], -1)
+
+
+def roles(clips, layout: MotionLayout) -> None:
+    parts = reference_parts(clips[0][0], layout)
+    walks = np.array([mean_floor_speed(c[0], layout) >= WALKER_SPEED for c in clips])
+    motions = (("ground truth", 0), ("model, streamed", 1), ("model, offline", 5),
+               ("VAE reconstruction", 3))
+    print(f"By role and direction ({walks.sum()} windows where the ground truth's agent walks, "
+          f">= {WALKER_SPEED} m/s, {(~walks).sum()} where it stands): acceleration RMS along the "
+          "user's bearing, cm/s², radial / tangential / vertical, [energy ÷ the ground truth's]")
+    print("\n| role | motion | pelvis m/s | " + " | ".join(ROLE_PARTS) + " | FGD_acc pooled (÷1e5) |"
+          "\n|---|---|---|" + "---|" * (len(ROLE_PARTS) + 1))
+    for role, chosen in (("walks", walks), ("stands", ~walks)):
+        picked = [c for c, keep in zip(clips, chosen) if keep]
+        if not picked:
+            continue
+
+        def energies(index: int, part: str) -> np.ndarray:
+            a = np.concatenate([bearing_accelerations(c[index], c[2], parts[part], layout)
+                                for c in picked])
+            return np.mean(a ** 2, axis=(0, 1))
+        truth = {part: energies(0, part) for part in ROLE_PARTS if part in parts}
+        gt_samples = [a.reshape(len(a), -1) for a in
+                      (accelerations(layout.split(c[0])[1]) * 100 for c in picked)]
+        for label, index in motions:
+            speed = np.mean([mean_floor_speed(c[index], layout) for c in picked])
+            cells = []
+            for part, reference in truth.items():
+                e = reference if index == 0 else energies(index, part)
+                rms = " / ".join(f"{v:,.0f}" for v in 100 * np.sqrt(e))
+                ratios = " / ".join(f"{v / r:.2f}" if r > 0 else "-" for v, r in zip(e, reference))
+                cells.append(rms if index == 0 else f"{rms} [{ratios}]")
+            if index == 0:
+                distance = "-"
+            else:
+                samples = [a.reshape(len(a), -1) for a in
+                           (accelerations(layout.split(c[index])[1]) * 100 for c in picked)]
+                value = frechet_distance(np.concatenate(samples), np.concatenate(gt_samples))
+                distance = f"{value / 1e5:,.0f}"
+            print(f"| {role} | {label} | {speed:.2f} | " + " | ".join(cells) + f" | {distance} |")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -367,11 +441,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--noise-scale", type=noise_scale, default=paper.noise_scale,
                         help=NOISE_SCALE_HELP)
     parser.add_argument("--guide", type=guided_modalities, default="all", help=guide_help())
+    parser.add_argument("--guidance-interval", type=guidance_interval, default="0,1",
+                        help=GUIDANCE_INTERVAL_HELP)
     parser.add_argument("--imputation", choices=IMPUTATIONS, default=paper.imputation,
                         help=IMPUTATION_HELP)
     args = parser.parse_args(argv)
     sampling = EvalConfig(steps=args.steps, cfg_scale=args.cfg, noise_scale=args.noise_scale,
-                          guide=args.guide, imputation=args.imputation)
+                          guide=args.guide, guidance_interval=args.guidance_interval,
+                          imputation=args.imputation)
     if args.pretrained:
         from sarah_models.pretrained import model_path
 
@@ -394,7 +471,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     layout = MotionLayout.from_width(clips[0][0].shape[1])
     print(f"{len(clips)} windows of split {args.split!r} in {args.shards}, streamed, g = none, "
-          f"{args.steps} steps, CFG {args.cfg} guiding {','.join(args.guide)}, "
+          f"{args.steps} steps, CFG {args.cfg} guiding {','.join(args.guide)} at "
+          f"{args.guidance_interval[0]:g} <= tau < {args.guidance_interval[1]:g}, "
           f"noise {args.noise_scale}, "
           f"{args.imputation} imputation\n")
     hybrids(clips, layout)
@@ -408,6 +486,8 @@ def main(argv: list[str] | None = None) -> int:
     acceleration_by_part(clips, layout)
     print()
     chain_steps(clips, layout, lambda: stream_decoding(models.vae, models.normalizer))
+    print()
+    roles(clips, layout)
     return 0
 
 

@@ -2,6 +2,7 @@
 (docs/results.md) reads."""
 
 import numpy as np
+import pytest
 
 from helpers import load_script
 from sarah_data.constants import FPS, JOINT_NAMES
@@ -139,3 +140,44 @@ def test_sampling_flags_are_checked_before_any_model_loads(capsys, tmp_path):
         raise AssertionError("an unknown modality was accepted")
     error = capsys.readouterr().err.strip().splitlines()[-1]
     assert "--guide" in error and "smell" in error
+
+
+@pytest.mark.filterwarnings("ignore::sarah_models.evaluation.metrics.frechet.FrechetRidgeWarning")
+def test_accelerations_split_along_the_users_bearing_and_roles_part_by_pelvis_speed(capsys):
+    frames = 90
+    still, layout = _body(frames, ["pelvis", "left_knee", "right_foot"], np.random.default_rng(3))
+    t = np.arange(frames) / 30.0
+    pelvis = layout.joint_positions(still[:1], ["pelvis"])[0, 0]
+    user = np.repeat([[pelvis[0], pelvis[2] + 2.0]], frames, axis=0)  # 2 m ahead along z
+
+    def moved(offsets):  # every point shifted by (frames, 3)
+        return (still.reshape(frames, -1, 3) + offsets[:, None]).reshape(frames, -1)
+
+    sway = 0.02 * np.sin(2 * np.pi * 2 * t)
+    toward = moved(np.stack([0 * t, 0 * t, sway], -1))  # sways toward and away from the user
+    around = moved(np.stack([sway, 0 * t, 0 * t], -1))  # sways across the bearing
+    energy = lambda m: np.mean(anatomy.bearing_accelerations(m, user, [0, 1, 2], layout) ** 2,
+                               axis=(0, 1))  # noqa: E731
+    radial, tangential = energy(toward), energy(around)
+    assert radial[0] > 0 and radial[1] < 1e-20 * radial[0] and radial[2] < 1e-20 * radial[0]
+    # across the bearing the bearing itself turns a little with the sway (2 cm at 2 m)
+    assert tangential[1] > 0 and tangential[0] < 1e-3 * tangential[1]
+    np.testing.assert_allclose(radial[0], tangential[1], rtol=1e-3)
+
+    walker = moved(np.stack([0.45 * t, 0 * t, 0 * t], -1))  # walks 0.45 m/s across
+    assert abs(anatomy.mean_floor_speed(walker, layout) - 0.45) < 1e-9
+    assert anatomy.mean_floor_speed(toward, layout) < anatomy.WALKER_SPEED
+    # a model that moves as the ground truth does: every ratio 1, FGD_acc pooled ~0, per role
+    clips = [(m, m, user, m, None, m) for m in (walker + around - still, toward)]
+    anatomy.roles(clips, layout)
+    shown = capsys.readouterr().out
+    assert "1 windows where the ground truth's agent walks" in shown
+    rows = [line for line in shown.splitlines() if line.startswith(("| walks |", "| stands |"))]
+    assert len(rows) == 8 and [r.split(" | ")[1] for r in rows[:4]] == [
+        "ground truth", "model, streamed", "model, offline", "VAE reconstruction"]
+    assert rows[0].split(" | ")[2] == "0.45" and rows[4].split(" | ")[2] != "0.45"
+    # no ratio where the ground truth has no energy: the stander sways only toward the user
+    for row in rows[1:4]:
+        assert row.endswith(" | 0 |") and row.count("[1.00 / 1.00 / -]") == 3
+    for row in rows[5:]:
+        assert row.endswith(" | 0 |") and row.count("[1.00 / - / -]") == 3
