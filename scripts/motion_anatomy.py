@@ -63,8 +63,10 @@ from sarah_models.config import IMPUTATIONS
 from sarah_models.evaluation.metrics import (MetricsTable, evaluate, foot_slide, foot_steps,
                                              step_paths, step_reaches)
 from sarah_models.evaluation.metrics.body_parts import part_key
-from sarah_models.evaluation.metrics.clips import accelerations
+from sarah_models.evaluation.metrics.clips import accelerations, floor_path
 from sarah_models.evaluation.metrics.frechet import frechet_distance
+from sarah_models.evaluation.metrics.pelvis_speed import pelvis_speed
+from sarah_models.evaluation.metrics.radial_speed import toward_user
 from sarah_models.evaluation.metrics.spec import FOOT_MAX_HEIGHT, FOOT_MIN_SPEED, MetricsConfig
 from sarah_models.evaluation.metrics.table import bootstrap_interval
 from sarah_models.evaluation.runner import EvalConfig
@@ -365,63 +367,70 @@ def chain_steps(clips, layout: MotionLayout, decoding) -> None:
               + " | {:.4f} ({:.4f}-{:.4f}) |".format(np.mean(slides), *bootstrap_interval(slides)))
 
 
-def mean_floor_speed(motion: np.ndarray, layout: MotionLayout) -> float:
-    """m/s: the pelvis's mean speed on the floor over a clip."""
-    root = layout.joint_positions(motion, [ROOT])[:, 0, [0, 2]]
-    return float(np.linalg.norm(np.diff(root, axis=0), axis=-1).mean() * FPS)
+def along_bearing(a: np.ndarray, motion: np.ndarray, user_head: np.ndarray,
+                  layout: MotionLayout) -> np.ndarray:
+    """(T - 2, P, 3) accelerations ``a`` of ``motion``'s frames 1 to T - 2, as (radial,
+    tangential, vertical): radial along the floor from the clip's pelvis toward the user's head
+    (positive toward), tangential the floor direction 90 degrees from it, each at the frame's
+    own bearing."""
+    root = floor_path(layout.joint_positions(motion))[1:-1]
+    unit = toward_user(root, np.asarray(user_head)[1:-1])
+    rx, rz = unit[:, None, 0], unit[:, None, 1]
+    return np.stack([a[..., 0] * rx + a[..., 2] * rz, a[..., 2] * rx - a[..., 0] * rz, a[..., 1]], -1)
 
 
 def bearing_accelerations(motion: np.ndarray, user_head: np.ndarray, points,
                           layout: MotionLayout) -> np.ndarray:
-    """(T - 2, P, 3) accelerations (m/s²) of ``points`` of the shell, as (radial, tangential,
-    vertical): radial along the floor from the clip's pelvis toward the user's head (positive
-    toward), tangential the floor direction 90 degrees from it, each at the frame's own bearing."""
-    shell = layout.split(motion)[1][:, list(points)]
-    a = accelerations(shell)
-    root = layout.joint_positions(motion, [ROOT])[1:-1, 0]
-    toward = np.asarray(user_head, np.float64)[1:-1] - root[:, [0, 2]]
-    toward /= np.maximum(np.linalg.norm(toward, axis=-1, keepdims=True), 1e-9)
-    rx, rz = toward[:, None, 0], toward[:, None, 1]
-    return np.stack([a[..., 0] * rx + a[..., 2] * rz, a[..., 2] * rx - a[..., 0] * rz, a[..., 1]], -1)
+    """(T - 2, P, 3) accelerations (m/s²) of ``points`` of the shell along the user's bearing
+    (``along_bearing``)."""
+    return along_bearing(accelerations(layout.split(motion)[1][:, list(points)]), motion,
+                         user_head, layout)
+
+
+def mean_floor_speed(motion: np.ndarray, layout: MotionLayout) -> float:
+    """m/s: the pelvis's mean speed on the floor over a clip (sarah-eval's Pelvis Speed)."""
+    return pelvis_speed(layout.joint_positions(motion))
 
 
 def roles(clips, layout: MotionLayout) -> None:
-    parts = reference_parts(clips[0][0], layout)
+    parts = {part: list(points) for part, points in reference_parts(clips[0][0], layout).items()
+             if part in ROLE_PARTS}
     walks = np.array([mean_floor_speed(c[0], layout) >= WALKER_SPEED for c in clips])
     motions = (("ground truth", 0), ("model, streamed", 1), ("model, offline", 5),
                ("VAE reconstruction", 3))
     print(f"By role and direction ({walks.sum()} windows where the ground truth's agent walks, "
           f">= {WALKER_SPEED} m/s, {(~walks).sum()} where it stands): acceleration RMS along the "
           "user's bearing, cm/s², radial / tangential / vertical, [energy ÷ the ground truth's]")
-    print("\n| role | motion | pelvis m/s | " + " | ".join(ROLE_PARTS) + " | FGD_acc pooled (÷1e5) |"
-          "\n|---|---|---|" + "---|" * (len(ROLE_PARTS) + 1))
+    print("\n| role | motion | pelvis m/s | " + " | ".join(parts) + " | FGD_acc pooled (÷1e5) |"
+          "\n|---|---|---|" + "---|" * (len(parts) + 1))
     for role, chosen in (("walks", walks), ("stands", ~walks)):
         picked = [c for c, keep in zip(clips, chosen) if keep]
         if not picked:
             continue
-
-        def energies(index: int, part: str) -> np.ndarray:
-            a = np.concatenate([bearing_accelerations(c[index], c[2], parts[part], layout)
-                                for c in picked])
-            return np.mean(a ** 2, axis=(0, 1))
-        truth = {part: energies(0, part) for part in ROLE_PARTS if part in parts}
-        gt_samples = [a.reshape(len(a), -1) for a in
-                      (accelerations(layout.split(c[0])[1]) * 100 for c in picked)]
+        truth = None
         for label, index in motions:
+            # each clip's shell accelerations once: FGD_acc's samples (cm/s², the window frame)
+            # and, turned onto the user's bearing, each part's energy
+            shell = [accelerations(layout.split(c[index])[1]) for c in picked]
+            turned = np.concatenate([along_bearing(a, c[index], c[2], layout)
+                                     for a, c in zip(shell, picked)])
+            energy = {part: np.mean(turned[:, points] ** 2, axis=(0, 1))
+                      for part, points in parts.items()}
+            samples = np.concatenate([100 * a.reshape(len(a), -1) for a in shell])
             speed = np.mean([mean_floor_speed(c[index], layout) for c in picked])
-            cells = []
-            for part, reference in truth.items():
-                e = reference if index == 0 else energies(index, part)
+            cells, distance = [], "-"
+            for part, e in energy.items():
                 rms = " / ".join(f"{v:,.0f}" for v in 100 * np.sqrt(e))
+                if truth is None:
+                    cells.append(rms)
+                    continue
+                reference = truth[0][part]
                 ratios = " / ".join(f"{v / r:.2f}" if r > 0 else "-" for v, r in zip(e, reference))
-                cells.append(rms if index == 0 else f"{rms} [{ratios}]")
-            if index == 0:
-                distance = "-"
+                cells.append(f"{rms} [{ratios}]")
+            if truth is None:
+                truth = (energy, samples)
             else:
-                samples = [a.reshape(len(a), -1) for a in
-                           (accelerations(layout.split(c[index])[1]) * 100 for c in picked)]
-                value = frechet_distance(np.concatenate(samples), np.concatenate(gt_samples))
-                distance = f"{value / 1e5:,.0f}"
+                distance = f"{frechet_distance(samples, truth[1]) / 1e5:,.0f}"
             print(f"| {role} | {label} | {speed:.2f} | " + " | ".join(cells) + f" | {distance} |")
 
 

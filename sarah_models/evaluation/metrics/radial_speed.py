@@ -28,10 +28,16 @@ def radial_speed(joint_positions, user_head_xz, fps: float = FPS, root_joint: st
     user = np.asarray(as_numpy(user_head_xz), dtype=np.float64)
     if len(root) < 2:
         raise ValueError(f"radial_speed needs at least 2 frames, got {len(root)}")
-    toward = user[:-1] - root[:-1]
-    length = np.linalg.norm(toward, axis=1, keepdims=True)
-    unit = np.divide(toward, length, out=np.zeros_like(toward), where=length > 1e-9)
+    unit = toward_user(root[:-1], user[:-1])
     return float(np.mean(np.abs(np.sum(np.diff(root, axis=0) * unit, axis=1))) * fps)
+
+
+def toward_user(root_xz, user_head_xz) -> np.ndarray:
+    """(T, 2) unit floor vectors from the root toward the user's head, frame by frame; zero where
+    the two stand on the same spot."""
+    toward = np.asarray(user_head_xz, dtype=np.float64) - np.asarray(root_xz, dtype=np.float64)
+    length = np.linalg.norm(toward, axis=-1, keepdims=True)
+    return np.divide(toward, length, out=np.zeros_like(toward), where=length > 1e-9)
 
 
 METRIC = Metric(name="radial_speed", label="Radial Speed", kind="clip", order=47, unit="{u}/s",
