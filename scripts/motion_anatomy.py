@@ -379,14 +379,6 @@ def along_bearing(a: np.ndarray, motion: np.ndarray, user_head: np.ndarray,
     return np.stack([a[..., 0] * rx + a[..., 2] * rz, a[..., 2] * rx - a[..., 0] * rz, a[..., 1]], -1)
 
 
-def bearing_accelerations(motion: np.ndarray, user_head: np.ndarray, points,
-                          layout: MotionLayout) -> np.ndarray:
-    """(T - 2, P, 3) accelerations (m/s²) of ``points`` of the shell along the user's bearing
-    (``along_bearing``)."""
-    return along_bearing(accelerations(layout.split(motion)[1][:, list(points)]), motion,
-                         user_head, layout)
-
-
 def mean_floor_speed(motion: np.ndarray, layout: MotionLayout) -> float:
     """m/s: the pelvis's mean speed on the floor over a clip (sarah-eval's Pelvis Speed)."""
     return pelvis_speed(layout.joint_positions(motion))

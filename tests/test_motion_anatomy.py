@@ -156,8 +156,8 @@ def test_accelerations_split_along_the_users_bearing_and_roles_part_by_pelvis_sp
     sway = 0.02 * np.sin(2 * np.pi * 2 * t)
     toward = moved(np.stack([0 * t, 0 * t, sway], -1))  # sways toward and away from the user
     around = moved(np.stack([sway, 0 * t, 0 * t], -1))  # sways across the bearing
-    energy = lambda m: np.mean(anatomy.bearing_accelerations(m, user, [0, 1, 2], layout) ** 2,
-                               axis=(0, 1))  # noqa: E731
+    energy = lambda m: np.mean(anatomy.along_bearing(  # noqa: E731
+        anatomy.accelerations(layout.split(m)[1][:, :3]), m, user, layout) ** 2, axis=(0, 1))
     radial, tangential = energy(toward), energy(around)
     assert radial[0] > 0 and radial[1] < 1e-20 * radial[0] and radial[2] < 1e-20 * radial[0]
     # across the bearing the bearing itself turns a little with the sway (2 cm at 2 m)
