@@ -1,7 +1,7 @@
 """Where a model's motion differs from the ground truth's: root against pose, which joints carry
 the acceleration, how far the body travels, whether the feet step (docs/results.md, seventeenth
 run). Streams the model (as sarah-eval's model row, g = none) on every 400-frame window of a
-split and prints eight tables:
+split and prints nine tables:
 
     python scripts/motion_anatomy.py --pretrained fixture-tiny --shards test_shards --split train
     # a model at its own sampling setting (sarah-eval's flags of the same names)
