@@ -12,7 +12,7 @@ from sarah_models.nn.flow import FlowModel
 from sarah_models.nn.normalizer import Normalizer
 from sarah_models.nn.user_offset import pelvis_floor
 from sarah_models.nn.vae import CausalVAE, detail_generator
-from sarah_models.sampling.decoding import stream_decoding
+from sarah_models.sampling.decoding import decoded_stance, stream_decoding
 from sarah_models.sampling.guidance import branches_run, drop_masks, guided, scale_at
 from sarah_models.sampling.path import velocity_from_x1
 from sarah_models.sampling.solver import imputer, integrate, token_noise
@@ -91,7 +91,8 @@ class NaiveStreamer:
             self._details.append(detail[0, 0])
             detail = torch.stack(self._details[-len(context):])[None]
         motion = self.vae.decode(latents, detail)[0, -self.stride:]
-        out = self._decoding(nz.denormalize("motion", motion).double().numpy()).astype(np.float32)
+        out = self._decoding(nz.denormalize("motion", motion).double().numpy(),
+                             decoded_stance(self.vae, latents, last=True)).astype(np.float32)
         if flow.config.user_relative:
             self._places.append(pelvis_floor(torch.from_numpy(out[-1:]).double())[0].numpy())
         if timings is not None:

@@ -87,6 +87,7 @@ RECON_UNITS = ("standardized", "metres")
 MIN_SWING_FRAMES = 4  # a foot-lock step lifts off, travels and is set down (``sampling.foot_lock``)
 SEAM_MODES = ("velocity", "position")  # VAEConfig.seam_mode: what a seam's spring continues
 HOLD_READS = ("pelvis", "feet")  # VAEConfig.root_hold_reads: where the hold sees the body go
+LOCK_READS = ("drift", "stance")  # VAEConfig.foot_lock_reads: what makes a locked foot step
 
 
 @dataclass(frozen=True)
@@ -145,6 +146,15 @@ class VAEConfig:
     # At the fixture benchmark's CPU budget it took the jitter out and added no steps or beats
     # (docs/results.md, forty-second run): 0 in both presets.
     spectral_weight: float = 0.0
+    # Not in the paper (0 = the paper, no head): weight of the stance term, the binary
+    # cross-entropy of a small head that reads the latent tokens and says, per frame and per
+    # foot, whether the foot is planted (``nn.stance``; the data's stance: the foot slower than
+    # 0.15 m/s on the floor plane). Above 0 the VAE has the head, its gradient reaches the
+    # encoder (which learns to carry the stance where the flow can generate it), and the foot
+    # lock steps when the decoded stance lifts (``vae.foot_lock_reads``). The benchmark's
+    # decoders never step: the lock made every step from a gliding foot's drift, half the
+    # data's length and twice as many (docs/results.md, sixty-ninth and seventieth runs).
+    stance_weight: float = 0.0
     # Not in the paper (0 = the paper): Gaussian noise added to the decoder's latent input in
     # training, as a fraction of the batch's per-channel latent std. The decoder then maps a
     # neighbourhood of each latent to the same motion, so a flow sample that is slightly off
@@ -227,6 +237,10 @@ class VAEConfig:
     # reconstruction of the data 1.36x nearer in FGD_acc, and the model, which steps where the
     # data stands, 2x further.
     foot_swing_frames: int = 12
+    # Not in the paper: what makes a locked foot step (``sampling.foot_lock``). "drift": the
+    # decoded foot moving ``foot_lock`` metres from where it is planted; "stance": also the
+    # VAE's stance head saying it lifts (``vae.stance_weight`` > 0), along the data's own step.
+    foot_lock_reads: str = "drift"
     # Not in the paper (0 = off): the body holds its place on the floor until the decoded pelvis
     # has moved this many metres away, then follows, no faster than the data's people walk
     # (``sampling.root_hold``); the decoded pelvis wanders where people stand.
@@ -260,6 +274,14 @@ class VAEConfig:
         if self.root_hold_reads not in HOLD_READS:
             raise ValueError(f"VAEConfig.root_hold_reads must be one of {HOLD_READS}, got "
                              f"{self.root_hold_reads!r}")
+        if self.foot_lock_reads not in LOCK_READS:
+            raise ValueError(f"VAEConfig.foot_lock_reads must be one of {LOCK_READS}, got "
+                             f"{self.foot_lock_reads!r}")
+        if self.foot_lock_reads == "stance" and not self.stance_weight > 0:
+            raise ValueError("VAEConfig.foot_lock_reads='stance' reads the stance head, which "
+                             "only a VAE trained with vae.stance_weight > 0 has")
+        if not self.stance_weight >= 0:
+            raise ValueError(f"VAEConfig.stance_weight must be >= 0, got {self.stance_weight}")
         if self.seam_mode not in SEAM_MODES:
             raise ValueError(f"VAEConfig.seam_mode must be one of {SEAM_MODES}, got "
                              f"{self.seam_mode!r}")
@@ -415,7 +437,8 @@ class FlowConfig:
 # again with other values, nothing trained (``sarah-train --stage model``), and a fine-tune may
 # change them.
 DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "seam_mode", "rigid_bones",
-                           "foot_lock", "foot_swing_frames", "root_hold", "root_hold_reads",
+                           "foot_lock", "foot_swing_frames", "foot_lock_reads", "root_hold",
+                           "root_hold_reads",
                            "limb_lowpass")}
 
 

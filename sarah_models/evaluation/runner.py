@@ -286,7 +286,7 @@ def _vae_producer(models):
     the generators decode: ``sampling.decoding``): the best any flow sample can decode to,
     which separates the VAE's error from the flow's."""
     from ..nn.vae import detail_generator
-    from ..sampling.decoding import stream_decoding
+    from ..sampling.decoding import decoded_stance, stream_decoding
 
     nz, vae, means = models.normalizer, models.vae, _encoder_means(models)
 
@@ -295,7 +295,7 @@ def _vae_producer(models):
         # a stochastic decoder (vae.detail_dim) draws its detail as a stream seeded by the window does
         detail = vae.detail_noise(1, z.shape[1], detail_generator(index), z.device)
         motion = nz.denormalize("motion", vae.decode(z, detail)[0]).double().cpu().numpy()
-        return stream_decoding(vae, nz)(motion).astype(np.float32)
+        return stream_decoding(vae, nz)(motion, decoded_stance(vae, z)).astype(np.float32)
 
     return produce
 

@@ -46,6 +46,9 @@ not in the paper).
 passes ``channel_weight``), so the loss counts a millimetre the same on every axis.
 The planted-foot term (``contact_weight``) and the head-facing term (``head_weight``) need the
 motion layout and metres, so the training objective adds them (``training.objectives.VAEObjective``).
+``stance_weight`` > 0 gives the VAE a stance head (``nn.stance``, not in the paper): which foot is
+planted, per frame, read from the latent tokens the decoder reads; the objective adds its
+cross-entropy against the data's stance, and the foot lock steps by it.
 """
 
 from __future__ import annotations
@@ -58,6 +61,7 @@ from torch import Tensor, nn
 from ..config import VAEConfig
 from .block_code import BlockCode
 from .layers import KVCache, TransformerBlock, causal_mask
+from .stance import StanceHead
 
 BLOCK_CODE_LOGVAR = -5.0  # the posterior's initial log-variance with ``vae.block_code``
 DETAIL_INIT_STD = 0.01  # the detail input's initial weights (vae.detail_dim)
@@ -133,6 +137,8 @@ class CausalVAE(nn.Module):
             # The code's latents are whitened: a posterior std of 1 would bury the code in noise
             # at the first step; start where trained VAEs of this kind end (~0.08 of the spread)
             nn.init.constant_(self.logvar_out.bias, BLOCK_CODE_LOGVAR)
+        # Built last: a VAE without it draws every other weight as before
+        self.stance = StanceHead(config.latent_dim, s) if config.stance_weight > 0 else None
 
     @property
     def stride(self) -> int:
@@ -240,7 +246,8 @@ class CausalVAE(nn.Module):
 
     def forward(self, x: Tensor, generator: torch.Generator | None = None,
                 channel_weight: Tensor | None = None) -> dict[str, Tensor]:
-        """Reconstruct x through a sampled latent; returns loss, recon, kl, x_hat, mu, logvar.
+        """Reconstruct x through a sampled latent; returns loss, recon, kl, x_hat, mu, logvar and
+        z (the latents decoded, which the stance head reads).
         ``channel_weight`` (Dx,) weights each channel's squared error (see ``loss_terms``)."""
         mu, logvar = self.encode(x)
         noise = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
@@ -267,7 +274,7 @@ class CausalVAE(nn.Module):
                 + cfg.acceleration_weight * terms["acceleration"])
         if "energy" in terms:
             loss = loss + cfg.energy_weight * terms["energy"]
-        return {"loss": loss, **terms, "kl": kl, "x_hat": x_hat, "mu": mu, "logvar": logvar}
+        return {"loss": loss, **terms, "kl": kl, "x_hat": x_hat, "mu": mu, "logvar": logvar, "z": z}
 
     @staticmethod
     def loss_terms(x_hat: Tensor, x: Tensor, channel_weight: Tensor | None = None

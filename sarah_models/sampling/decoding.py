@@ -5,12 +5,15 @@ latent blocks), ``LimbLowpass`` (``vae.limb_lowpass``: the arms' and hands' jitt
 walks it), ``RigidSkeleton`` (``vae.rigid_bones``: bones at the training data's lengths) and
 ``FootLock`` (``vae.foot_lock``: planted feet, and steps). All five are causal and off in
 the paper's config; one ``StreamDecoding`` per stream, fed its frames in order, whole blocks at a
-time; streaming, the offline protocol and sarah-eval's VAE row all decode through it.
+time; streaming, the offline protocol and sarah-eval's VAE row all decode through it. With
+``vae.foot_lock_reads="stance"`` each block comes with the stance the VAE's head reads from its
+latent tokens (``decoded_stance``), which the foot lock steps by.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from sarah_data.skeleton import ROOT, MotionLayout
 
@@ -31,10 +34,27 @@ class StreamDecoding:
         for f in self.filters:
             f.reset()
 
-    def __call__(self, motion: np.ndarray) -> np.ndarray:
+    def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None) -> np.ndarray:
+        """``stance`` (n, feet) bool, the frames' decoded stance: for the foot lock."""
         for f in self.filters:
-            motion = f(motion)
+            motion = f(motion, stance) if isinstance(f, FootLock) else f(motion)
         return motion
+
+
+def reads_stance(vae) -> bool:
+    """Whether this VAE's decoding steps by its stance head (``vae.foot_lock_reads``)."""
+    return vae.config.foot_lock > 0 and vae.config.foot_lock_reads == "stance"
+
+
+def decoded_stance(vae, tokens: torch.Tensor, last: bool = False) -> np.ndarray | None:
+    """The stance (frames, feet) bool that the stance head reads from the decoder's latent
+    tokens (1, K, Dz): of every token's frames, or with ``last`` of the newest token's only
+    (a stream's, from the tokens it has); None when the decoding does not step by it."""
+    if not reads_stance(vae):
+        return None
+    with torch.no_grad():
+        logits = vae.stance.last(tokens) if last else vae.stance(tokens)
+    return vae.stance.planted(logits)[0].cpu().numpy()
 
 
 def skeleton_lengths(normalizer) -> np.ndarray:
@@ -64,5 +84,8 @@ def stream_decoding(vae, normalizer) -> StreamDecoding:
         if cfg.rigid_bones:
             filters.append(RigidSkeleton(layout, lengths))
         if cfg.foot_lock:
+            if reads_stance(vae) and getattr(vae, "stance", None) is None:
+                raise ValueError("vae.foot_lock_reads='stance' needs the VAE's stance head, and "
+                                 "this VAE has none")
             filters.append(FootLock(layout, lengths, cfg.foot_lock, cfg.foot_swing_frames))
     return StreamDecoding(filters)

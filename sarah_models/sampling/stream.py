@@ -53,10 +53,11 @@ from ..config import HISTORY_TOKENS, HISTORY_WINDOW, StreamConfig, check_gaze
 from ..nn.flow import FlowModel
 from ..nn.head_travel import TravelState
 from ..nn.normalizer import Normalizer
+from ..nn.stance import RECEPTIVE_TOKENS
 from ..nn.streams import independent_streams
 from ..nn.user_offset import pelvis_floor, user_offset
 from ..nn.vae import CausalVAE, detail_generator
-from .decoding import StreamDecoding, stream_decoding
+from .decoding import StreamDecoding, decoded_stance, reads_stance, stream_decoding
 from .guidance import branches_run, combine, drop_masks, scale_at
 from .path import velocity_from_x1
 from .solver import imputer, integrate, replayer, token_noise
@@ -182,10 +183,13 @@ class _Models:
         """A new stream's decoding (seams, skeleton, feet: as the VAE config asks)."""
         return stream_decoding(self.vae, self.normalizer)
 
-    def decode(self, motion: Tensor, decoding: StreamDecoding) -> np.ndarray:
+    def decode(self, motion: Tensor, decoding: StreamDecoding,
+               stance: np.ndarray | None = None) -> np.ndarray:
         """Standardized decoder output, the stream's next T frames (T, Dx) -> motion in the
-        generation frame (T, Dx) float64, through the stream's ``decoding``."""
-        return decoding(self.normalizer.denormalize("motion", motion).double().cpu().numpy())
+        generation frame (T, Dx) float64, through the stream's ``decoding``; ``stance`` (T,
+        feet): the frames' decoded stance (``decoding.decoded_stance``), for the foot lock."""
+        return decoding(self.normalizer.denormalize("motion", motion).double().cpu().numpy(),
+                        stance)
 
     def to_world(self, x: np.ndarray) -> np.ndarray:
         """Generation-frame motion (T, Dx) -> world-frame motion vector (T, Dx) float32."""
@@ -242,6 +246,8 @@ class StreamingGenerator:
         self._place = torch.zeros(2)  # the decoded pelvis's floor (x, z) in the generation frame
         self._decoder = self._m.vae.new_decoder_cache(cfg.decoder_blocks(self._m.vae.stride))
         self._decoding = self._m.decoding()
+        # the decoder's latest latent tokens, all the stance head reads (vae.foot_lock_reads)
+        self._stance_tokens: deque[Tensor] = deque(maxlen=RECEPTIVE_TOKENS)
         self.frames_generated = 0
         self.last_latent: Tensor | None = None  # the latest block's standardized latent (Dz,)
 
@@ -295,9 +301,14 @@ class StreamingGenerator:
                 raise ValueError("trajectory imputation needs the new token's solver states")
             self._states.append(states)
         detail = m.vae.detail_noise(1, 1, self._detail, m.device)
-        frames = m.decode(m.vae.decoder_step(m.latent_for_decoder(z)[None], self._decoder,
+        token = m.latent_for_decoder(z)[None]
+        stance = None
+        if reads_stance(m.vae):
+            self._stance_tokens.append(token)
+            stance = decoded_stance(m.vae, torch.stack(list(self._stance_tokens), dim=1), last=True)
+        frames = m.decode(m.vae.decoder_step(token, self._decoder,
                                              None if detail is None else detail[:, 0])[0],
-                          self._decoding)
+                          self._decoding, stance)
         if m.flow.config.user_relative:  # where the next block's offset is taken from
             self._place = pelvis_floor(torch.from_numpy(frames[-1:]))[0].float()
         self.frames_generated += m.stride
@@ -393,8 +404,9 @@ def offline_with_latents(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer
                          for _ in range(t // m.stride)]).to(m.device)
     z = solve(flow, m.cond_tokens(cond, config.gaze), noise, None, config)
     detail = vae.detail_noise(1, len(z), detail_generator(config.seed), m.device)
-    return m.to_world(m.decode(vae.decode(m.latent_for_decoder(z)[None], detail)[0],
-                               m.decoding())), z
+    tokens = m.latent_for_decoder(z)[None]
+    return m.to_world(m.decode(vae.decode(tokens, detail)[0], m.decoding(),
+                               decoded_stance(vae, tokens))), z
 
 
 def _offline_by_blocks(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer, user_head,

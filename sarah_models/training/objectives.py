@@ -4,7 +4,8 @@
   plus the planted-foot term (``PlantedFeet``) when ``vae.contact_weight`` > 0, the
   head-facing term (``HeadFacing``) when ``vae.head_weight`` > 0, the foot-lift term
   (``FootLift``) when ``vae.lift_weight`` > 0 and the acceleration-spectrum term
-  (``AccelerationSpectrum``) when ``vae.spectral_weight`` > 0.
+  (``AccelerationSpectrum``) when ``vae.spectral_weight`` > 0, and the stance head's
+  cross-entropy against the data's stance (``nn.stance``) when ``vae.stance_weight`` > 0.
 * ``FlowObjective``: encode with the frozen VAE, standardize the latents, then
   ``flow_matching_loss`` (eq. 4-5: x1-prediction on the straight path with CFG dropout).
 """
@@ -15,6 +16,7 @@ from typing import Mapping
 
 import torch
 from torch import Tensor, nn
+from torch.nn import functional as F
 
 from sarah_data import icosahedron
 from sarah_data.constants import BODY_JOINTS, FPS
@@ -24,6 +26,7 @@ from sarah_data.skeleton import FEET, HEAD, ICOSAHEDRON_POINTS, MotionLayout
 from ..config import STREAMED_TOKENS
 from ..nn.flow import FlowModel, build_block_mask
 from ..nn.normalizer import Normalizer
+from ..nn.stance import stance_of
 from ..nn.user_offset import block_starts, pelvis_floor, user_offset
 from ..nn.vae import CausalVAE
 from ..sampling.foot_lock import RELEASE
@@ -42,6 +45,8 @@ class VAEObjective(nn.Module):
         self.head = HeadFacing(vae.motion_dim) if vae.config.head_weight > 0 else None
         self.lift = FootLift(vae.motion_dim) if vae.config.lift_weight > 0 else None
         self.spectrum = AccelerationSpectrum(vae.motion_dim) if vae.config.spectral_weight > 0 else None
+        self.stance_layout = (term_layout(vae.motion_dim, "vae.stance_weight")
+                              if vae.stance is not None else None)
         weight = None
         if vae.config.recon_units == "metres":
             variance = normalizer.motion_std.float().square()
@@ -58,6 +63,11 @@ class VAEObjective(nn.Module):
         device = self.normalizer.motion_mean.device
         motion = self.normalizer.normalize_batch({"motion": batch["motion"]}, device)["motion"]
         out = self.vae(motion, generator, self.channel_weight)
+        if self.vae.stance is not None:
+            # the latents the decoder read; the term's gradient teaches the encoder to carry it
+            stance = stance_of(batch["motion"].to(device).float(), self.stance_layout)
+            out["stance"] = F.binary_cross_entropy_with_logits(self.vae.stance(out["z"].float()), stance)
+            out["loss"] = out["loss"] + self.vae.config.stance_weight * out["stance"]
         if all(term is None for term in (self.contact, self.head, self.lift, self.spectrum)):
             return out
         decoded = self.normalizer.denormalize("motion", out["x_hat"].float())

@@ -1,0 +1,217 @@
+"""The stance head (nn.stance), its training term and the foot lock stepping by it."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from sarah_data.constants import FPS, JOINT
+from sarah_data.dataset import WindowDataset
+from sarah_data.skeleton import MotionLayout, bone_lengths
+from sarah_models.config import StreamConfig, VAEConfig
+from sarah_models.nn.stance import RECEPTIVE_TOKENS, STANCE_SPEED, StanceHead, stance_of
+from sarah_models.sampling.foot_lock import (STANCE_LIFT, STANCE_SWING_FRAMES, STEP_SHARE,
+                                             FootLock)
+from sarah_models.sampling.stream import StreamingGenerator, offline_with_latents
+from sarah_models.testing import random_models
+
+FEET = [JOINT["left_foot"], JOINT["right_foot"]]
+SHELL = 16
+STANCE = ("vae.stance_weight=0.2", "vae.foot_lock=0.1", "vae.foot_lock_reads=stance")
+
+
+def joints_of(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
+    return layout.split(np.asarray(motion, np.float64))[0].mean(axis=-2)
+
+
+def test_the_datas_stance_is_where_a_foot_moves_slower_than_the_threshold_blips_left_out():
+    layout = MotionLayout(shell_points=SHELL)
+    frames = 12
+    motion = np.zeros((1, frames, layout.width))
+    # the left foot moves at 0.6 m/s in frames 3-6 and for one frame at 9, slower elsewhere
+    speed = np.full(frames, 0.05)
+    speed[[3, 4, 5, 6, 9]] = 0.6
+    x = np.cumsum(speed) / FPS
+    icosahedra, shell = layout.split(motion[0])
+    icosahedra[:, JOINT["left_foot"], :, 0] = x[:, None]
+    motion[0] = np.concatenate([icosahedra.reshape(frames, -1), shell.reshape(frames, -1)], 1)
+    planted = stance_of(torch.from_numpy(motion), layout)[0].numpy()
+    assert planted.shape == (frames, 2)
+    assert planted[:, 1].all()  # the right foot never moves
+    np.testing.assert_array_equal(planted[:, 0], [1, 1, 1, 0, 0, 0, 0, 1, 1, 1, 1, 1])
+    assert 0.05 < STANCE_SPEED < 0.6
+
+
+def test_the_stance_head_is_causal_and_a_stream_reads_the_offline_values():
+    torch.manual_seed(0)
+    head = StanceHead(latent_dim=8, stride=4)
+    z = torch.randn(2, 12, 8)
+    full = head(z)
+    assert full.shape == (2, 48, 2)
+    for k in range(1, 13):
+        torch.testing.assert_close(head.last(z[:, :k]), full[:, 4 * (k - 1):4 * k])
+    # a token later than the receptive field's reach changes nothing before it
+    later = z.clone()
+    later[:, 8:] += 1.0
+    torch.testing.assert_close(head(later)[:, :32], full[:, :32])
+    assert not torch.allclose(head(later)[:, 32:], full[:, 32:])
+    early = z.clone()
+    early[:, 0] += 1.0
+    torch.testing.assert_close(head(early)[:, 4 * RECEPTIVE_TOKENS:], full[:, 4 * RECEPTIVE_TOKENS:])
+
+
+def test_the_stance_term_trains_the_head_and_reaches_the_encoder(prepared_shards):
+    from sarah_data.stats import load_stats
+    from sarah_models.config import RunConfig
+    from sarah_models.nn.normalizer import Normalizer
+    from sarah_models.training.checkpoint import build_models
+    from sarah_models.training.objectives import VAEObjective
+    from sarah_models.training.stages import model_stats
+
+    windows = WindowDataset(prepared_shards, "train", extractor="logmel", window=40, seed=0, length=4)
+    config = RunConfig.preset("tiny").with_overrides(("vae.stance_weight=0.5",))
+    dims = {"motion": windows.motion_dim, "audio": windows.audio_dim}
+    torch.manual_seed(0)
+    vae, _ = build_models(config, dims)
+    normalizer = Normalizer(model_stats(load_stats(prepared_shards), "logmel"))
+    objective = VAEObjective(vae, normalizer)
+    batch = {"motion": torch.stack([windows[i]["motion"] for i in range(4)])}
+    out = objective(batch, torch.Generator().manual_seed(0))
+    assert 0.0 < out["stance"].item() < 2.0
+    vae.zero_grad()
+    out["stance"].backward()
+    assert vae.stance.out.weight.grad.abs().sum() > 0
+    assert vae.mu_out.weight.grad.abs().sum() > 0  # the encoder learns to carry the stance
+    with pytest.raises(ValueError, match="stance_weight"):
+        dataclasses.replace(VAEConfig(), foot_lock=0.1, foot_lock_reads="stance")
+
+
+@pytest.fixture(scope="module")
+def gliding(prepared_shards):
+    """A body standing as the fixture's first frame, gliding 0.5 m/s along x, feet dragged."""
+    windows = WindowDataset(prepared_shards, "train", extractor="logmel", window=64, seed=0, length=8)
+    layout = MotionLayout.from_width(windows.motion_dim)
+    body = np.repeat(windows[4]["motion"].numpy().astype(np.float64)[:1], 64, axis=0)
+    glide = np.zeros((64, layout.width // 3, 3))
+    glide[:, :, 0] = 0.5 / FPS * np.arange(64)[:, None]
+    lengths = bone_lengths(joints_of(body, layout), layout.bones)[0]
+    return layout, body + glide.reshape(64, -1), lengths
+
+
+def test_a_foot_steps_where_its_stance_lifts_along_the_datas_step(gliding):
+    layout, decoded, lengths = gliding
+    frames = len(decoded)
+    stance = np.ones((frames, 2), bool)
+    lifts = {0: [4, 14, 24, 34, 44, 54], 1: [9, 19, 29, 39, 49]}  # each foot every 1/3 s
+    for side, starts in lifts.items():
+        for start in starts:
+            stance[start:start + STANCE_SWING_FRAMES, side] = False
+    lock = FootLock(layout, lengths, radius=10.0)  # no step by drift: only the stance's
+    out = lock(decoded, stance)
+    feet = joints_of(out, layout)[:, FEET]
+    dragged = joints_of(decoded, layout)[:, FEET]
+    for side, starts in lifts.items():
+        moved = np.linalg.norm(np.diff(feet[:, side, [0, 2]], axis=0), axis=-1) > 1e-9
+        # planted while the stance is: the foot moves only in the stance's swing frames (from
+        # each foot's second step: the standing pose's legs are straight, so a foot planted
+        # before the body set off is dragged until it first steps)
+        moving = np.flatnonzero(moved) + 1
+        np.testing.assert_array_equal(moving[moving >= 14],
+                                      [f for s in starts[1:] for f in range(s, s + STANCE_SWING_FRAMES)])
+        for start in starts[1:]:
+            travel = feet[start - 1:start + STANCE_SWING_FRAMES, side, 0]
+            share = (travel - travel[0]) / (travel[-1] - travel[0])
+            # the data's step profile: the landing spot stays put for a body gliding evenly
+            np.testing.assert_allclose(share, STEP_SHARE, atol=1e-6)
+            assert travel[-1] - travel[0] > 0.5 / FPS * 7  # where the body has gone since
+            lifted = feet[start:start + STANCE_SWING_FRAMES, side, 1] - dragged[start:start + STANCE_SWING_FRAMES, side, 1]
+            assert lifted.max() > 0.9 * STANCE_LIFT and lifted.min() > 0
+    lock.reset()
+    blocks = np.concatenate([lock(decoded[i:i + 4], stance[i:i + 4]) for i in range(0, frames, 4)])
+    np.testing.assert_array_equal(blocks, out)
+    # a stance that never lifts leaves the lock as it steps by drift alone
+    drift = FootLock(layout, lengths, radius=0.1)
+    alone = drift(decoded)
+    drift.reset()
+    np.testing.assert_array_equal(drift(decoded, np.ones_like(stance)), alone)
+
+
+def stance_models():
+    """Tiny random models whose decoding steps by their stance head, feet near the floor."""
+    vae, flow, normalizer = random_models("tiny", 8, SHELL, 0, motion_std=0.02, init_std=0.05,
+                                          audio_mean=0.0, audio_std=1.0, latent_mean_std=0.1,
+                                          overrides=STANCE)
+    layout = MotionLayout(shell_points=SHELL)
+    mean = normalizer.motion_mean.double().numpy().copy()
+    icosahedra, shell = layout.split(mean[None])
+    for name in ("left_ankle", "right_ankle", "left_foot", "right_foot"):
+        icosahedra[0, JOINT[name], :, 1] += 0.03 - icosahedra[0, JOINT[name], :, 1].mean()
+    mean = np.concatenate([icosahedra.reshape(-1), shell.reshape(-1)])
+    normalizer.set("motion", mean, normalizer.motion_std.double().numpy())
+    lengths = bone_lengths(joints_of(mean[None], layout), layout.bones)[0]
+    normalizer.set("bone_length", lengths, np.zeros_like(lengths))
+    return vae, flow, normalizer
+
+
+def test_a_stream_steps_by_its_stance_as_the_offline_solve_does():
+    models = stance_models()
+    vae = models[0]
+    assert vae.stance is not None
+    frames = 4 * 20
+    rng = np.random.default_rng(0)
+    head = np.stack([1.5 * np.cos(np.linspace(0, 2, frames)), 1.5 * np.sin(np.linspace(0, 2, frames))], 1)
+    inputs = (head.astype(np.float32), rng.normal(size=(frames, 8)).astype(np.float32),
+              rng.normal(size=(frames, 8)).astype(np.float32))
+    config = StreamConfig(imputation="trajectory", noise_scale=0.6)
+    gen = StreamingGenerator(*models, config)
+    streamed = np.concatenate([gen.step(*(x[i:i + 4] for x in inputs)) for i in range(0, frames, 4)])
+    offline, z = offline_with_latents(*models, *inputs, config)
+    np.testing.assert_allclose(streamed, offline, atol=1e-5)
+    # the stance was read and stepped by: drift alone decodes the same latents otherwise
+    tokens = models[2].denormalize("latent", z)[None]
+    planted = vae.stance.planted(vae.stance(tokens))[0].numpy()
+    assert 0.05 < planted.mean() < 0.95
+    vae.config = dataclasses.replace(vae.config, foot_lock_reads="drift")
+    try:
+        drift, _ = offline_with_latents(*models, *inputs, config)
+    finally:
+        vae.config = dataclasses.replace(vae.config, foot_lock_reads="stance")
+    assert np.abs(drift - offline).max() > 1e-3
+
+
+def test_a_recipe_with_a_stance_head_trains_writes_its_model_file_and_generates(prepared_shards,
+                                                                                 tmp_path, capsys):
+    """Both stages with vae.stance_weight, a model file that steps by the stance, generation
+    from it; a model without the head refuses to step by one, naming the setting it lacks."""
+    from sarah_cli.train import main
+    from sarah_models.sampling.stream import generate_offline
+    from sarah_models.training.model_file import load_model_file
+
+    out = tmp_path / "run"
+    small = ["vae.hidden=32", "vae.latent_dim=8", "vae.encoder_layers=1", "vae.decoder_layers=1",
+             "flow.hidden=32", "flow.cond_dim=16", "flow.time_dim=16", "flow.layers=1",
+             "train.window=16", "train.latent_stats_batches=1", "vae.stance_weight=0.2"]
+    args = ["--stage", "all", "--config", "tiny", "--shards", str(prepared_shards), "--out", str(out),
+            "--steps", "2", "--batch-size", "2", "--device", "cpu", "--no-progress"]
+    assert main(args + sum((["--set", s] for s in small), [])) == 0, capsys.readouterr().err
+    assert main(["--stage", "model", "--init-from", str(out), "--out", str(out), "--shards",
+                 str(prepared_shards), "--set", "vae.foot_lock=0.1", "--set",
+                 "vae.foot_lock_reads=stance"]) == 0, capsys.readouterr().err
+    models = load_model_file(out / "model.safetensors", device="cpu")
+    assert models.vae.stance is not None and models.vae.config.foot_lock_reads == "stance"
+    trained = torch.load(out / "vae.pt", weights_only=True)["vae"]
+    for name, value in models.vae.stance.state_dict().items():
+        assert torch.equal(value, trained[f"stance.{name}"]), name
+    frames = 16
+    head = np.stack([np.linspace(1.0, 1.5, frames), np.zeros(frames)], 1).astype(np.float32)
+    audio = np.zeros((frames, models.dims["audio"]), np.float32)
+    motion = generate_offline(models.vae, models.flow, models.normalizer, head, audio, audio)
+    assert motion.shape == (frames, models.dims["motion"]) and np.isfinite(motion).all()
+    capsys.readouterr()
+    assert main(["--stage", "model", "--init-from", "fixture-tiny", "--out", str(tmp_path / "no"),
+                 "--set", "vae.foot_lock_reads=stance"]) == 2
+    assert "vae.stance_weight" in capsys.readouterr().err
+    assert not (tmp_path / "no").exists()
