@@ -76,8 +76,8 @@ FLOW_STEPS=${FLOW_STEPS:-14000}
 STRIDE=${STRIDE:-}                   # frames per latent token (vae.stride), if not the preset's
 FLOW_SETTINGS=${FLOW_SETTINGS-"--set flow.attention_window=17 --set flow.head_velocity=true"}  # sarah-train --set for the flow
 # ... for the model file's decoding
-DECODING_SETTINGS=${DECODING_SETTINGS-"--set vae.boundary_inertia=0 --set vae.root_inertia=0 --set vae.foot_swing_frames=8 --set vae.root_hold_reads=feet"}
-VAE_SETTINGS=${VAE_SETTINGS-"--set vae.root_weight=0.05"}  # ... and for both VAE stages
+DECODING_SETTINGS=${DECODING_SETTINGS-"--set vae.boundary_inertia=0 --set vae.root_inertia=0 --set vae.foot_swing_frames=8 --set vae.root_hold_reads=feet --set vae.foot_lock_reads=stance"}
+VAE_SETTINGS=${VAE_SETTINGS-"--set vae.root_weight=0.05 --set vae.stance_weight=0.2"}  # ... and for both VAE stages
 # ... and for the decoder stage alone: a stochastic decoder (docs/models.md)
 DECODER_SETTINGS=${DECODER_SETTINGS-"--set vae.detail_dim=32 --set vae.energy_weight=10 --set vae.energy_per_point=true"}
 SWEEP_WINDOWS=${SWEEP_WINDOWS:-104}  # the gaze sweep's windows, evenly spaced over the same split
