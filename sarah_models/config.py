@@ -238,8 +238,9 @@ class VAEConfig:
     # data stands, 2x further.
     foot_swing_frames: int = 12
     # Not in the paper: what makes a locked foot step (``sampling.foot_lock``). "drift": the
-    # decoded foot moving ``foot_lock`` metres from where it is planted; "stance": also the
-    # VAE's stance head saying it lifts (``vae.stance_weight`` > 0), along the data's own step.
+    # decoded foot moving ``foot_lock`` metres from where it is planted; "stance": the VAE's
+    # stance head saying it lifts (``vae.stance_weight`` > 0), along the data's own step, and
+    # drift only past ``sampling.foot_lock.STANCE_REACH`` (0.2 m).
     foot_lock_reads: str = "drift"
     # Not in the paper (0 = off): the body holds its place on the floor until the decoded pelvis
     # has moved this many metres away, then follows, no faster than the data's people walk

@@ -13,8 +13,8 @@ from sarah_data.dataset import WindowDataset
 from sarah_data.skeleton import MotionLayout, bone_lengths
 from sarah_models.config import StreamConfig, VAEConfig
 from sarah_models.nn.stance import RECEPTIVE_TOKENS, STANCE_SPEED, StanceHead, stance_of
-from sarah_models.sampling.foot_lock import (STANCE_LIFT, STANCE_SWING_FRAMES, STEP_SHARE,
-                                             FootLock)
+from sarah_models.sampling.foot_lock import (STANCE_LIFT, STANCE_REACH, STANCE_SWING_FRAMES,
+                                             STEP_SHARE, FootLock)
 from sarah_models.sampling.stream import StreamingGenerator, offline_with_latents
 from sarah_models.testing import random_models
 
@@ -109,7 +109,7 @@ def test_a_foot_steps_where_its_stance_lifts_along_the_datas_step(gliding):
     for side, starts in lifts.items():
         for start in starts:
             stance[start:start + STANCE_SWING_FRAMES, side] = False
-    lock = FootLock(layout, lengths, radius=10.0)  # no step by drift: only the stance's
+    lock = FootLock(layout, lengths, radius=0.1)  # the body glides less than STANCE_REACH per step
     out = lock(decoded, stance)
     feet = joints_of(out, layout)[:, FEET]
     dragged = joints_of(decoded, layout)[:, FEET]
@@ -132,11 +132,12 @@ def test_a_foot_steps_where_its_stance_lifts_along_the_datas_step(gliding):
     lock.reset()
     blocks = np.concatenate([lock(decoded[i:i + 4], stance[i:i + 4]) for i in range(0, frames, 4)])
     np.testing.assert_array_equal(blocks, out)
-    # a stance that never lifts leaves the lock as it steps by drift alone
-    drift = FootLock(layout, lengths, radius=0.1)
+    # a stance that never lifts leaves the lock stepping by drift alone, at STANCE_REACH
+    drift = FootLock(layout, lengths, radius=STANCE_REACH)
     alone = drift(decoded)
     drift.reset()
     np.testing.assert_array_equal(drift(decoded, np.ones_like(stance)), alone)
+    assert np.abs(alone - out).max() > 0.05
 
 
 def stance_models():

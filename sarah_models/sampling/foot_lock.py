@@ -34,9 +34,10 @@ does that, causally, per foot:
   frame (``STEP_SHARE``), ``STANCE_LIFT`` above the decoded foot, to where the decoded foot will
   be when it lands, and is planted where it is when the stance lands (past the last frame it
   follows the decoded foot). A stance that stays planted while the decoded foot drifts
-  ``radius`` away still steps by the arc. With the data's own stance this took the benchmark
-  VAE's reconstruction of the data from FGD_acc 624 to 278, and the legs' acceleration energy
-  from 0.83 of the data's to 0.97 (docs/results.md, seventieth run).
+  ``STANCE_REACH`` away (not ``radius``) still steps by the arc. With the data's own stance
+  this took the benchmark VAE's reconstruction of the data from FGD_acc 624 to 278; a VAE of
+  the same recipe with its own stance head reconstructs at 277 against 590 by drift, its legs'
+  acceleration energy 0.90 of the data's against 0.60 (docs/results.md, seventieth run).
 
 Feet must not go under the floor: streamed on the fixture benchmark the shipped model's foot
 joints were under it in 3.6 % of frames and as low as -4.5 cm (the ground truth's never go under
