@@ -8,7 +8,7 @@ decoder weighted to the legs steps at the data's moments, with the feet confused
 head says it outright: per frame and per foot, planted or swinging, trained with a binary
 cross-entropy against the data's own stance (``stance_of``). The foot lock then steps when the
 stance lifts (``sampling.foot_lock``); with the data's stance, a VAE's reconstruction of the
-data through the benchmark's chain came from FGD_acc 624 to 282 (seventieth run).
+data through the benchmark's chain came from FGD_acc 624 to 278 (seventieth run).
 
 The head is causal over tokens (two convolutions that see the last ``RECEPTIVE_TOKENS``
 tokens), so a stream reads a token's stance from the tokens it has (``StanceHead.last``) and

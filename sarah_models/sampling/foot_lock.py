@@ -147,9 +147,10 @@ class FootLock:
                 correction[frames] += self._reach(joints[frames], leg, np.stack([g for _, g in reached]))
         return finish(motion, icosahedra, shell, correction, self.shell(shell, joints, correction))
 
-    def _target(self, side: int, foot: np.ndarray, planted: bool | None = None) -> np.ndarray | None:
+    def _target(self, side: int, foot: np.ndarray, stands: bool | None = None) -> np.ndarray | None:
         """Where this frame puts the foot (None: where the decoder put it); advances the state.
-        ``planted``: the decoded stance of this foot now (None: none given)."""
+        ``stands``: the decoded stance of this foot now, True where it is planted (None: none
+        given)."""
         previous, self._previous[side] = self._previous[side], foot.copy()
         if foot[1] > FREE_HEIGHT:
             self._planted[side] = self._swing[side] = self._lifted[side] = None
@@ -157,10 +158,9 @@ class FootLock:
             return None
         if self._lifted[side] is not None:
             return self._follow_lifted(side, foot)
-        planted_now = planted
         if self._stance_step[side] is not None or (
-                planted is False and self._swing[side] is None and self._planted[side] is not None):
-            return self._step_by_stance(side, foot, previous, planted)
+                stands is False and self._swing[side] is None and self._planted[side] is not None):
+            return self._step_by_stance(side, foot, previous, stands)
         planted = self._planted[side]
         if planted is None and self._swing[side] is None and foot[1] > FOOT_MAX_HEIGHT:
             # In the air where nothing is planted yet (a stream that starts mid-step, a raised
@@ -197,7 +197,7 @@ class FootLock:
             self._planted[side] = foot.copy()
             return None
         target = np.array([planted[0], foot[1], planted[2]])
-        if np.hypot(*(foot - planted)[[0, 2]]) > (self.radius if planted_now is None else STANCE_REACH):
+        if np.hypot(*(foot - planted)[[0, 2]]) > (self.radius if stands is None else STANCE_REACH):
             # Step to where the decoded foot will be when the step lands, and further on in its
             # direction (as far again, at most ``radius``), so that the body walks into the step
             # instead of dragging the foot behind; further, the foot would be released at once.
@@ -209,7 +209,7 @@ class FootLock:
         return target
 
     def _step_by_stance(self, side: int, foot: np.ndarray, previous: np.ndarray | None,
-                        planted: bool | None) -> np.ndarray:
+                        stands: bool | None) -> np.ndarray:
         """A step the decoded stance takes (see the module docstring); planted where the stance
         lands."""
         step = self._stance_step[side]
@@ -217,7 +217,7 @@ class FootLock:
             step = (self._planted[side], 0, self._planted[side])
             self._planted[side] = None
         start, frame, placed = step
-        if planted and frame > 0:
+        if stands and frame > 0:
             self._stance_step[side], self._planted[side] = None, placed.copy()
             return np.array([placed[0], foot[1], placed[2]])
         frame += 1
