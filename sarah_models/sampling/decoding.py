@@ -5,9 +5,10 @@ latent blocks), ``LimbLowpass`` (``vae.limb_lowpass``: the arms' and hands' jitt
 walks it), ``RigidSkeleton`` (``vae.rigid_bones``: bones at the training data's lengths) and
 ``FootLock`` (``vae.foot_lock``: planted feet, and steps). All five are causal and off in
 the paper's config; one ``StreamDecoding`` per stream, fed its frames in order, whole blocks at a
-time; streaming, the offline protocol and sarah-eval's VAE row all decode through it. With
-``vae.foot_lock_reads="stance"`` each block comes with the stance the VAE's head reads from its
-latent tokens (``decoded_stance``), which the foot lock steps by.
+time; streaming, the offline protocol and sarah-eval's VAE row all decode through it. A filter
+is called with a block's frames and the stance the VAE's head reads from their latent tokens
+(``decoded_stance``; None unless ``vae.foot_lock_reads="stance"``), which only the foot lock
+reads.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ class StreamDecoding:
     def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None) -> np.ndarray:
         """``stance`` (n, feet) bool, the frames' decoded stance: for the foot lock."""
         for f in self.filters:
-            motion = f(motion, stance) if isinstance(f, FootLock) else f(motion)
+            motion = f(motion, stance)
         return motion
 
 

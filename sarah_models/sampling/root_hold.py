@@ -80,7 +80,7 @@ class RootHold:
         self._glide: np.ndarray | None = None  # "feet": the pelvis's start plus the feet's glide
         self._feet: np.ndarray | None = None  # "feet": the previous frame's decoded feet (x, z)
 
-    def __call__(self, motion: np.ndarray) -> np.ndarray:
+    def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None) -> np.ndarray:
         x = np.asarray(motion, dtype=np.float64)
         joints = self.layout.joint_positions(x, [ROOT, *FEET] if self.reads == "feet" else [ROOT])
         path = joints[:, 0, [0, 2]] if self.reads == "pelvis" else self._glide_path(joints)

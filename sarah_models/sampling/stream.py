@@ -246,8 +246,10 @@ class StreamingGenerator:
         self._place = torch.zeros(2)  # the decoded pelvis's floor (x, z) in the generation frame
         self._decoder = self._m.vae.new_decoder_cache(cfg.decoder_blocks(self._m.vae.stride))
         self._decoding = self._m.decoding()
-        # the decoder's latest latent tokens, all the stance head reads (vae.foot_lock_reads)
-        self._stance_tokens: deque[Tensor] = deque(maxlen=RECEPTIVE_TOKENS)
+        # the decoder's latest latent tokens, all the stance head reads (vae.foot_lock_reads);
+        # None for a decoding that does not step by it
+        self._stance_tokens: deque[Tensor] | None = (
+            deque(maxlen=RECEPTIVE_TOKENS) if reads_stance(self._m.vae) else None)
         self.frames_generated = 0
         self.last_latent: Tensor | None = None  # the latest block's standardized latent (Dz,)
 
@@ -303,7 +305,7 @@ class StreamingGenerator:
         detail = m.vae.detail_noise(1, 1, self._detail, m.device)
         token = m.latent_for_decoder(z)[None]
         stance = None
-        if reads_stance(m.vae):
+        if self._stance_tokens is not None:
             self._stance_tokens.append(token)
             stance = decoded_stance(m.vae, torch.stack(list(self._stance_tokens), dim=1), last=True)
         frames = m.decode(m.vae.decoder_step(token, self._decoder,
