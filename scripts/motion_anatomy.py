@@ -6,7 +6,7 @@ split and prints nine tables:
     python scripts/motion_anatomy.py --pretrained fixture-tiny --shards test_shards --split train
     # a model at its own sampling setting (sarah-eval's flags of the same names)
     python scripts/motion_anatomy.py --run model.safetensors --shards test_shards --split train \
-        --noise-scale 0.3 --cfg 4.5 --guide user_head,gaze --guidance-interval 0,0.75 \
+        --noise-scale 0.3 --cfg 4.5 --guide user_head --guidance-interval 0,0.75 \
         --imputation trajectory
 
 1. FGD (pooled), FGD_acc and foot slide of hybrids: the ground truth's pose on the model's root

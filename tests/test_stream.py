@@ -145,6 +145,21 @@ def test_default_guidance_guides_the_whole_conditioning(models):
     assert np.abs(guided - unguided).max() > 1e-4
 
 
+def test_guiding_the_gaze_score_matters_only_with_a_gaze_target(models):
+    """g = None drops the gaze score from both passes, so guiding it too (`--guide
+    user_head,gaze`) is bit for bit guiding the user's position alone (`--guide user_head`):
+    a sampling setting tuned at g = None holds for either, and the two differ only where a gaze
+    target is given (the fixture benchmark's gaze sweep, docs/models.md)."""
+    inputs = make_inputs(12)
+    position = StreamConfig(gaze=None, cfg_scale=4.5, guide=("user_head",))
+    position_and_gaze = dataclasses.replace(position, guide=("user_head", "gaze"))
+    np.testing.assert_array_equal(stream(models, inputs, position),
+                                  stream(models, inputs, position_and_gaze))
+    with_target = dataclasses.replace(position, gaze=0.8)
+    assert np.abs(stream(models, inputs, with_target) - stream(
+        models, inputs, dataclasses.replace(position_and_gaze, gaze=0.8))).max() > 1e-4
+
+
 def test_guidance_interval_guides_only_the_evaluations_inside_it(models):
     """Four midpoint steps evaluate at tau = 0, 1/8, ..., 7/8: an interval holding none of them
     is the conditional model alone; one holding all of them is full guidance; one holding some
