@@ -132,12 +132,50 @@ def test_a_foot_steps_where_its_stance_lifts_along_the_datas_step(gliding):
     lock.reset()
     blocks = np.concatenate([lock(decoded[i:i + 4], stance[i:i + 4]) for i in range(0, frames, 4)])
     np.testing.assert_array_equal(blocks, out)
-    # a stance that never lifts leaves the lock stepping by drift alone, at STANCE_REACH
+    # a stance that never lifts still steps where the foot drifts STANCE_REACH away (the test
+    # below), not by the arc a lock without a stance takes at that radius
     drift = FootLock(layout, lengths, radius=STANCE_REACH)
-    alone = drift(decoded)
+    arc = drift(decoded)
     drift.reset()
-    np.testing.assert_array_equal(drift(decoded, np.ones_like(stance)), alone)
-    assert np.abs(alone - out).max() > 0.05
+    assert np.abs(drift(decoded, np.ones_like(stance)) - arc).max() > 1e-3
+    assert np.abs(arc - out).max() > 0.05
+
+
+@pytest.mark.parametrize("speed", [0.5, 1.2])
+def test_a_foot_whose_stance_stays_planted_steps_by_drift_along_the_datas_step(gliding, speed):
+    """The lock's targets for one foot gliding evenly under a stance that never lifts: planted
+    until the decoded foot is STANCE_REACH away, then the data's step (STANCE_SWING_FRAMES
+    frames, STEP_SHARE of the way, lifted) to where the decoded foot is when it lands, and
+    planted there for good, whatever the stance says; the arc (no stance) steps otherwise."""
+    layout, _, lengths = gliding
+    feet = [np.array([speed / FPS * t, 0.03, 0.0]) for t in range(60)]
+    lock = FootLock(layout, lengths, radius=STANCE_REACH)
+    targets = [lock._target(0, foot, True) for foot in feet]
+    assert targets[0] is None  # planted where it stands
+    x = np.array([feet[0][0]] + [target[0] for target in targets[1:]])
+    first = next(t for t, foot in enumerate(feet) if foot[0] - feet[0][0] > STANCE_REACH)
+    assert np.all(x[:first] == feet[0][0])  # held until the drift passes STANCE_REACH
+    steps = 0
+    start = first
+    while start + STANCE_SWING_FRAMES <= len(feet):
+        land = start + STANCE_SWING_FRAMES - 1
+        share = (x[start - 1:land + 1] - x[start - 1]) / (feet[land][0] - x[start - 1])
+        np.testing.assert_allclose(share, STEP_SHARE, atol=1e-9)
+        heights = np.array([targets[t][1] - feet[t][1] for t in range(start, land + 1)])
+        assert np.all(heights > 0) and heights.max() == pytest.approx(STANCE_LIFT)
+        steps += 1
+        spot = feet[land][0]  # planted where it landed until the drift passes STANCE_REACH again
+        after = [t for t in range(land + 1, len(feet)) if feet[t][0] - spot > STANCE_REACH]
+        held = range(land + 1, after[0] if after else len(feet))
+        assert all(x[t] == spot for t in held)
+        if not after:
+            break
+        start = after[0]
+    assert steps >= 2
+    arc = FootLock(layout, lengths, radius=STANCE_REACH)
+    arc_targets = [arc._target(0, foot) for foot in feet]
+    arc_x = [feet[0][0] if target is None else target[0] for target in arc_targets]
+    assert not np.allclose(arc_x, x)
 
 
 def stance_models():
