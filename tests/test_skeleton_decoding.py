@@ -13,7 +13,8 @@ from sarah_data.dataset import WindowDataset
 from sarah_data.skeleton import MotionLayout, bone_lengths
 from sarah_data.stats import load_stats
 from sarah_models.evaluation.metrics import foot_slide
-from sarah_models.sampling.foot_lock import FREE_HEIGHT, LIFT, RELEASE, SWING_FRAMES, FootLock
+from sarah_models.sampling.foot_lock import (FREE_HEIGHT, LIFT, RELEASE, STANCE_LIFT,
+                                             STANCE_SWING_FRAMES, SWING_FRAMES, FootLock)
 from sarah_models.sampling.rigid_skeleton import RigidSkeleton, ShellFollow
 
 FEET = [JOINT["left_foot"], JOINT["right_foot"]]
@@ -224,7 +225,10 @@ def test_a_planted_foot_stays_put_while_the_decoder_jitters_and_the_leg_keeps_it
                                np.broadcast_to(lengths[legs], (len(out), 4)), rtol=1e-9)
 
 
-def test_a_gliding_body_steps_and_a_stream_gets_the_frames_at_once_gets(windows, skeleton):
+@pytest.mark.parametrize("step, lift, swing", [("data", STANCE_LIFT, STANCE_SWING_FRAMES),
+                                              ("arc", LIFT, SWING_FRAMES)])
+def test_a_gliding_body_steps_and_a_stream_gets_the_frames_at_once_gets(windows, skeleton, step,
+                                                                        lift, swing):
     layout = MotionLayout.from_width(windows.motion_dim)
     body = standing(windows[4], layout)
     frames = len(body)
@@ -232,7 +236,7 @@ def test_a_gliding_body_steps_and_a_stream_gets_the_frames_at_once_gets(windows,
     glide[:, :, 0] = 0.5 / 30 * np.arange(frames)[:, None]  # 0.5 m/s along x, feet dragged along
     decoded = body + glide.reshape(frames, -1)
     lengths = bone_lengths(joints_of(body, layout), layout.bones)[0]
-    lock = FootLock(layout, lengths, radius=0.1)
+    lock = FootLock(layout, lengths, radius=0.1, step=step)
     out = lock(decoded)
     feet, dragged = joints_of(out, layout)[:, FEET], joints_of(decoded, layout)[:, FEET]
     assert foot_slide(joints_of(decoded, layout)) == 1.0
@@ -241,16 +245,16 @@ def test_a_gliding_body_steps_and_a_stream_gets_the_frames_at_once_gets(windows,
     assert np.mean(speed < 1e-6) > 0.4  # planted (or lifted and set down) half of the time...
     moving = speed > 1e-6
     assert np.all(np.sum(moving[1:] & ~moving[:-1], axis=0) >= 2)  # ...and walking: steps
-    assert np.all((feet[..., 1] - dragged[..., 1]).max(axis=0) > 0.9 * LIFT)  # lifted to step
-    assert np.all(np.abs(feet[..., 0] - dragged[..., 0]) < 0.1 + 0.5 / 30 * 3 * SWING_FRAMES)
+    assert np.all((feet[..., 1] - dragged[..., 1]).max(axis=0) > 0.9 * lift)  # lifted to step
+    assert np.all(np.abs(feet[..., 0] - dragged[..., 0]) < 0.1 + 0.5 / 30 * 3 * swing)
     lock.reset()
     blocks = np.concatenate([lock(decoded[i:i + 4]) for i in range(0, frames, 4)])
     np.testing.assert_array_equal(blocks, out)
 
 
 def test_the_steps_take_the_configured_frames(windows, skeleton):
-    """vae.foot_swing_frames reaches the lock: a gliding body's steps, from lift-off to landing,
-    take that many frames."""
+    """vae.foot_swing_frames reaches the lock: a gliding body's arc steps (vae.foot_step), from
+    lift-off to landing, take that many frames; the data's steps take the data's."""
     from sarah_models.sampling.decoding import stream_decoding
     from sarah_models.testing import random_models
 
@@ -262,17 +266,23 @@ def test_the_steps_take_the_configured_frames(windows, skeleton):
     lengths = bone_lengths(joints_of(body, layout), layout.bones)[0]
     vae, _, normalizer = random_models("tiny")
     normalizer.set("bone_length", lengths, np.zeros_like(lengths))
-    for frames in (6, SWING_FRAMES):
-        vae.config = dataclasses.replace(vae.config, foot_lock=0.1, foot_swing_frames=frames)
+    for step, frames in (("arc", 6), ("arc", SWING_FRAMES), ("data", STANCE_SWING_FRAMES)):
+        vae.config = dataclasses.replace(vae.config, foot_lock=0.1, foot_swing_frames=6,
+                                         foot_step=step)
+        if step == "arc":
+            vae.config = dataclasses.replace(vae.config, foot_swing_frames=frames)
         lock = stream_decoding(vae, normalizer).filters[-1]
-        assert isinstance(lock, FootLock) and lock.swing_frames == frames
+        assert isinstance(lock, FootLock) and lock.step == step
         feet = joints_of(lock(decoded), layout)[:, FEET]
         lifted = (feet[..., 1] - joints_of(decoded, layout)[:, FEET, 1] > 1e-6)[:, 0]
         edges = np.flatnonzero(np.diff(lifted.astype(int)))  # the frames before each change
         runs = np.diff(edges)[::2] if lifted[edges[0] + 1] else np.diff(edges)[1::2]
-        assert len(runs) >= 2 and np.all(runs == frames - 1)  # in the air between lift and landing
+        # in the air between lift and landing (an arc sets the foot down in its last frame)
+        assert len(runs) >= 2 and np.all(runs == (frames - 1 if step == "arc" else frames))
     with pytest.raises(ValueError, match="foot_swing_frames must be >= 4"):
         dataclasses.replace(vae.config, foot_swing_frames=3)
+    with pytest.raises(ValueError, match="foot_step must be one of"):
+        dataclasses.replace(vae.config, foot_step="hop")
 
 
 def test_a_step_rises_as_high_as_the_datas_steps(prepared_shards):
@@ -359,10 +369,11 @@ def test_a_body_the_decoder_sank_into_the_floor_stands_and_steps_on_it(windows, 
     decoded = shift_joints(body, layout, shifts)
     assert joints_of(decoded, layout)[:, FEET, 1].max() < FLOOR_HEIGHT
     lengths = bone_lengths(joints_of(body, layout), layout.bones)[0]
-    feet = joints_of(FootLock(layout, lengths, radius=0.1)(decoded), layout)[:, FEET]
-    assert feet[..., 1].min() >= FLOOR_HEIGHT - 1e-9  # standing on the floor, not in it
-    # every foot swings its full height above the floor
-    np.testing.assert_allclose(feet[..., 1].max(axis=0), FLOOR_HEIGHT + LIFT, atol=1e-9)
+    for step, lift in (("data", STANCE_LIFT), ("arc", LIFT)):
+        feet = joints_of(FootLock(layout, lengths, radius=0.1, step=step)(decoded), layout)[:, FEET]
+        assert feet[..., 1].min() >= FLOOR_HEIGHT - 1e-9  # standing on the floor, not in it
+        # every foot swings its full height above the floor
+        np.testing.assert_allclose(feet[..., 1].max(axis=0), FLOOR_HEIGHT + lift, atol=1e-9)
 
 
 def test_a_raised_foot_is_left_to_the_decoder(windows, skeleton):

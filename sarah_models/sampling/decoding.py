@@ -88,5 +88,6 @@ def stream_decoding(vae, normalizer) -> StreamDecoding:
             if reads_stance(vae) and getattr(vae, "stance", None) is None:
                 raise ValueError("vae.foot_lock_reads='stance' needs the VAE's stance head, and "
                                  "this VAE has none")
-            filters.append(FootLock(layout, lengths, cfg.foot_lock, cfg.foot_swing_frames))
+            filters.append(FootLock(layout, lengths, cfg.foot_lock, cfg.foot_swing_frames,
+                                    step=cfg.foot_step))
     return StreamDecoding(filters)

@@ -9,7 +9,14 @@ does that, causally, per foot:
 
 - **planted**: the foot keeps its horizontal position from the frame it was planted; its height
   is the decoder's, but never below the floor (y = 0);
-- **step**: when the decoded foot has moved ``radius`` away from where the foot is planted, the
+- **step** (``step="data"``, ``vae.foot_step``): when the decoded foot has moved ``radius`` away
+  from where the foot is planted, the foot steps as the data's people step (the **stance** step
+  below, landing after its ``STANCE_SWING_FRAMES`` frames). On the fixture benchmark's 96 tuning
+  windows this took the shipped model's streamed FGD_acc from 1,121 by the arc to 823, and the
+  benchmark recipe's model's (stepping by drift alone) from 611 to 466 at 0.1 m and 394 at 0.2 m
+  (docs/results.md, seventy-first run);
+- **arc step** (``step="arc"``, the lock's only step before): when the decoded foot has moved
+  ``radius`` away from where the foot is planted, the
   foot swings over ``SWING_FRAMES`` frames along an arc ``LIFT`` above the decoded foot, or above
   the floor where the decoded foot is under it (lifted in the first frame, set down in the last
   two) to where the decoded foot will be when it lands (at the velocity it had when the step
@@ -34,8 +41,8 @@ does that, causally, per foot:
   frame (``STEP_SHARE``), ``STANCE_LIFT`` above the decoded foot, to where the decoded foot will
   be when it lands, and is planted where it is when the stance lands (past the last frame it
   follows the decoded foot). A stance that stays planted while the decoded foot drifts
-  ``STANCE_REACH`` away (not ``radius``) still steps, along the same profile, and lands after
-  its ``STANCE_SWING_FRAMES`` frames whatever the stance says. With the data's own stance
+  ``STANCE_REACH`` away (not ``radius``) still steps (``step``), and a data step then lands
+  after its ``STANCE_SWING_FRAMES`` frames whatever the stance says. With the data's own stance
   this took the benchmark VAE's reconstruction of the data from FGD_acc 624 to 278; a VAE of
   the same recipe with its own stance head reconstructs at 277 against 590 by drift, its legs'
   acceleration energy 0.90 of the data's against 0.60 (docs/results.md, seventieth run). Its
@@ -64,12 +71,13 @@ import numpy as np
 from sarah_data.constants import FLOOR_HEIGHT
 from sarah_data.skeleton import MotionLayout
 
-from ..config import MIN_SWING_FRAMES, VAEConfig
+from ..config import FOOT_STEPS, MIN_SWING_FRAMES, VAEConfig
 from ..evaluation.metrics.spec import FOOT_MAX_HEIGHT
 
 from .rigid_skeleton import ShellFollow, finish, legs, two_bone_ik
 
-SWING_FRAMES = VAEConfig.foot_swing_frames  # a step's swing by default, 0.4 s at 30 fps
+SWING_FRAMES = VAEConfig.foot_swing_frames  # an arc step's swing by default, 0.4 s at 30 fps
+STEP = VAEConfig.foot_step  # how a foot steps by drift by default
 # m: the swing arc's height above the decoded foot (or the floor). The fixtures' steps rise 7.8 cm
 # (median and 90th percentile of the 2,021 steps of the 104 seed-7 test windows). A 10 cm arc
 # rose higher than any of them, and the shipped model's FGD_acc with it was 10 % (streamed) and
@@ -100,9 +108,12 @@ class FootLock:
     the stream's frames in order. ``lengths`` are the skeleton's (one per ``layout.bones``)."""
 
     def __init__(self, layout: MotionLayout, lengths, radius: float,
-                 swing_frames: int = SWING_FRAMES, lift: float = LIFT) -> None:
+                 swing_frames: int = SWING_FRAMES, lift: float = LIFT, step: str = STEP) -> None:
         if not radius > 0:
             raise ValueError(f"foot lock radius must be positive, got {radius}")
+        if step not in FOOT_STEPS:
+            raise ValueError(f"foot lock step must be one of {FOOT_STEPS}, got {step!r}")
+        self.step = step
         if swing_frames < MIN_SWING_FRAMES:
             raise ValueError(f"a step needs at least {MIN_SWING_FRAMES} swing frames, got {swing_frames}")
         self.layout, self.radius, self.swing_frames, self.lift = layout, radius, swing_frames, lift
@@ -124,8 +135,8 @@ class FootLock:
         self._previous: list[np.ndarray | None] = [None] * len(self.legs)  # decoded foot
         # (start, frame, placed, by_stance): a step along the data's profile, where it left, its
         # frame, where the foot is, and whether it lands when the stance does (True) or after
-        # its frames (False: a drift step under a stance that stays planted)
-        self._stance_step: list[tuple | None] = [None] * len(self.legs)
+        # its frames (False: a drift step, ``step="data"``)
+        self._data_step: list[tuple | None] = [None] * len(self.legs)
 
     def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None) -> np.ndarray:
         """``stance`` (frames, legs) bool: the decoded stance of these frames (True: planted),
@@ -160,13 +171,13 @@ class FootLock:
         previous, self._previous[side] = self._previous[side], foot.copy()
         if foot[1] > FREE_HEIGHT:
             self._planted[side] = self._swing[side] = self._lifted[side] = None
-            self._stance_step[side] = None
+            self._data_step[side] = None
             return None
         if self._lifted[side] is not None:
             return self._follow_lifted(side, foot)
-        if self._stance_step[side] is not None or (
+        if self._data_step[side] is not None or (
                 stands is False and self._swing[side] is None and self._planted[side] is not None):
-            return self._step_by_stance(side, foot, previous, stands)
+            return self._step_as_data(side, foot, previous, stands)
         planted = self._planted[side]
         if planted is None and self._swing[side] is None and foot[1] > FOOT_MAX_HEIGHT:
             # In the air where nothing is planted yet (a stream that starts mid-step, a raised
@@ -203,11 +214,12 @@ class FootLock:
             self._planted[side] = foot.copy()
             return None
         target = np.array([planted[0], foot[1], planted[2]])
-        if stands is not None and np.hypot(*(foot - planted)[[0, 2]]) > STANCE_REACH:
-            self._stance_step[side] = (planted, 0, planted, False)
+        drifted = np.hypot(*(foot - planted)[[0, 2]]) > (self.radius if stands is None else STANCE_REACH)
+        if drifted and self.step == "data":
+            self._data_step[side] = (planted, 0, planted, False)
             self._planted[side] = None
-            return self._step_by_stance(side, foot, previous, stands)
-        if stands is None and np.hypot(*(foot - planted)[[0, 2]]) > self.radius:
+            return self._step_as_data(side, foot, previous, stands)
+        if drifted:
             # Step to where the decoded foot will be when the step lands, and further on in its
             # direction (as far again, at most ``radius``), so that the body walks into the step
             # instead of dragging the foot behind; further, the foot would be released at once.
@@ -218,17 +230,17 @@ class FootLock:
             self._planted[side], self._swing[side] = None, (target, 0, lead, target)
         return target
 
-    def _step_by_stance(self, side: int, foot: np.ndarray, previous: np.ndarray | None,
-                        stands: bool | None) -> np.ndarray:
+    def _step_as_data(self, side: int, foot: np.ndarray, previous: np.ndarray | None,
+                      stands: bool | None) -> np.ndarray:
         """A step along the data's profile (see the module docstring): one the decoded stance
         takes, planted where the stance lands, or a drift step, planted after its frames."""
-        step = self._stance_step[side]
+        step = self._data_step[side]
         if step is None:
             step = (self._planted[side], 0, self._planted[side], True)
             self._planted[side] = None
         start, frame, placed, by_stance = step
         if by_stance and stands and frame > 0:
-            self._stance_step[side], self._planted[side] = None, placed.copy()
+            self._data_step[side], self._planted[side] = None, placed.copy()
             return np.array([placed[0], foot[1], placed[2]])
         frame += 1
         n = STANCE_SWING_FRAMES
@@ -238,9 +250,9 @@ class FootLock:
         target = placed.copy()
         target[1] = foot[1] + STANCE_LIFT * np.sin(np.pi * min(frame, n) / (n + 1))
         if not by_stance and frame >= n:
-            self._stance_step[side], self._planted[side] = None, placed.copy()
+            self._data_step[side], self._planted[side] = None, placed.copy()
         else:
-            self._stance_step[side] = (start, frame, placed, by_stance)
+            self._data_step[side] = (start, frame, placed, by_stance)
         return target
 
     def _follow_lifted(self, side: int, foot: np.ndarray) -> np.ndarray | None:
