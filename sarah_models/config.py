@@ -231,9 +231,10 @@ class VAEConfig:
     # this many metres away (``sampling.foot_lock``); decoded feet glide and jitter.
     foot_lock: float = 0.0
     # Not in the paper: frames a locked foot's arc step (``foot_step="arc"``) takes from lift-off
-    # to landing, and the longest a foot the decoder lifts is followed (``sampling.foot_lock``). 12 (0.4 s, as people walk) is the slowest of the fixtures' steps;
-    # theirs take 6-7 frames, but a body that walks twice their path needs slower steps to keep
-    # its leg energy near theirs (docs/results.md, twenty-sixth and forty-second runs). Again on
+    # to landing, and the longest a foot the decoder lifts is followed (``sampling.foot_lock``).
+    # 12 (0.4 s, as people walk) is the slowest of the fixtures' steps; theirs take 6-7 frames,
+    # but a body that walks twice their path needs slower steps to keep its leg energy near
+    # theirs (docs/results.md, twenty-sixth and forty-second runs). Again on
     # the benchmark's model (sixty-eighth run): 6 frames instead of its 8 take its VAE's
     # reconstruction of the data 1.36x nearer in FGD_acc, and the model, which steps where the
     # data stands, 2x further.
@@ -449,9 +450,8 @@ class FlowConfig:
 # again with other values, nothing trained (``sarah-train --stage model``), and a fine-tune may
 # change them.
 DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "seam_mode", "rigid_bones",
-                           "foot_lock", "foot_swing_frames", "foot_lock_reads", "foot_step", "root_hold",
-                           "root_hold_reads",
-                           "limb_lowpass")}
+                           "foot_lock", "foot_swing_frames", "foot_lock_reads", "foot_step",
+                           "root_hold", "root_hold_reads", "limb_lowpass")}
 
 
 def decoding_settings() -> list[str]:

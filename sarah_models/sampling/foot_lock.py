@@ -214,7 +214,8 @@ class FootLock:
             self._planted[side] = foot.copy()
             return None
         target = np.array([planted[0], foot[1], planted[2]])
-        drifted = np.hypot(*(foot - planted)[[0, 2]]) > (self.radius if stands is None else STANCE_REACH)
+        reach = self.radius if stands is None else STANCE_REACH
+        drifted = np.hypot(*(foot - planted)[[0, 2]]) > reach
         if drifted and self.step == "data":
             self._data_step[side] = (planted, 0, planted, False)
             self._planted[side] = None
