@@ -103,6 +103,11 @@ RELEASE = 0.02  # m above its planted height: the decoder is lifting the foot to
 RELEASE_FADE = 6  # frames over which a released foot's planted offset fades out
 
 
+def floor_velocity(foot: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
+    """The decoded foot's move on the floor plane since the frame before, per frame (y = 0)."""
+    return (foot - (foot if previous is None else previous)) * np.array([1.0, 0.0, 1.0])
+
+
 class FootLock:
     """Causal filter of one stream's motion, in metres with y up and the floor at y = 0; call it on
     the stream's frames in order. ``lengths`` are the skeleton's (one per ``layout.bones``)."""
@@ -152,7 +157,8 @@ class FootLock:
                 on_floor = foot
                 if foot[1] < FLOOR_HEIGHT:  # sunk into the floor: stand (and lift off) on it
                     on_floor = np.array([foot[0], FLOOR_HEIGHT, foot[2]])
-                target = self._target(side, on_floor, None if stance is None else bool(stance[t, side]))
+                stands = None if stance is None else bool(stance[t, side])
+                target = self._target(side, on_floor, stands)
                 if target is None and on_floor is not foot:
                     target = on_floor
                 if target is not None:
@@ -217,14 +223,12 @@ class FootLock:
         reach = self.radius if stands is None else STANCE_REACH
         drifted = np.hypot(*(foot - planted)[[0, 2]]) > reach
         if drifted and self.step == "data":
-            self._data_step[side] = (planted, 0, planted, False)
-            self._planted[side] = None
-            return self._step_as_data(side, foot, previous, stands)
+            return self._step_as_data(side, foot, previous, stands, by_stance=False)
         if drifted:
             # Step to where the decoded foot will be when the step lands, and further on in its
             # direction (as far again, at most ``radius``), so that the body walks into the step
             # instead of dragging the foot behind; further, the foot would be released at once.
-            velocity = (foot - (foot if previous is None else previous)) * np.array([1.0, 0.0, 1.0])
+            velocity = floor_velocity(foot, previous)
             beyond = self.swing_frames * velocity
             beyond *= min(1.0, 0.5 * self.radius / max(np.linalg.norm(beyond), 1e-9))
             lead = (velocity, beyond)
@@ -232,12 +236,13 @@ class FootLock:
         return target
 
     def _step_as_data(self, side: int, foot: np.ndarray, previous: np.ndarray | None,
-                      stands: bool | None) -> np.ndarray:
+                      stands: bool | None, by_stance: bool = True) -> np.ndarray:
         """A step along the data's profile (see the module docstring): one the decoded stance
-        takes, planted where the stance lands, or a drift step, planted after its frames."""
+        takes (``by_stance``), planted where the stance lands, or a drift step, planted after its
+        frames; ``by_stance`` matters only for the step's first frame, its state keeps it."""
         step = self._data_step[side]
         if step is None:
-            step = (self._planted[side], 0, self._planted[side], True)
+            step = (self._planted[side], 0, self._planted[side], by_stance)
             self._planted[side] = None
         start, frame, placed, by_stance = step
         if by_stance and stands and frame > 0:
@@ -245,8 +250,7 @@ class FootLock:
             return np.array([placed[0], foot[1], placed[2]])
         frame += 1
         n = STANCE_SWING_FRAMES
-        velocity = (foot - (foot if previous is None else previous)) * np.array([1.0, 0.0, 1.0])
-        landing = foot + velocity * max(n - frame, 0)
+        landing = foot + floor_velocity(foot, previous) * max(n - frame, 0)
         placed = start + (landing - start) * np.interp(min(frame / n, 1.0), STEP_TIME, STEP_SHARE)
         target = placed.copy()
         target[1] = foot[1] + STANCE_LIFT * np.sin(np.pi * min(frame, n) / (n + 1))
