@@ -59,6 +59,12 @@ def build_parser() -> argparse.ArgumentParser:
                              "written with (a model file, flow checkpoint or run folder, or a "
                              "shipped model's name such as fixture-tiny); --set changes them "
                              "further")
+    parser.add_argument("--decoder-from", type=model_or_name, default=None, metavar="CKPT",
+                        help="with --stage model: the VAE of CKPT (a run folder with vae.pt, a "
+                             "checkpoint or a model file) in place of --init-from's: a decoder "
+                             "stage trained from --init-from's VAE with --set "
+                             "train.freeze_encoder=true reads the latents its flow learned, so "
+                             "the flow needs no training; refused unless the encoders are equal")
     parser.add_argument("--device", default=None,
                         help="cpu, cuda or cuda:N; None = cuda when available (cuda:LOCAL_RANK "
                              "under torchrun), else cpu")
@@ -98,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.decoding_from is not None and args.stage != "model":
         parser.error("--decoding-from goes with --stage model (a trained stage writes its "
                      "decoding settings from --set)")
+    if args.decoder_from is not None and args.stage != "model":
+        parser.error("--decoder-from goes with --stage model (it writes a model file)")
     if args.stage == "model":
         return write_model(args)
     if args.shards is None:
@@ -164,7 +172,7 @@ def write_model(args: argparse.Namespace) -> int:
     try:
         decoding = [] if args.decoding_from is None else decoding_of(args.decoding_from)
         model = write_model_file(flow_source(args.init_from), Path(args.out) / MODEL_FILE,
-                                 decoding + args.overrides, args.shards)
+                                 decoding + args.overrides, args.shards, args.decoder_from)
     except (DataProblem, ValueError, FileNotFoundError, OSError) as exc:
         print(f"sarah-train: error: {exc}", file=sys.stderr)
         return EXIT_ERROR

@@ -12,7 +12,8 @@ import torch
 import torch.multiprocessing as mp
 
 from sarah_cli.train import build_parser, main
-from sarah_models.training.checkpoint import (capture_rng_state, load_checkpoint, load_models, restore_rng_state)
+from sarah_models.training.checkpoint import (capture_rng_state, load_checkpoint, load_models, restore_rng_state,
+                                              save_checkpoint)
 from sarah_models.config import FlowConfig, RunConfig, TrainConfig, VAEConfig, preset_values
 from sarah_models.training.batches import EpochBatches
 from sarah_models.training.distributed import DistInfo
@@ -628,6 +629,56 @@ def test_decoder_fine_tune_with_latent_noise_keeps_the_encoder(tmp_path):
         if key.startswith(encoder):
             assert torch.equal(value, after[key]), key
     assert not torch.equal(before["frame_out.weight"], after["frame_out.weight"])
+
+
+def test_stage_model_takes_a_decoder_trained_on_the_frozen_encoder(tmp_path, capsys):
+    """--decoder-from: a decoder stage on the model's frozen encoder reads the latents its flow
+    learned, so the model file takes that VAE beside the same flow, with the model's decoding
+    settings; a VAE with another encoder is refused and nothing is written."""
+    from sarah_models.training.model_file import load_model_file, read_model_file
+
+    base, tuned, other = tmp_path / "base", tmp_path / "tuned", tmp_path / "other"
+    run("vae", base, 3)
+    run("flow", base, 3)
+    config = tiny_config(3, freeze_encoder=True)
+    config = replace(config, vae=replace(config.vae, latent_noise=0.3, detail_dim=2))
+    train("vae", config, None, tuned, init_from=base, device="cpu", dataset=SyntheticWindows(),
+          stats=STATS, progress=False, echo=lambda _: None)
+    out = tmp_path / "swapped"
+    assert main(["--stage", "model", "--init-from", str(base), "--decoder-from", str(tuned),
+                 "--out", str(out), "--set", "vae.boundary_inertia=0.5"]) == 0
+    written, flow, decoder = (read_model_file(out / "model.safetensors"),
+                              load_checkpoint(base / "flow.pt"), load_checkpoint(tuned / "vae.pt"))
+    assert written["vae"].keys() == decoder["vae"].keys() != flow["vae"].keys()  # detail_in came
+    for part, source in (("vae", decoder), ("flow", flow), ("normalizer", flow)):
+        for key, value in source[part].items():
+            assert torch.equal(written[part][key], value), (part, key)
+    assert not torch.equal(written["vae"]["frame_out.weight"], flow["vae"]["frame_out.weight"])
+    assert written["config"]["vae"]["detail_dim"] == 2  # the decoder's sizes
+    assert written["config"]["vae"]["boundary_inertia"] == 0.5  # the model's decoding, as --set
+    assert written["config"]["flow"] == flow["config"]["flow"]
+    assert load_model_file(out / "model.safetensors", "cpu").vae.detail_in is not None
+    # another encoder: refused by name, before anything is written
+    run("vae", other, 4)
+    assert main(["--stage", "model", "--init-from", str(base), "--decoder-from", str(other),
+                 "--out", str(tmp_path / "no")]) == 2
+    err = capsys.readouterr().err
+    assert f"{other / 'vae.pt'}: its encoder is not the model's" in err
+    assert "train.freeze_encoder=true" in err
+    assert not (tmp_path / "no").exists()
+    # the same encoder with other data's motion statistics (a VAE stage keeps its source's, so
+    # only another source or an edited file has them): refused too
+    shifted = load_checkpoint(tuned / "vae.pt")
+    shifted["normalizer"]["motion_mean"] = shifted["normalizer"]["motion_mean"] + 0.5
+    save_checkpoint(tmp_path / "shifted.pt", shifted)
+    assert main(["--stage", "model", "--init-from", str(base), "--decoder-from",
+                 str(tmp_path / "shifted.pt"), "--out", str(tmp_path / "no")]) == 2
+    assert "its motion statistics are not the model's" in capsys.readouterr().err
+    assert not (tmp_path / "no").exists()
+    with pytest.raises(SystemExit):
+        main(["--stage", "flow", "--shards", str(tmp_path), "--out", str(tmp_path / "no"),
+              "--decoder-from", str(tuned)])
+    assert "--decoder-from goes with --stage model" in capsys.readouterr().err
 
 
 def test_latent_noise_perturbs_only_the_decoder_input():

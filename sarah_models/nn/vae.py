@@ -174,6 +174,12 @@ class CausalVAE(nn.Module):
         return [self.frame_in, self.mu_token, self.sigma_token, self.encoder, self.encoder_norm,
                 self.mu_out, self.logvar_out, *code]
 
+    def encoder_parameter_names(self) -> list[str]:
+        """The state-dict names of ``encoder_modules``' parameters: what fixes the latents."""
+        owned = {id(p) for m in self.encoder_modules()
+                 for p in (m.parameters() if isinstance(m, nn.Module) else [m])}
+        return [name for name, p in self.named_parameters() if id(p) in owned]
+
     def detail_noise(self, batch: int, blocks: int, generator: torch.Generator | None = None,
                      device: torch.device | str | None = None) -> Tensor | None:
         """Generation's standard normal detail draws (batch, blocks, detail_dim) for ``decode``

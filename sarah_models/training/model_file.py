@@ -16,6 +16,7 @@ weights are the checkpoint's, bit for bit, so the motion generated is identical.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
 
@@ -36,15 +37,19 @@ PARTS = ("vae", "flow", "normalizer")
 
 
 def write_model_file(source: str | Path, out: str | Path, decoding: Sequence[str] = (),
-                     shards: str | Path | None = None) -> Path:
+                     shards: str | Path | None = None, decoder: str | Path | None = None) -> Path:
     """``out`` (a .safetensors path) from a flow-stage checkpoint or another model file, written
     atomically; ``decoding`` ("vae.boundary_inertia=0.8", ...) sets DECODING_FIELDS; ``shards``
-    gives a model without the training data's bone lengths those of its training split."""
+    gives a model without the training data's bone lengths those of its training split;
+    ``decoder`` (a checkpoint, run folder or model file) puts its VAE in place of the source's
+    (``with_decoder_of``)."""
     source = Path(source)
     data = read_weights(source)
     if data["stage"] != "flow":
         raise ValueError(f"{source}: a {data['stage']}-stage checkpoint; the model file needs "
                          f"the flow stage")
+    if decoder is not None:
+        data = with_decoder_of(data, decoder)
     config = data["config"]
     if decoding:
         allowed = decoding_settings()
@@ -68,6 +73,48 @@ def write_model_file(source: str | Path, out: str | Path, decoding: Sequence[str
     with atomic_path(out) as tmp:
         tmp.write_bytes(_sorted_metadata(save(tensors, metadata=metadata)))
     return out
+
+
+def vae_source(path: str | Path) -> Path:
+    """What a path names as a VAE: a checkpoint or model file as given, a run folder's ``vae.pt``,
+    or its flow checkpoint or model file when it has no ``vae.pt``."""
+    path = Path(path)
+    if path.is_dir() and (path / "vae.pt").is_file():
+        return path / "vae.pt"
+    return flow_source(path)
+
+
+def with_decoder_of(data: dict, decoder: str | Path) -> dict:
+    """``data`` (a flow checkpoint's contents) with the VAE of ``decoder``: a decoder stage trained
+    from this model's VAE with ``train.freeze_encoder`` reads the very latents the flow learned,
+    so it decodes this flow with no flow training. The VAE config comes with it (its decoder's
+    sizes), the decoding settings stay the model's. ValueError naming the file unless its encoder
+    and its motion statistics are the model's, tensor for tensor."""
+    path = vae_source(decoder)
+    other = read_weights(path)
+    own, theirs = RunConfig.from_dict(data["config"]), RunConfig.from_dict(other["config"])
+    vae, _ = build_models(own, data["dims"])
+    if other["dims"].get("motion") != data["dims"].get("motion"):
+        raise ValueError(f"{path}: a VAE of {other['dims'].get('motion')} motion channels, the "
+                         f"model's has {data['dims'].get('motion')}")
+    differ = [name for name in vae.encoder_parameter_names()
+              if name not in other["vae"] or not torch.equal(other["vae"][name], data["vae"][name])]
+    if differ:
+        raise ValueError(f"{path}: its encoder is not the model's ({len(differ)} tensors differ, "
+                         f"e.g. {differ[0]}), so its decoder reads other latents than the flow "
+                         f"learned; train it with --init-from this model and --set "
+                         f"train.freeze_encoder=true")
+    motion = [name for name in other["normalizer"] if name.startswith("motion")]
+    if any(name not in data["normalizer"] or not torch.equal(other["normalizer"][name],
+                                                             data["normalizer"][name])
+           for name in motion):
+        raise ValueError(f"{path}: its motion statistics are not the model's (trained on other "
+                         f"shards)")
+    vae_config = theirs.vae
+    for name in DECODING_FIELDS.get("vae", ()):
+        vae_config = replace(vae_config, **{name: getattr(own.vae, name)})
+    config = replace(own, vae=vae_config).to_dict()
+    return {**data, "config": config, "vae": dict(other["vae"])}
 
 
 def flow_source(path: str | Path) -> Path:
