@@ -64,7 +64,8 @@ def build_parser() -> argparse.ArgumentParser:
                              "checkpoint or a model file) in place of --init-from's: a decoder "
                              "stage trained from --init-from's VAE with --set "
                              "train.freeze_encoder=true reads the latents its flow learned, so "
-                             "the flow needs no training; refused unless the encoders are equal")
+                             "the flow needs no training; refused unless its encoder and motion "
+                             "statistics are the model's")
     parser.add_argument("--device", default=None,
                         help="cpu, cuda or cuda:N; None = cuda when available (cuda:LOCAL_RANK "
                              "under torchrun), else cpu")

@@ -13,9 +13,10 @@
 # the sixty-fourth run in an hour when that VM ran at 0.6 of that speed, 27.0 timed whole by the
 # sixty-fifth run on a 2-core Intel Xeon with AMX, 32.4 timed whole by the seventy-third run on
 # a 2-core AMD EPYC with AVX-512 (family 25 model 17) without train.compile and 25.5 with it, the
-# same model to the last digit of every metric; the values are the variables below): the VAE root-relative with its loss in metres and
-# its root channels down-weighted, on 100-frame windows then 400; its decoder alone on noised
-# latents (the encoder, so the latents, frozen), made stochastic (per-token draws, the energy score of its accelerations); the flow on those
+# same model to the last digit of every metric; the values are the variables below): the VAE
+# root-relative with its loss in metres and its root channels down-weighted, on 100-frame
+# windows then 400; its decoder alone on noised latents (the encoder, so the latents, frozen),
+# made stochastic (per-token draws, the energy score of its accelerations); the flow on those
 # latents for FLOW_STEPS steps, each token attending to a window of the tokens before it and
 # reading the user's head velocity; then the model file with DECODING_SETTINGS (docs/models.md)
 # over the shipped model's decoding, whose own script (pretrained_fixture_model.sh) owns the

@@ -28,6 +28,7 @@ from sarah_data.atomic import atomic_path
 
 from ..config import DECODING_FIELDS, RunConfig, decoding_settings, set_text
 from ..nn.normalizer import Normalizer
+from ..nn.vae import CausalVAE
 from .checkpoint import LoadedModels, build_models, load_checkpoint
 
 MODEL_FILE = "model.safetensors"
@@ -92,12 +93,13 @@ def with_decoder_of(data: dict, decoder: str | Path) -> dict:
     and its motion statistics are the model's, tensor for tensor."""
     path = vae_source(decoder)
     other = read_weights(path)
-    own, theirs = RunConfig.from_dict(data["config"]), RunConfig.from_dict(other["config"])
-    vae, _ = build_models(own, data["dims"])
     if other["dims"].get("motion") != data["dims"].get("motion"):
         raise ValueError(f"{path}: a VAE of {other['dims'].get('motion')} motion channels, the "
                          f"model's has {data['dims'].get('motion')}")
-    differ = [name for name in vae.encoder_parameter_names()
+    own, theirs = RunConfig.from_dict(data["config"]), RunConfig.from_dict(other["config"])
+    # Only the names are wanted, so only the VAE is built (a flow would draw from the global RNG).
+    encoder = CausalVAE(own.vae, data["dims"]["motion"]).encoder_parameter_names()
+    differ = [name for name in encoder
               if name not in other["vae"] or not torch.equal(other["vae"][name], data["vae"][name])]
     if differ:
         raise ValueError(f"{path}: its encoder is not the model's ({len(differ)} tensors differ, "
