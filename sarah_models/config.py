@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Mapping, Sequence, TypeVar
 
 from sarah_data.constants import FPS
+from sarah_data.skeleton import JOINT_GROUPS
 
 T = TypeVar("T")
 
@@ -147,6 +148,15 @@ class VAEConfig:
     # At the fixture benchmark's CPU budget it took the jitter out and added no steps or beats
     # (docs/results.md, forty-second run): 0 in both presets.
     spectral_weight: float = 0.0
+    # Not in the paper (0 = the paper): weight of the acceleration-moment term, the relative
+    # distance between the second-moment matrices of the decoded and the true accelerations of
+    # the points of the joint groups ``moment_parts`` relative to the pelvis, pooled over a
+    # batch's frames (``training.objectives.AccelerationMoments``): what FGD_acc compares, asked
+    # of the decoder's samples as a whole rather than frame by frame. The arms and hands only:
+    # the decoding draws the body's path and the feet's steps anew, and over the whole body the
+    # term put their energy in the spine and arms (docs/results.md, seventy-fourth run).
+    moment_weight: float = 0.0
+    moment_parts: tuple[str, ...] = ("arms", "hands")
     # Not in the paper (0 = the paper, no head): weight of the stance term, the binary
     # cross-entropy of a small head that reads the latent tokens and says, per frame and per
     # foot, whether the foot is planted (``nn.stance``; the data's stance: the foot slower than
@@ -309,6 +319,12 @@ class VAEConfig:
                              f"got {self.detail_dim}")
         if not self.energy_weight >= 0:
             raise ValueError(f"VAEConfig.energy_weight must be >= 0, got {self.energy_weight}")
+        if not self.moment_weight >= 0:
+            raise ValueError(f"VAEConfig.moment_weight must be >= 0, got {self.moment_weight}")
+        unknown = [part for part in self.moment_parts if part not in JOINT_GROUPS]
+        if unknown or not self.moment_parts:
+            raise ValueError(f"VAEConfig.moment_parts must name joint groups of "
+                             f"{tuple(JOINT_GROUPS)}, got {self.moment_parts}")
         if self.energy_frames < 3:
             raise ValueError(f"VAEConfig.energy_frames must be >= 3 (a unit of the energy score "
                              f"holds the second differences of its frames), got {self.energy_frames}")

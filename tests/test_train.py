@@ -16,10 +16,11 @@ from sarah_models.training.checkpoint import (capture_rng_state, load_checkpoint
                                               save_checkpoint)
 from sarah_models.config import FlowConfig, RunConfig, TrainConfig, VAEConfig, preset_values
 from sarah_models.training.batches import EpochBatches
+from sarah_data.skeleton import JOINT_GROUPS
 from sarah_models.training.distributed import DistInfo
 from sarah_models.training.loop import lr_at
-from sarah_models.training.objectives import (AccelerationSpectrum, FootLift, HeadFacing, PlantedFeet,
-                                              VAEObjective)
+from sarah_models.training.objectives import (AccelerationMoments, AccelerationSpectrum, FootLift,
+                                              HeadFacing, PlantedFeet, VAEObjective)
 from sarah_models.training.stages import model_stats, train
 
 WINDOW, DX, DA = 16, 21, 6
@@ -237,6 +238,91 @@ def test_acceleration_spectrum_counts_missing_and_added_energy_not_phase():
         term(true[:, :10], true[:, :10])
     with pytest.raises(ValueError, match="icosahedron motion layout"):
         AccelerationSpectrum(7)
+
+
+def _posed_beats(frames: int, hz: float, phase: float, jitter: float = 0.0, seed: int = 0) -> torch.Tensor:
+    """``_beating_motion`` with each point's beat its own amplitude: a pose that moves."""
+    motion = _beating_motion(frames, hz, phase, jitter=jitter, seed=seed)
+    return motion * torch.linspace(0.2, 1.8, motion.shape[-1])
+
+
+def _moment_term(parts=tuple(JOINT_GROUPS)):
+    """An ``AccelerationMoments`` over ``_beating_motion``'s layout, its mean pose's joints a
+    metre apart along x and its 4 shell points at the left wrist, the left index finger, the
+    left knee and the head."""
+    from sarah_data.constants import JOINT, NUM_JOINTS
+
+    centres = torch.zeros(NUM_JOINTS, 3)
+    centres[:, 0] = torch.arange(NUM_JOINTS, dtype=torch.float32)
+    shell = centres[[JOINT["left_wrist"], JOINT["left_index1"], JOINT["left_knee"], JOINT["head"]]] + 0.01
+    mean_pose = torch.cat([centres[:, None].expand(NUM_JOINTS, 12, 3).flatten(), shell.flatten()])
+    return AccelerationMoments(mean_pose.numel(), parts, mean_pose)
+
+
+def test_acceleration_moments_read_the_batch_as_a_whole():
+    """The pooled second moments of the pose: which window is which does not count (the
+    windows swapped cost nothing where a squared error pays for both), nor does a path the
+    whole body shares (the root hold's to decide); scaled motion costs |c^2 - 1|, a beat at
+    another frequency or white jitter costs more than one at another phase."""
+    true = torch.cat([_posed_beats(60, 4.5, 0.0, jitter=0.001, seed=1),
+                      _posed_beats(60, 2.0, 0.7, jitter=0.001, seed=2)])
+    term = _moment_term()
+    assert float(term(true, true)) == 0.0
+    swapped = true.flip(0)
+    assert float(term(swapped, true)) < 1e-6 < float((swapped - true).square().mean())
+    wander = 0.05 * torch.randn(2, 60, 1, 1, generator=torch.Generator().manual_seed(3))
+    carried = (true.unflatten(-1, (-1, 3)) + wander * torch.tensor([1.0, 0.0, 1.0])).flatten(-2)
+    assert float(term(carried, true)) < 1e-5
+    assert float(term(0.5 * true, true)) == pytest.approx(0.75, rel=1e-4)
+    beats = lambda hz, phase, jitter=0.0: torch.cat([  # noqa: E731
+        _posed_beats(90, hz, phase, jitter=jitter), _posed_beats(90, 2.0, 0.0)])
+    reference = beats(4.5, 0.0)
+    shifted = float(term(beats(4.5, 1.3), reference))
+    assert shifted < 0.1 * float(term(beats(3.0, 0.0), reference))
+    assert shifted < 0.1 * float(term(beats(4.5, 0.0, jitter=0.005), reference))
+    decoded = (0.8 * true).requires_grad_()
+    term(decoded, true).backward()
+    assert decoded.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="vae.moment_weight needs the icosahedron motion layout"):
+        AccelerationMoments(7, ("arms",), torch.zeros(7))
+
+
+def test_acceleration_moments_read_only_their_parts():
+    """The arms and hands: their body joints and the shell points nearest them; a leg or the
+    head moved otherwise costs nothing, a wrist or a finger's shell point does."""
+    from sarah_data.constants import BODY_JOINTS, JOINT
+
+    term = _moment_term(("arms", "hands"))
+    arms = [JOINT[n] for n in JOINT_GROUPS["arms"]]
+    assert term.points.tolist() == sorted(arms) + [BODY_JOINTS, BODY_JOINTS + 1]
+    true = _posed_beats(60, 4.5, 0.0, jitter=0.001)
+    points = true.unflatten(-1, (-1, 3))
+    for index, counted in ((len(points[0, 0]) - 2, False), (len(points[0, 0]) - 1, False),
+                           (len(points[0, 0]) - 4, True), (len(points[0, 0]) - 3, True)):
+        moved = points.clone()
+        moved[..., index, :] *= 3.0
+        assert (float(term(moved.flatten(-2), true)) > 1e-3) is counted, index
+    with pytest.raises(ValueError, match="moment_parts must name joint groups"):
+        replace(tiny_config(1).vae, moment_parts=("fingers",))
+
+
+def test_vae_objective_adds_the_weighted_moment_term():
+    from sarah_models.nn.normalizer import Normalizer
+    from sarah_models.nn.vae import CausalVAE
+
+    motion = _posed_beats(24, 4.5, 0.0)
+    dx = motion.shape[-1]
+    stats = {"motion": (np.zeros(dx), np.full(dx, 0.3))}
+    config = replace(tiny_config(1).vae, hidden=32, latent_dim=8, encoder_layers=1,
+                     decoder_layers=1, moment_weight=0.5)
+    torch.manual_seed(0)
+    out = VAEObjective(CausalVAE(config, dx), Normalizer(stats))({"motion": motion},
+                                                               torch.Generator().manual_seed(0))
+    plain = out["recon"] + config.beta * out["kl"] + config.velocity_weight * out["velocity"]
+    assert out["moments"].item() > 0
+    assert out["loss"].item() == pytest.approx((plain + 0.5 * out["moments"]).item(), rel=1e-5)
+    with pytest.raises(ValueError, match="moment_weight must be >= 0"):
+        replace(config, moment_weight=-1.0)
 
 
 def test_acceleration_spectrum_matches_torch_stft():
