@@ -319,8 +319,9 @@ class VAEConfig:
                              f"got {self.detail_dim}")
         if not self.energy_weight >= 0:
             raise ValueError(f"VAEConfig.energy_weight must be >= 0, got {self.energy_weight}")
-        if not self.moment_weight >= 0:
-            raise ValueError(f"VAEConfig.moment_weight must be >= 0, got {self.moment_weight}")
+        for name in ("spectral_weight", "moment_weight"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"VAEConfig.{name} must be >= 0, got {getattr(self, name)}")
         unknown = [part for part in self.moment_parts if part not in JOINT_GROUPS]
         if unknown or not self.moment_parts:
             raise ValueError(f"VAEConfig.moment_parts must name joint groups of "

@@ -306,25 +306,6 @@ def test_acceleration_moments_read_only_their_parts():
         replace(tiny_config(1).vae, moment_parts=("fingers",))
 
 
-def test_vae_objective_adds_the_weighted_moment_term():
-    from sarah_models.nn.normalizer import Normalizer
-    from sarah_models.nn.vae import CausalVAE
-
-    motion = _posed_beats(24, 4.5, 0.0)
-    dx = motion.shape[-1]
-    stats = {"motion": (np.zeros(dx), np.full(dx, 0.3))}
-    config = replace(tiny_config(1).vae, hidden=32, latent_dim=8, encoder_layers=1,
-                     decoder_layers=1, moment_weight=0.5)
-    torch.manual_seed(0)
-    out = VAEObjective(CausalVAE(config, dx), Normalizer(stats))({"motion": motion},
-                                                               torch.Generator().manual_seed(0))
-    plain = out["recon"] + config.beta * out["kl"] + config.velocity_weight * out["velocity"]
-    assert out["moments"].item() > 0
-    assert out["loss"].item() == pytest.approx((plain + 0.5 * out["moments"]).item(), rel=1e-5)
-    with pytest.raises(ValueError, match="moment_weight must be >= 0"):
-        replace(config, moment_weight=-1.0)
-
-
 def test_acceleration_spectrum_matches_torch_stft():
     acceleration = torch.randn(2, 70, 5, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     term = AccelerationSpectrum(_beating_motion(20, 1.0, 0.0).shape[-1])
@@ -357,21 +338,26 @@ def test_vae_objective_adds_the_weighted_contact_and_head_terms():
     assert not {"contact", "head"} & set(plain_objective({"motion": motion}))
 
 
-def test_vae_objective_adds_the_weighted_spectrum_term():
+@pytest.mark.parametrize("setting, term, motion", [
+    ("spectral_weight", "spectrum", lambda: _beating_motion(24, 4.5, 0.0)),
+    ("moment_weight", "moments", lambda: _posed_beats(24, 4.5, 0.0))])
+def test_vae_objective_adds_the_weighted_term(setting, term, motion):
     from sarah_models.nn.normalizer import Normalizer
     from sarah_models.nn.vae import CausalVAE
 
-    motion = _beating_motion(24, 4.5, 0.0)
+    motion = motion()
     dx = motion.shape[-1]
     stats = {"motion": (np.zeros(dx), np.full(dx, 0.3))}
     config = replace(tiny_config(1).vae, hidden=32, latent_dim=8, encoder_layers=1,
-                     decoder_layers=1, spectral_weight=0.5)
+                     decoder_layers=1, **{setting: 0.5})
     torch.manual_seed(0)
     out = VAEObjective(CausalVAE(config, dx), Normalizer(stats))({"motion": motion},
                                                                torch.Generator().manual_seed(0))
     plain = out["recon"] + config.beta * out["kl"] + config.velocity_weight * out["velocity"]
-    assert out["spectrum"].item() > 0
-    assert out["loss"].item() == pytest.approx((plain + 0.5 * out["spectrum"]).item(), rel=1e-5)
+    assert out[term].item() > 0
+    assert out["loss"].item() == pytest.approx((plain + 0.5 * out[term]).item(), rel=1e-5)
+    with pytest.raises(ValueError, match=f"{setting} must be >= 0"):
+        replace(config, **{setting: -1.0})
 
 
 def test_vae_loss_in_metres_weights_channels_by_their_variance():
