@@ -317,9 +317,7 @@ class VAEConfig:
         if self.detail_dim < 0:
             raise ValueError(f"VAEConfig.detail_dim must be >= 0 (0: a deterministic decoder), "
                              f"got {self.detail_dim}")
-        if not self.energy_weight >= 0:
-            raise ValueError(f"VAEConfig.energy_weight must be >= 0, got {self.energy_weight}")
-        for name in ("spectral_weight", "moment_weight"):
+        for name in ("energy_weight", "spectral_weight", "moment_weight"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"VAEConfig.{name} must be >= 0, got {getattr(self, name)}")
         unknown = [part for part in self.moment_parts if part not in JOINT_GROUPS]

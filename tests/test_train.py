@@ -12,11 +12,11 @@ import torch
 import torch.multiprocessing as mp
 
 from sarah_cli.train import build_parser, main
+from sarah_data.skeleton import JOINT_GROUPS
 from sarah_models.training.checkpoint import (capture_rng_state, load_checkpoint, load_models, restore_rng_state,
                                               save_checkpoint)
 from sarah_models.config import FlowConfig, RunConfig, TrainConfig, VAEConfig, preset_values
 from sarah_models.training.batches import EpochBatches
-from sarah_data.skeleton import JOINT_GROUPS
 from sarah_models.training.distributed import DistInfo
 from sarah_models.training.loop import lr_at
 from sarah_models.training.objectives import (AccelerationMoments, AccelerationSpectrum, FootLift,

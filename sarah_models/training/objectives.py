@@ -22,7 +22,8 @@ from torch.nn import functional as F
 from sarah_data import icosahedron
 from sarah_data.constants import BODY_JOINTS, FPS
 from sarah_data.gaze import FACING_AXIS
-from sarah_data.skeleton import FEET, HEAD, ICOSAHEDRON_POINTS, JOINT_GROUPS, MotionLayout, shell_parts
+from sarah_data.skeleton import (FEET, HEAD, ICOSAHEDRON_POINTS, JOINT_GROUPS, ROOT, MotionLayout,
+                                 shell_parts)
 
 from ..config import STREAMED_TOKENS
 from ..nn.flow import FlowModel, build_block_mask
@@ -214,12 +215,13 @@ class AccelerationMoments(nn.Module):
                   if any(name in JOINT_GROUPS[part] for part in parts)]
         shell_points = sorted(BODY_JOINTS + p for part in parts for p in shell_groups.get(part, ()))
         self.register_buffer("points", torch.tensor(joints + shell_points), persistent=False)
+        self.root = self.layout.joint(ROOT)  # a body joint: its index is its point's
 
     def forward(self, decoded: Tensor, true: Tensor) -> Tensor:
         moments = []
         for motion in (decoded, true):
             acc = point_accelerations(self.layout, motion).unflatten(-1, (-1, 3))
-            pose = (acc[..., self.points, :] - acc[..., :1, :]).flatten(0, 1).flatten(1)
+            pose = (acc[..., self.points, :] - acc[..., self.root, None, :]).flatten(0, 1).flatten(1)
             moments.append(pose.T @ pose / pose.shape[0])
         return (moments[0] - moments[1]).norm() / moments[1].norm().clamp_min(1e-12)
 
