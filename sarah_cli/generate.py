@@ -64,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_model_arguments(parser, required=True,
                         run_help="training run folder (runs/NAME) or a model.safetensors file")
     parser.add_argument("--checkpoint", type=Path, default=None,
-                        help="checkpoint or model file (default: RUN/flow.pt, else RUN/model.safetensors)")
+                        help="checkpoint or model file (default: RUN/model.safetensors, else RUN/flow.pt)")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument("--gaze", default=str(d.gaze),
                         help="target gaze score in [-1, 1], or 'none' to drop it")

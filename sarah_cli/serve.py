@@ -31,7 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
                         run_help="training run folder (flow.pt or model.safetensors), or a model "
                                  "file")
     parser.add_argument("--checkpoint", type=Path, default=None,
-                        help="checkpoint or model file (default: RUN/flow.pt, else RUN/model.safetensors)")
+                        help="checkpoint or model file (default: RUN/model.safetensors, else RUN/flow.pt)")
     parser.add_argument("--host", default=s.host, help="address to bind; anything but loopback "
                         "needs --public")
     parser.add_argument("--public", action="store_true",

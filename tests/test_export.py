@@ -229,6 +229,28 @@ def test_arguments_are_checked_before_any_work(generated, tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+def test_a_run_folder_reads_its_model_file_first(tmp_path):
+    """A folder whose model file was written again with other decoding settings (sarah-train
+    --stage model --out FOLDER) generates, serves and is evaluated as that model file, not as
+    flow.pt's training config; --checkpoint flow.pt still asks for the checkpoint, and a folder
+    without a model file reads flow.pt."""
+    from sarah_models.evaluation.runner import EvalConfig, _load_model
+    from sarah_models.generation.run import load_run
+    from sarah_models.training.model_file import MODEL_FILE, write_model_file
+    from test_generate import save_run
+
+    run = save_run(tmp_path / "run")
+    models, path = load_run(run)
+    assert path == run / "flow.pt" and models.vae.config.boundary_inertia == 0.0
+    write_model_file(run / "flow.pt", run / MODEL_FILE, ["vae.boundary_inertia=0.5"])
+    models, path = load_run(run)
+    assert path == run / MODEL_FILE and models.vae.config.boundary_inertia == 0.5
+    models, path = load_run(run, "flow.pt")
+    assert path == run / "flow.pt" and models.vae.config.boundary_inertia == 0.0
+    for method in ("model", "vae", "decoded"):  # sarah-eval's rows of the same folder
+        assert _load_model(run, EvalConfig(device="cpu"), method).vae.config.boundary_inertia == 0.5
+
+
 def test_model_file_generates_what_the_checkpoint_does(tmp_path, monkeypatch):
     """model.safetensors alone in a run folder: the same motion as flow.pt, and no unpickling;
     the same checkpoint written twice gives the same bytes."""

@@ -40,9 +40,11 @@ from .outputs import Result, Summary, head_gaze, motion_figures, write_motion
 def load_run(run: str | Path, checkpoint: str | Path | None = None,
              device: str | None = None, need_flow: bool = True) -> tuple[LoadedModels, Path]:
     """The flow-stage models of a run: ``checkpoint`` when given (a training checkpoint or a
-    ``.safetensors`` model file), else ``run/flow.pt``, else the shareable ``run/model.safetensors``
-    (which loads without pickle); ``run`` may itself be such a file (a shared or shipped model,
-    ``sarah_models.pretrained``); ``need_flow=False`` also accepts a VAE-stage checkpoint."""
+    ``.safetensors`` model file), else the run's model file ``run/model.safetensors`` (its
+    finished model, with the decoding it was written with; loads without pickle), else
+    ``run/flow.pt`` (``model_file.flow_source``); ``run`` may itself be such a file (a shared or
+    shipped model, ``sarah_models.pretrained``); ``need_flow=False`` also accepts a VAE-stage
+    checkpoint."""
     run = Path(run)
     if run.is_file():
         if checkpoint is not None:

@@ -120,12 +120,18 @@ def with_decoder_of(data: dict, decoder: str | Path) -> dict:
 
 
 def flow_source(path: str | Path) -> Path:
-    """What a path names as finished weights: a model file or flow checkpoint as given, a run
-    folder's ``flow.pt``, or its model file when it has only that."""
+    """What a path names as finished weights: a model file or flow checkpoint as given; in a run
+    folder its model file, else its ``flow.pt``.
+
+    The model file is the run's finished model: ``sarah-train`` writes it when the flow stage
+    ends, and ``--stage model`` writes it again with other decoding settings or another decoder,
+    which ``flow.pt`` (a training checkpoint, with the training config) does not carry. A folder
+    read through ``flow.pt`` while its model file decoded otherwise scored the benchmark recipe
+    at 17x its model file's FGD_acc, undecoded (docs/results.md, seventy-fifth run)."""
     path = Path(path)
     if not path.is_dir():
         return path
-    if not (path / "flow.pt").is_file() and (path / MODEL_FILE).is_file():
+    if (path / MODEL_FILE).is_file():
         return path / MODEL_FILE
     return path / "flow.pt"
 
