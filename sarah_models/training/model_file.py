@@ -127,7 +127,7 @@ def flow_source(path: str | Path) -> Path:
     ends, and ``--stage model`` writes it again with other decoding settings or another decoder,
     which ``flow.pt`` (a training checkpoint, with the training config) does not carry. A folder
     read through ``flow.pt`` while its model file decoded otherwise scored the benchmark recipe
-    at 17x its model file's FGD_acc, undecoded (docs/results.md, seventy-fifth run)."""
+    at 12x its model file's FGD_acc, undecoded (docs/results.md, seventy-fifth run)."""
     path = Path(path)
     if not path.is_dir():
         return path
