@@ -230,7 +230,8 @@ def _training_windows(shards_dir: Path, features: str, config: EvalConfig):
         raise EvalError(f"{shards_dir}: training windows for the baselines: {exc}") from None
 
 
-def _window_seed(seed: int, index: int) -> int:
+def window_seed(seed: int, index: int) -> int:
+    """The seed of window ``index``'s model row (its noise and detail draws) under ``seed``."""
     return int(np.random.default_rng((seed, index)).integers(2**31 - 1))
 
 
@@ -254,7 +255,7 @@ def window_generator(models, config: EvalConfig, gaze: float | None):
                               history_tokens=config.history_tokens,
                               imputation=config.imputation, guide=config.guide,
                               guidance_interval=config.guidance_interval,
-                              seed=_window_seed(config.seed, index))
+                              seed=window_seed(config.seed, index))
         return generate(models, inputs, stream, offline=config.protocol == "offline")
 
     return run
@@ -285,17 +286,14 @@ def _vae_producer(models):
     """The run's VAE reconstructing the ground truth (encoder mean, then decoder, decoded the way
     the generators decode: ``sampling.decoding``): the best any flow sample can decode to,
     which separates the VAE's error from the flow's."""
-    from ..nn.vae import detail_generator
-    from ..sampling.decoding import decoded_stance, stream_decoding
+    from ..sampling.decoding import decoder_frames, stream_decoding
 
     nz, vae, means = models.normalizer, models.vae, _encoder_means(models)
 
     def produce(item: dict, index: int) -> np.ndarray:
-        z = means(item)
         # a stochastic decoder (vae.detail_dim) draws its detail as a stream seeded by the window does
-        detail = vae.detail_noise(1, z.shape[1], detail_generator(index), z.device)
-        motion = nz.denormalize("motion", vae.decode(z, detail)[0]).double().cpu().numpy()
-        return stream_decoding(vae, nz)(motion, decoded_stance(vae, z)).astype(np.float32)
+        frames, stance = decoder_frames(vae, nz, means(item), index)
+        return stream_decoding(vae, nz)(frames, stance).astype(np.float32)
 
     return produce
 

@@ -18,6 +18,7 @@ import torch
 
 from sarah_data.skeleton import ROOT, MotionLayout
 
+from ..nn.vae import detail_generator
 from .continuity import SeamInertia
 from .foot_lock import FootLock
 from .limb_lowpass import LimbLowpass
@@ -56,6 +57,19 @@ def decoded_stance(vae, tokens: torch.Tensor, last: bool = False) -> np.ndarray 
     with torch.no_grad():
         logits = vae.stance.last(tokens) if last else vae.stance(tokens)
     return vae.stance.planted(logits)[0].cpu().numpy()
+
+
+def decoder_frames(vae, normalizer, tokens: torch.Tensor,
+                   detail_seed: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """Latent tokens (1, K, Dz) as the decoder reads them -> what the decoding chain reads: the
+    decoder's frames (K * stride, Dx), metres, float64, its detail drawn from ``detail_seed`` as a
+    whole solve draws it, and their decoded stance (``decoded_stance``). The offline protocol and
+    sarah-eval's VAE row decode through it, so a study of the chain can record these frames and
+    replay the chain on them (scripts/decode_replay.py)."""
+    with torch.no_grad():
+        detail = vae.detail_noise(1, tokens.shape[1], detail_generator(detail_seed), tokens.device)
+        frames = normalizer.denormalize("motion", vae.decode(tokens, detail)[0])
+    return frames.double().cpu().numpy(), decoded_stance(vae, tokens)
 
 
 def skeleton_lengths(normalizer) -> np.ndarray:

@@ -57,7 +57,8 @@ from ..nn.stance import RECEPTIVE_TOKENS
 from ..nn.streams import independent_streams
 from ..nn.user_offset import pelvis_floor, user_offset
 from ..nn.vae import CausalVAE, detail_generator
-from .decoding import StreamDecoding, decoded_stance, reads_stance, stream_decoding
+from .decoding import (StreamDecoding, decoded_stance, decoder_frames, reads_stance,
+                       stream_decoding)
 from .guidance import branches_run, combine, drop_masks, scale_at
 from .path import velocity_from_x1
 from .solver import imputer, integrate, replayer, token_noise
@@ -405,10 +406,8 @@ def offline_with_latents(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer
     noise = torch.stack([token_noise(generator, flow.latent_dim, config.noise_scale)
                          for _ in range(t // m.stride)]).to(m.device)
     z = solve(flow, m.cond_tokens(cond, config.gaze), noise, None, config)
-    detail = vae.detail_noise(1, len(z), detail_generator(config.seed), m.device)
-    tokens = m.latent_for_decoder(z)[None]
-    return m.to_world(m.decode(vae.decode(tokens, detail)[0], m.decoding(),
-                               decoded_stance(vae, tokens))), z
+    frames, stance = decoder_frames(vae, normalizer, m.latent_for_decoder(z)[None], config.seed)
+    return m.to_world(m.decoding()(frames, stance)), z
 
 
 def _offline_by_blocks(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer, user_head,

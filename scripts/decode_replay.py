@@ -1,0 +1,232 @@
+"""Record what the decoding chain reads, then replay the chain with other decoding settings.
+
+sarah-eval's offline model row and its VAE row decode latent tokens into frames and send them
+through the decoding chain (seams, root hold, rigid skeleton, foot lock: ``sampling.decoding``).
+This script records those frames and their decoded stance on a split's windows once, checks
+that the chain gives the model row back to the bit, and scores the chain's output with the
+model's own decoding settings and with each ``--try`` (decoding settings only, as ``sarah-train
+--stage model --set`` takes them; several joined by commas): FGD_acc per batch of 16 and pooled
+(the whole shell, the legs, the feet; ×10^5 (cm/s²)², as sarah-eval's), the feet's steps a
+window (``metrics.foot_steps``), the share of them lasting the fixtures' 5 frames, and the
+stance head's lifts a window. A decoding setting is read in seconds, not a new evaluation
+(docs/results.md, seventy-fifth run):
+
+    python scripts/decode_replay.py --run MODEL --shards test_shards --split train --windows 96 \\
+        --noise-scale 0.3 --cfg 4.5 --guide user_head --guidance-interval 0,0.75 \\
+        --imputation trajectory --record decodes.npz --try vae.root_hold=0.15
+    python scripts/decode_replay.py --run MODEL --replay decodes.npz --try vae.foot_lock=0.2
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from sarah_cli.arguments import (GUIDANCE_INTERVAL_HELP, IMPUTATION_HELP, NOISE_SCALE_HELP,
+                                 guidance_interval, guide_help, guided_modalities, noise_scale)
+from sarah_data.atomic import atomic_path
+from sarah_data.skeleton import FEET, MotionLayout, shell_parts
+from sarah_models.config import HISTORY_WINDOW, IMPUTATIONS, RunConfig, decoding_settings
+from sarah_models.evaluation.metrics import foot_steps
+from sarah_models.evaluation.metrics.clips import accelerations
+from sarah_models.evaluation.metrics.frechet import frechet_distance
+from sarah_models.evaluation.runner import EvalConfig
+
+BATCH = 16  # clips per batch of the per-batch column, as sarah-eval's default
+DATA_STEP_FRAMES = 5  # how long the fixtures' feet travel in a step (sampling.foot_lock)
+PARTS = ("legs", "feet")
+ROWS = ("model", "vae")
+
+
+def record(models, shards: Path, split: str, windows: int, sampling: EvalConfig,
+           window: int = 400) -> dict[str, np.ndarray]:
+    """The ground truth of ``windows`` evenly spaced windows of ``split`` and, for the model's
+    offline row and the VAE row, the decoder's frames and stance as the chain reads them. The
+    model's frames decode ``window_generator``'s latents; SystemExit unless the chain gives its
+    motion back to the bit."""
+    import torch
+
+    from sarah_data.dataset import WindowDataset
+    from sarah_models.evaluation.runner import window_generator, window_seed
+    from sarah_models.evaluation.windows import TestWindows, select_windows
+    from sarah_models.sampling.decoding import decoder_frames, stream_decoding
+    from sarah_models.sampling.stream import window_history
+
+    if models.flow.config.user_relative:
+        sys.exit("decode_replay: this flow's offline solve decodes block by block "
+                 "(flow.user_relative); only flows that decode a window at once are recorded")
+    dataset = WindowDataset.sliding(shards, split, extractor=models.features, window=window)
+    chosen = TestWindows(dataset, select_windows(len(dataset), windows))
+    if not len(chosen):
+        sys.exit(f"decode_replay: {shards}: split {split!r} has no {window}-frame windows")
+    if sampling.history_tokens == HISTORY_WINDOW:  # as sarah-eval resolves it
+        sampling = replace(sampling, history_tokens=window_history(models.flow))
+    generate = window_generator(models, replace(sampling, protocol="offline"), None)
+    vae, nz = models.vae, models.normalizer
+    out: dict[str, list] = {"gt": [], **{f"{r}_{k}": [] for r in ROWS for k in ("frames", "stance")}}
+    with torch.inference_mode():
+        for i in range(len(chosen)):
+            item = chosen[i]
+            result = generate(item, i)
+            tokens = nz.denormalize("latent", torch.as_tensor(result.latents))[None]
+            frames, stance = decoder_frames(vae, nz, tokens, window_seed(sampling.seed, i))
+            if not np.array_equal(stream_decoding(vae, nz)(frames, stance).astype(np.float32),
+                                  result.motion):
+                sys.exit(f"decode_replay: window {i}: the chain does not give the model row back "
+                         f"from its recorded frames")
+            means, _ = vae.encode(nz.normalize("motion", item["motion"])[None])
+            rows = {"model": (frames, stance), "vae": decoder_frames(vae, nz, means, i)}
+            for row, (f, s) in rows.items():
+                out[f"{row}_frames"].append(f.astype(np.float32))
+                out[f"{row}_stance"].append(np.ones(f.shape[:1] + (len(FEET),), bool)
+                                            if s is None else s)
+            out["gt"].append(item["motion"].numpy())
+    return {key: np.stack(value) for key, value in out.items()}
+
+
+def decode(models, frames: np.ndarray, stance: np.ndarray, settings: list[str],
+           source: Path) -> np.ndarray:
+    """Every window's recorded frames through a new chain of ``models``' decoding with
+    ``settings`` set (written as a model file, as ``sarah-train --stage model`` writes one)."""
+    from sarah_models.sampling.decoding import reads_stance, stream_decoding
+    from sarah_models.training.model_file import load_model_file, write_model_file
+
+    if settings:
+        with tempfile.TemporaryDirectory() as folder:
+            path = write_model_file(source, Path(folder) / "tried.safetensors", settings)
+            models = load_model_file(path, device="cpu")
+    steps = reads_stance(models.vae)
+    return np.stack([stream_decoding(models.vae, models.normalizer)(
+        f.astype(np.float64), s if steps else None).astype(np.float32)
+        for f, s in zip(frames, stance)])
+
+
+def figures(motion: np.ndarray, truth: np.ndarray, layout: MotionLayout, parts: dict,
+            stance: np.ndarray | None = None) -> dict[str, float]:
+    """FGD_acc per batch and pooled by part (×10^5 (cm/s²)²) and how the feet step."""
+    acc, real = (np.stack([accelerations(layout.split(x)[1]) for x in m]) for m in (motion, truth))
+    out = {}
+    for part in PARTS:  # a shell with no point nearest a part's joints has no figure for it
+        if part not in parts:
+            out[f"{part} batch"] = out[f"{part} pooled"] = float("nan")
+    for part, points in (("shell", np.arange(acc.shape[2])),
+                         *((p, list(parts[p])) for p in PARTS if p in parts)):
+        def features(a, clips=slice(None)):  # (clips, frames, points, 3) -> (samples, 3 points)
+            return a[clips][:, :, points].reshape(-1, 3 * len(points))
+        batches = [frechet_distance(features(acc, slice(s, s + BATCH)),
+                                    features(real, slice(s, s + BATCH)))
+                   for s in range(0, len(acc), BATCH)]
+        out[f"{part} batch"] = float(np.mean(batches)) * 1e4 / 1e5  # m -> cm, shown ÷1e5
+        out[f"{part} pooled"] = frechet_distance(features(acc), features(real)) * 1e4 / 1e5
+    steps = [foot_steps(layout.joint_positions(x, list(FEET))) for x in motion]
+    lengths = [end - start for clip in steps for foot in clip for start, end in foot]
+    out["steps"] = len(lengths) / len(motion)
+    out["data steps"] = float(np.mean(np.asarray(lengths) == DATA_STEP_FRAMES)) if lengths else 0.0
+    if stance is not None:
+        lifts = np.diff(np.concatenate([np.zeros_like(stance[:, :1]), ~stance], axis=1).astype(int),
+                        axis=1) == 1
+        out["lifts"] = float(lifts.sum()) / len(stance)
+    return out
+
+
+def row(label: str, decoding: str, f: dict) -> str:
+    cells = [" / ".join("-" if np.isnan(f[f"{p} {kind}"]) else f"{f[f'{p} {kind}']:.0f}"
+                        for p in ("shell", *PARTS)) for kind in ("batch", "pooled")]
+    lifts = f"{f['lifts']:.1f}" if "lifts" in f else "-"
+    return (f"| {label} | {decoding} | {cells[0]} | {cells[1]} | {f['steps']:.1f} | "
+            f"{f['data steps']:.0%} | {lifts} |")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--run", required=True, help="a run folder or model file")
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--record", type=Path, metavar="NPZ",
+                        help="record the decodes of --shards to this file, then replay them")
+    source.add_argument("--replay", type=Path, metavar="NPZ", help="replay a recorded file")
+    parser.add_argument("--shards", type=Path, help="shards folder (sarah-prep), with --record")
+    parser.add_argument("--split", default="test", help="split whose windows are recorded")
+    parser.add_argument("--windows", type=int, default=96, help="evenly spaced windows recorded")
+    parser.add_argument("--window", type=int, default=400, help="frames per window")
+    parser.add_argument("--try", dest="tries", action="append", default=[], metavar="SETTINGS",
+                        help="decoding settings to replay with, e.g. vae.root_hold=0.15 or "
+                             "vae.foot_lock=0.2,vae.root_hold=0.1 (repeatable)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    paper = EvalConfig()
+    parser.add_argument("--steps", type=int, default=paper.steps, help="midpoint solver steps")
+    parser.add_argument("--cfg", type=float, default=paper.cfg_scale, help="guidance scale w")
+    parser.add_argument("--noise-scale", type=noise_scale, default=paper.noise_scale,
+                        help=NOISE_SCALE_HELP)
+    parser.add_argument("--guide", type=guided_modalities, default="all", help=guide_help())
+    parser.add_argument("--guidance-interval", type=guidance_interval, default="0,1",
+                        help=GUIDANCE_INTERVAL_HELP)
+    parser.add_argument("--imputation", choices=IMPUTATIONS, default=paper.imputation,
+                        help=IMPUTATION_HELP)
+    parser.add_argument("--seed", type=int, default=paper.seed, help="sarah-eval's --seed")
+    args = parser.parse_args(argv)
+    tries = [[s.strip() for s in t.split(",") if s.strip()] for t in args.tries]
+    allowed = decoding_settings()
+    for settings in tries:
+        wrong = [s for s in settings if s.partition("=")[0] not in allowed]
+        if wrong or not settings:
+            parser.error(f"--try {','.join(settings)!r}: only decoding settings "
+                         f"({', '.join(allowed)}) change without training")
+        try:
+            RunConfig().with_overrides(settings)
+        except ValueError as exc:
+            parser.error(f"--try {','.join(settings)!r}: {exc}")
+    if args.record is not None and args.shards is None:
+        parser.error("--record needs --shards")
+    if args.replay is not None and not args.replay.is_file():
+        parser.error(f"--replay {args.replay}: no such file")
+    if args.windows < 1:
+        parser.error(f"--windows must be at least 1, got {args.windows}")
+    import torch
+
+    from sarah_models.generation.run import GenerateError, load_run
+
+    torch.set_num_threads(args.threads)
+    try:
+        models, source = load_run(args.run, None, device="cpu", need_flow=True)
+    except GenerateError as exc:
+        parser.error(str(exc))
+    if args.record is not None:
+        sampling = EvalConfig(steps=args.steps, cfg_scale=args.cfg, noise_scale=args.noise_scale,
+                              guide=args.guide, guidance_interval=args.guidance_interval,
+                              imputation=args.imputation, seed=args.seed)
+        recorded = record(models, args.shards, args.split, args.windows, sampling, args.window)
+        with atomic_path(args.record) as tmp, open(tmp, "wb") as handle:
+            np.savez(handle, **recorded)
+        print(f"recorded {len(recorded['gt'])} windows to {args.record}")
+    else:
+        with np.load(args.replay, allow_pickle=False) as data:
+            recorded = {key: data[key] for key in data.files}
+    truth = recorded["gt"]
+    layout = MotionLayout.from_width(truth.shape[-1])
+    ico, shell = layout.split(truth[0, 0])
+    parts = shell_parts(ico, shell, layout.joint_names)
+    print(f"\n{len(truth)} windows; FGD_acc ×10^5 (cm/s²)², shell / legs / feet; foot steps: "
+          f"runs of frames a foot moves faster than the foot slide's speed\n")
+    print("| motion | decoding | FGD_acc per batch of 16 | FGD_acc pooled | foot steps a window | "
+          f"lasting {DATA_STEP_FRAMES} frames | stance lifts a window |\n|---|---|---|---|---|---|---|")
+    print(row("ground truth", "-", figures(truth, truth, layout, parts)))
+    from sarah_models.sampling.decoding import reads_stance
+
+    for label in ROWS:
+        frames, stance = recorded[f"{label}_frames"], recorded[f"{label}_stance"]
+        for settings in [[], *tries]:
+            motion = decode(models, frames, stance, settings, source)
+            print(row(label, ", ".join(settings) or "the model's", figures(
+                motion, truth, layout, parts, stance if reads_stance(models.vae) else None)),
+                flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

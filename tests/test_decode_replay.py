@@ -1,0 +1,70 @@
+"""scripts/decode_replay.py: the recorded frames give sarah-eval's offline model row back through
+the chain, a decoding setting changes what is replayed, and bad settings stop before any work."""
+
+import numpy as np
+import pytest
+
+from helpers import load_script, write_split_shards
+from test_generate import save_run
+
+replay = load_script("decode_replay")
+WINDOW = 16
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    root = tmp_path_factory.mktemp("replay")
+    shards = root / "shards"
+    write_split_shards(shards, {"train": 2, "test": 2}, frames=40)
+    return {"shards": shards, "run": save_run(root / "run")}
+
+
+def test_records_the_model_row_and_replays_other_decodings(tiny, tmp_path, capsys):
+    import torch
+
+    from sarah_models.evaluation.runner import EvalConfig, window_generator
+    from sarah_models.evaluation.windows import TestWindows, select_windows
+    from sarah_data.dataset import WindowDataset
+    from sarah_models.generation.run import load_run
+
+    out = tmp_path / "decodes.npz"
+    argv = ["--run", str(tiny["run"]), "--shards", str(tiny["shards"]), "--window", str(WINDOW),
+            "--windows", "3", "--record", str(out), "--try", "vae.boundary_inertia=0.8"]
+    assert replay.main(argv) == 0
+    printed = capsys.readouterr().out
+    rows = [line for line in printed.splitlines() if line.startswith("| model |")]
+    assert [r.split(" | ")[1] for r in rows] == ["the model's", "vae.boundary_inertia=0.8"]
+    assert rows[0].split(" | ")[2] != rows[1].split(" | ")[2]  # the seams decode otherwise
+    with np.load(out, allow_pickle=False) as data:
+        recorded = {k: data[k] for k in data.files}
+    assert recorded["model_frames"].shape == recorded["gt"].shape == (3, WINDOW, recorded["gt"].shape[-1])
+    # the model's own decoding of the recorded frames is sarah-eval's offline model row
+    models, source = load_run(tiny["run"], None, device="cpu")
+    dataset = WindowDataset.sliding(tiny["shards"], "test", extractor=models.features, window=WINDOW)
+    windows = TestWindows(dataset, select_windows(len(dataset), 3))
+    generate = window_generator(models, EvalConfig(protocol="offline", device="cpu"), None)
+    own = replay.decode(models, recorded["model_frames"], recorded["model_stance"], [], source)
+    with torch.inference_mode():
+        for i in range(3):
+            np.testing.assert_array_equal(own[i], generate(windows[i], i).motion)
+    # replayed from the file, the same table
+    assert replay.main(["--run", str(tiny["run"]), "--replay", str(out), "--try",
+                        "vae.boundary_inertia=0.8"]) == 0
+    table = lambda text: text[text.index("| motion |"):]
+    assert table(capsys.readouterr().out) == table(printed)
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--try", "vae.latent_dim=8"], "only decoding settings"),
+    (["--try", "vae.root_hold=-1"], "--try 'vae.root_hold=-1'"),
+    (["--record", "x.npz"], "--record needs --shards"),
+    (["--replay", "missing.npz"], "no such file"),
+])
+def test_bad_arguments_stop_before_any_work(tiny, tmp_path, capsys, argv, words):
+    argv = ["--run", str(tiny["run"]), *argv]
+    if "--record" not in argv and "--replay" not in argv:
+        argv += ["--replay", str(tmp_path / "none.npz")]
+    with pytest.raises(SystemExit) as stop:
+        replay.main(argv)
+    assert stop.value.code == 2 and words in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
