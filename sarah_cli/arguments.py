@@ -150,3 +150,33 @@ def add_model_arguments(parser: argparse.ArgumentParser, required: bool, run_hel
     group.add_argument("--pretrained", dest="run", type=pretrained_model, metavar="NAME",
                        help="a model shipped with the package instead of --run: "
                             + "; ".join(m.describe() for m in MODELS.values()))
+
+
+def add_sampling_arguments(parser: argparse.ArgumentParser, defaults,
+                           steps_help: str = "midpoint solver steps",
+                           imputation_help: str = IMPUTATION_HELP) -> None:
+    """The sampling flags of sarah-eval, sarah-generate and the scripts that sample as an
+    evaluation does: --steps, --cfg, --noise-scale, --guide, --guidance-interval and
+    --imputation, defaults from ``defaults`` (an ``EvalConfig`` or ``StreamConfig``);
+    ``sampling_of`` reads them back into an ``EvalConfig``."""
+    from sarah_models.config import IMPUTATIONS
+
+    parser.add_argument("--steps", type=int, default=defaults.steps, help=steps_help)
+    parser.add_argument("--cfg", type=float, default=defaults.cfg_scale, help="guidance scale w")
+    parser.add_argument("--noise-scale", type=noise_scale, default=defaults.noise_scale,
+                        help=NOISE_SCALE_HELP)
+    parser.add_argument("--guide", type=guided_modalities, default="all", help=guide_help())
+    parser.add_argument("--guidance-interval", type=guidance_interval, default="0,1",
+                        help=GUIDANCE_INTERVAL_HELP)
+    parser.add_argument("--imputation", choices=IMPUTATIONS, default=defaults.imputation,
+                        help=imputation_help)
+
+
+def sampling_of(args: argparse.Namespace, defaults):
+    """The ``EvalConfig`` ``defaults`` with the flags of ``add_sampling_arguments`` set."""
+    from dataclasses import replace
+
+    return replace(defaults, steps=args.steps, cfg_scale=args.cfg, noise_scale=args.noise_scale,
+                   guide=args.guide, guidance_interval=args.guidance_interval,
+                   imputation=args.imputation)
+

@@ -6,9 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import (GUIDANCE_INTERVAL_HELP, HISTORY_HELP, IMPUTATION_HELP,
-                                 NOISE_SCALE_HELP, HelpFormatter, add_model_arguments, guide_help,
-                                 guidance_interval, guided_modalities, history_tokens, noise_scale)
+from sarah_cli.arguments import (HISTORY_HELP, IMPUTATION_HELP, HelpFormatter, add_model_arguments,
+                                 add_sampling_arguments, history_tokens)
 
 EXIT_ERROR = 2
 
@@ -38,7 +37,6 @@ def _methods(text: str) -> tuple[str, ...]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from sarah_models.config import IMPUTATIONS
     from sarah_models.evaluation.runner import EvalConfig
 
     d = EvalConfig()
@@ -89,17 +87,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=d.seed,
                         help="seed of the baselines' draws and the model's noise")
     parser.add_argument("--device", default=None, help="cpu or cuda (default: cuda when available)")
-    parser.add_argument("--steps", type=int, default=d.steps, help="midpoint solver steps")
-    parser.add_argument("--cfg", type=float, default=d.cfg_scale, help="guidance scale w")
-    parser.add_argument("--noise-scale", type=noise_scale, default=d.noise_scale,
-                        help=NOISE_SCALE_HELP)
+    add_sampling_arguments(parser, d,
+                           imputation_help=IMPUTATION_HELP + "; the offline protocol ignores it")
     parser.add_argument("--history", type=history_tokens, default=d.history_tokens,
                         help=HISTORY_HELP + "; the offline protocol ignores it")
-    parser.add_argument("--guide", type=guided_modalities, default="all", help=guide_help())
-    parser.add_argument("--guidance-interval", type=guidance_interval, default="0,1",
-                        help=GUIDANCE_INTERVAL_HELP)
-    parser.add_argument("--imputation", choices=IMPUTATIONS, default=d.imputation,
-                        help=IMPUTATION_HELP + "; the offline protocol ignores it")
     parser.add_argument("--protocol", choices=("offline", "stream"), default=d.protocol,
                         help="stream: 4 frames per step, as users run it; offline: all T frames "
                              "at once (causal mask), as the paper times FPS")

@@ -6,10 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from sarah_cli.arguments import (GUIDANCE_INTERVAL_HELP, HISTORY_HELP, IMPUTATION_HELP,
-                                 NOISE_SCALE_HELP, HelpFormatter, add_model_arguments, guide_help,
-                                 guidance_interval, guided_modalities, history_tokens,
-                                 noise_scale, positive_int)
+from sarah_cli.arguments import (HISTORY_HELP, HelpFormatter, add_model_arguments,
+                                 add_sampling_arguments, history_tokens, positive_int)
 from sarah_models.accel import MODE_HELP, MODES
 
 EXIT_ERROR = 2
@@ -52,7 +50,7 @@ def _option(text: str) -> tuple[str, object]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from sarah_models.config import IMPUTATIONS, StreamConfig
+    from sarah_models.config import StreamConfig
 
     d = StreamConfig()
     parser = argparse.ArgumentParser(
@@ -68,19 +66,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument("--gaze", default=str(d.gaze),
                         help="target gaze score in [-1, 1], or 'none' to drop it")
-    parser.add_argument("--steps", type=int, default=d.steps, help="solver steps per chunk")
+    add_sampling_arguments(parser, d, steps_help="solver steps per chunk")
     parser.add_argument("--solver", choices=("midpoint", "euler"), default=d.solver,
                         help="ODE solver (midpoint: 2 network evaluations per step)")
-    parser.add_argument("--cfg", type=float, default=d.cfg_scale, help="guidance scale w")
-    parser.add_argument("--noise-scale", type=noise_scale, default=d.noise_scale,
-                        help=NOISE_SCALE_HELP)
     parser.add_argument("--history", type=history_tokens, default=d.history_tokens,
                         help=HISTORY_HELP)
-    parser.add_argument("--guide", type=guided_modalities, default="all", help=guide_help())
-    parser.add_argument("--guidance-interval", type=guidance_interval, default="0,1",
-                        help=GUIDANCE_INTERVAL_HELP)
-    parser.add_argument("--imputation", choices=IMPUTATIONS, default=d.imputation,
-                        help=IMPUTATION_HELP)
     parser.add_argument("--seed", type=int, default=d.seed,
                         help="noise seed: the same seed and inputs give the same motion (bit "
                              "for bit with the same --threads; other thread counts round "

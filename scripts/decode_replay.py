@@ -27,11 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from sarah_cli.arguments import (GUIDANCE_INTERVAL_HELP, IMPUTATION_HELP, NOISE_SCALE_HELP,
-                                 guidance_interval, guide_help, guided_modalities, noise_scale)
+from sarah_cli.arguments import add_sampling_arguments, sampling_of
 from sarah_data.atomic import atomic_path
 from sarah_data.skeleton import FEET, MotionLayout, shell_parts
-from sarah_models.config import HISTORY_WINDOW, IMPUTATIONS, RunConfig, decoding_settings
+from sarah_models.config import HISTORY_WINDOW, RunConfig, decoding_settings
 from sarah_models.evaluation.metrics import foot_steps
 from sarah_models.evaluation.metrics.clips import accelerations
 from sarah_models.evaluation.metrics.frechet import frechet_distance
@@ -158,17 +157,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="decoding settings to replay with, e.g. vae.root_hold=0.15 or "
                              "vae.foot_lock=0.2,vae.root_hold=0.1 (repeatable)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
-    paper = EvalConfig()
-    parser.add_argument("--steps", type=int, default=paper.steps, help="midpoint solver steps")
-    parser.add_argument("--cfg", type=float, default=paper.cfg_scale, help="guidance scale w")
-    parser.add_argument("--noise-scale", type=noise_scale, default=paper.noise_scale,
-                        help=NOISE_SCALE_HELP)
-    parser.add_argument("--guide", type=guided_modalities, default="all", help=guide_help())
-    parser.add_argument("--guidance-interval", type=guidance_interval, default="0,1",
-                        help=GUIDANCE_INTERVAL_HELP)
-    parser.add_argument("--imputation", choices=IMPUTATIONS, default=paper.imputation,
-                        help=IMPUTATION_HELP)
-    parser.add_argument("--seed", type=int, default=paper.seed, help="sarah-eval's --seed")
+    add_sampling_arguments(parser, EvalConfig())
+    parser.add_argument("--seed", type=int, default=EvalConfig().seed, help="sarah-eval's --seed")
     args = parser.parse_args(argv)
     tries = [[s.strip() for s in t.split(",") if s.strip()] for t in args.tries]
     allowed = decoding_settings()
@@ -197,9 +187,7 @@ def main(argv: list[str] | None = None) -> int:
     except GenerateError as exc:
         parser.error(str(exc))
     if args.record is not None:
-        sampling = EvalConfig(steps=args.steps, cfg_scale=args.cfg, noise_scale=args.noise_scale,
-                              guide=args.guide, guidance_interval=args.guidance_interval,
-                              imputation=args.imputation, seed=args.seed)
+        sampling = sampling_of(args, EvalConfig(seed=args.seed))
         recorded = record(models, args.shards, args.split, args.windows, sampling, args.window)
         with atomic_path(args.record) as tmp, open(tmp, "wb") as handle:
             np.savez(handle, **recorded)

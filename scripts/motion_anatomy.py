@@ -53,13 +53,11 @@ from pathlib import Path
 
 import numpy as np
 
-from sarah_cli.arguments import (GUIDANCE_INTERVAL_HELP, IMPUTATION_HELP, NOISE_SCALE_HELP,
-                                 guidance_interval, guide_help, guided_modalities, noise_scale)
+from sarah_cli.arguments import add_sampling_arguments, sampling_of
 from sarah_data import icosahedron
 from sarah_data.constants import BODY_JOINTS, FPS, JOINT_NAMES
 from sarah_data.frames import rotation_about_y, yaw_of
 from sarah_data.skeleton import FEET, JOINT_GROUPS, ROOT, MotionLayout, shell_parts
-from sarah_models.config import IMPUTATIONS
 from sarah_models.evaluation.metrics import (MetricsTable, evaluate, foot_slide, foot_steps,
                                              step_paths, step_reaches)
 from sarah_models.evaluation.metrics.body_parts import part_key
@@ -435,21 +433,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--shards", type=Path, required=True, help="shards folder (sarah-prep)")
     parser.add_argument("--split", default="test", help="split whose 400-frame windows are streamed")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
-    # sarah-eval's sampling flags, parsed and checked by the same functions
-    paper = EvalConfig()
-    parser.add_argument("--steps", type=int, default=paper.steps, help="midpoint solver steps")
-    parser.add_argument("--cfg", type=float, default=paper.cfg_scale, help="guidance scale w")
-    parser.add_argument("--noise-scale", type=noise_scale, default=paper.noise_scale,
-                        help=NOISE_SCALE_HELP)
-    parser.add_argument("--guide", type=guided_modalities, default="all", help=guide_help())
-    parser.add_argument("--guidance-interval", type=guidance_interval, default="0,1",
-                        help=GUIDANCE_INTERVAL_HELP)
-    parser.add_argument("--imputation", choices=IMPUTATIONS, default=paper.imputation,
-                        help=IMPUTATION_HELP)
+    add_sampling_arguments(parser, EvalConfig())
     args = parser.parse_args(argv)
-    sampling = EvalConfig(steps=args.steps, cfg_scale=args.cfg, noise_scale=args.noise_scale,
-                          guide=args.guide, guidance_interval=args.guidance_interval,
-                          imputation=args.imputation)
+    sampling = sampling_of(args, EvalConfig())
     if args.pretrained:
         from sarah_models.pretrained import model_path
 
