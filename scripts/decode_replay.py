@@ -35,9 +35,10 @@ from sarah_models.evaluation.metrics import foot_steps
 from sarah_models.evaluation.metrics.clips import accelerations
 from sarah_models.evaluation.metrics.frechet import frechet_distance
 from sarah_models.evaluation.runner import EvalConfig
+# how long the fixtures' feet travel in a step, which the foot lock's data steps copy
+from sarah_models.sampling.foot_lock import STANCE_SWING_FRAMES
 
 BATCH = 16  # clips per batch of the per-batch column, as sarah-eval's default
-DATA_STEP_FRAMES = 5  # how long the fixtures' feet travel in a step (sampling.foot_lock)
 PARTS = ("legs", "feet")
 ROWS = ("model", "vae")
 
@@ -125,7 +126,7 @@ def figures(motion: np.ndarray, truth: np.ndarray, layout: MotionLayout, parts: 
     steps = [foot_steps(layout.joint_positions(x, list(FEET))) for x in motion]
     lengths = [end - start for clip in steps for foot in clip for start, end in foot]
     out["steps"] = len(lengths) / len(motion)
-    out["data steps"] = float(np.mean(np.asarray(lengths) == DATA_STEP_FRAMES)) if lengths else 0.0
+    out["data steps"] = float(np.mean(np.asarray(lengths) == STANCE_SWING_FRAMES)) if lengths else 0.0
     if stance is not None:
         lifts = np.diff(np.concatenate([np.zeros_like(stance[:, :1]), ~stance], axis=1).astype(int),
                         axis=1) == 1
@@ -202,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\n{len(truth)} windows; FGD_acc ×10^5 (cm/s²)², shell / legs / feet; foot steps: "
           f"runs of frames a foot moves faster than the foot slide's speed\n")
     print("| motion | decoding | FGD_acc per batch of 16 | FGD_acc pooled | foot steps a window | "
-          f"lasting {DATA_STEP_FRAMES} frames | stance lifts a window |\n|---|---|---|---|---|---|---|")
+          f"lasting {STANCE_SWING_FRAMES} frames | stance lifts a window |\n|---|---|---|---|---|---|---|")
     print(row("ground truth", "-", figures(truth, truth, layout, parts)))
     from sarah_models.sampling.decoding import reads_stance
 
