@@ -158,7 +158,7 @@ def add_sampling_arguments(parser: argparse.ArgumentParser, defaults,
     """The sampling flags of sarah-eval, sarah-generate and the scripts that sample as an
     evaluation does: --steps, --cfg, --noise-scale, --guide, --guidance-interval and
     --imputation, defaults from ``defaults`` (an ``EvalConfig`` or ``StreamConfig``);
-    ``sampling_of`` reads them back into an ``EvalConfig``."""
+    ``sampling_of`` reads them back."""
     from sarah_models.config import IMPUTATIONS
 
     parser.add_argument("--steps", type=int, default=defaults.steps, help=steps_help)
@@ -172,11 +172,11 @@ def add_sampling_arguments(parser: argparse.ArgumentParser, defaults,
                         help=imputation_help)
 
 
-def sampling_of(args: argparse.Namespace, defaults):
-    """The ``EvalConfig`` ``defaults`` with the flags of ``add_sampling_arguments`` set."""
+def sampling_of(args: argparse.Namespace, config):
+    """``config`` (an ``EvalConfig`` or ``StreamConfig``) with the flags of
+    ``add_sampling_arguments`` set; ValueError as the config's own checks raise it."""
     from dataclasses import replace
 
-    return replace(defaults, steps=args.steps, cfg_scale=args.cfg, noise_scale=args.noise_scale,
+    return replace(config, steps=args.steps, cfg_scale=args.cfg, noise_scale=args.noise_scale,
                    guide=args.guide, guidance_interval=args.guidance_interval,
                    imputation=args.imputation)
-

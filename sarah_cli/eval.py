@@ -7,7 +7,8 @@ import sys
 from pathlib import Path
 
 from sarah_cli.arguments import (HISTORY_HELP, IMPUTATION_HELP, HelpFormatter, add_model_arguments,
-                                 add_sampling_arguments, history_tokens)
+                                 add_sampling_arguments, history_tokens,
+                                 sampling_of)
 
 EXIT_ERROR = 2
 
@@ -117,18 +118,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"sarah-eval: error: {problems[0]}", file=sys.stderr)
         return EXIT_ERROR
     try:
-        config = EvalConfig(split=args.split, windows=args.windows, window=args.window,
-                            gaze=args.gaze, table1_gaze=args.table1_gaze, methods=args.methods,
-                            batch_clips=args.batch_clips, seed=args.seed, steps=args.steps,
-                            cfg_scale=args.cfg, noise_scale=args.noise_scale,
-                            history_tokens=args.history, imputation=args.imputation,
-                            guide=args.guide, guidance_interval=args.guidance_interval,
-                            protocol=args.protocol, blur_frames=args.blur_frames,
-                            jitter_mm=args.jitter_mm,
-                            library_size=args.library_size, features=args.features,
-                            library_shards=(None if args.library_shards is None
-                                            else str(args.library_shards)),
-                            device=args.device)
+        config = sampling_of(args, EvalConfig(
+            split=args.split, windows=args.windows, window=args.window, gaze=args.gaze,
+            table1_gaze=args.table1_gaze, methods=args.methods, batch_clips=args.batch_clips,
+            seed=args.seed, history_tokens=args.history, protocol=args.protocol,
+            blur_frames=args.blur_frames, jitter_mm=args.jitter_mm,
+            library_size=args.library_size, features=args.features,
+            library_shards=None if args.library_shards is None else str(args.library_shards),
+            device=args.device))
         result = run_evaluation(args.run, args.shards, args.out, config,
                                 progress=not args.no_progress)
     except (EvalError, DataProblem) as exc:

@@ -7,7 +7,8 @@ import sys
 from pathlib import Path
 
 from sarah_cli.arguments import (HISTORY_HELP, HelpFormatter, add_model_arguments,
-                                 add_sampling_arguments, history_tokens, positive_int)
+                                 add_sampling_arguments, history_tokens, positive_int,
+                                 sampling_of)
 from sarah_models.accel import MODE_HELP, MODES
 
 EXIT_ERROR = 2
@@ -120,11 +121,8 @@ def main(argv: list[str] | None = None) -> int:
     from sarah_models.config import StreamConfig
 
     try:
-        config = StreamConfig(history_tokens=args.history, imputation=args.imputation,
-                              guide=args.guide, guidance_interval=args.guidance_interval,
-                              steps=args.steps, solver=args.solver,
-                              cfg_scale=args.cfg, noise_scale=args.noise_scale,
-                              gaze=_gaze(args.gaze), seed=args.seed)
+        config = sampling_of(args, StreamConfig(history_tokens=args.history, solver=args.solver,
+                                                gaze=_gaze(args.gaze), seed=args.seed))
     except (ValueError, argparse.ArgumentTypeError) as exc:
         print(f"sarah-generate: error: {exc}", file=sys.stderr)
         return EXIT_ERROR

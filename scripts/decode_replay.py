@@ -30,10 +30,12 @@ import numpy as np
 from sarah_cli.arguments import add_sampling_arguments, sampling_of
 from sarah_data.atomic import atomic_path
 from sarah_data.skeleton import FEET, MotionLayout, shell_parts
-from sarah_models.config import HISTORY_WINDOW, RunConfig, decoding_settings
+from sarah_models.config import HISTORY_WINDOW, RunConfig
+from sarah_models.training import model_file
 from sarah_models.evaluation.metrics import foot_steps
 from sarah_models.evaluation.metrics.clips import accelerations
 from sarah_models.evaluation.metrics.frechet import frechet_distance
+from sarah_models.evaluation.metrics.table import bootstrap_interval
 from sarah_models.evaluation.runner import EvalConfig
 # how long the fixtures' feet travel in a step, which the foot lock's data steps copy
 from sarah_models.sampling.foot_lock import STANCE_SWING_FRAMES
@@ -89,31 +91,36 @@ def record(models, shards: Path, split: str, windows: int, sampling: EvalConfig,
     return {key: np.stack(value) for key, value in out.items()}
 
 
-def decode(models, frames: np.ndarray, stance: np.ndarray, settings: list[str],
-           source: Path) -> np.ndarray:
-    """Every window's recorded frames through a new chain of ``models``' decoding with
-    ``settings`` set (written as a model file, as ``sarah-train --stage model`` writes one)."""
-    from sarah_models.sampling.decoding import reads_stance, stream_decoding
-    from sarah_models.training.model_file import load_model_file, write_model_file
+def tried_models(models, source: Path, settings: list[str]):
+    """``models`` decoding with ``settings`` set: written as a model file, as ``sarah-train
+    --stage model --set`` writes one, and loaded back."""
+    if not settings:
+        return models
+    with tempfile.TemporaryDirectory() as folder:
+        path = model_file.write_model_file(source, Path(folder) / "tried.safetensors", settings)
+        return model_file.load_model_file(path, device="cpu")
 
-    if settings:
-        with tempfile.TemporaryDirectory() as folder:
-            path = write_model_file(source, Path(folder) / "tried.safetensors", settings)
-            models = load_model_file(path, device="cpu")
+
+def decode(models, frames: np.ndarray, stance: np.ndarray) -> np.ndarray:
+    """Every window's recorded frames through a new chain of ``models``' decoding."""
+    from sarah_models.sampling.decoding import reads_stance, stream_decoding
+
     steps = reads_stance(models.vae)
     return np.stack([stream_decoding(models.vae, models.normalizer)(
         f.astype(np.float64), s if steps else None).astype(np.float32)
         for f, s in zip(frames, stance)])
 
 
-def figures(motion: np.ndarray, truth: np.ndarray, layout: MotionLayout, parts: dict,
-            stance: np.ndarray | None = None) -> dict[str, float]:
-    """FGD_acc per batch and pooled by part (×10^5 (cm/s²)²) and how the feet step."""
-    acc, real = (np.stack([accelerations(layout.split(x)[1]) for x in m]) for m in (motion, truth))
-    out = {}
-    for part in PARTS:  # a shell with no point nearest a part's joints has no figure for it
-        if part not in parts:
-            out[f"{part} batch"] = out[f"{part} pooled"] = float("nan")
+def shell_accelerations(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
+    """(clips, frames, D) motion -> (clips, frames - 2, points, 3) shell accelerations, m/s²."""
+    return np.stack([accelerations(layout.split(x)[1]) for x in motion])
+
+
+def distances(acc: np.ndarray, real: np.ndarray, parts: dict) -> dict[str, float]:
+    """FGD_acc per batch of ``BATCH`` clips and pooled, of the shell and of ``PARTS``, ×10^5
+    (cm/s²)², with the shell's 95 % bootstrap interval over batches; NaN for a part no shell
+    point lies nearest to."""
+    out = {f"{part} {kind}": float("nan") for part in PARTS for kind in ("batch", "pooled")}
     for part, points in (("shell", np.arange(acc.shape[2])),
                          *((p, list(parts[p])) for p in PARTS if p in parts)):
         def features(a, clips=slice(None)):  # (clips, frames, points, 3) -> (samples, 3 points)
@@ -121,22 +128,34 @@ def figures(motion: np.ndarray, truth: np.ndarray, layout: MotionLayout, parts: 
         batches = [frechet_distance(features(acc, slice(s, s + BATCH)),
                                     features(real, slice(s, s + BATCH)))
                    for s in range(0, len(acc), BATCH)]
-        out[f"{part} batch"] = float(np.mean(batches)) * 1e4 / 1e5  # m -> cm, shown ÷1e5
-        out[f"{part} pooled"] = frechet_distance(features(acc), features(real)) * 1e4 / 1e5
-    steps = [foot_steps(layout.joint_positions(x, list(FEET))) for x in motion]
-    lengths = [end - start for clip in steps for foot in clip for start, end in foot]
-    out["steps"] = len(lengths) / len(motion)
-    out["data steps"] = float(np.mean(np.asarray(lengths) == STANCE_SWING_FRAMES)) if lengths else 0.0
+        scale = 1e4 / 1e5  # m -> cm, shown ÷1e5
+        out[f"{part} batch"] = float(np.mean(batches)) * scale
+        out[f"{part} pooled"] = frechet_distance(features(acc), features(real)) * scale
+        if part == "shell":  # sarah-eval's interval: the batches' mean, bootstrapped
+            out["shell interval"] = tuple(v * scale for v in bootstrap_interval(batches))
+    return out
+
+
+def steps(motion: np.ndarray, layout: MotionLayout, stance: np.ndarray | None) -> dict[str, float]:
+    """The feet's steps a window, the share lasting the data's step, and the stance's lifts a
+    window (when the decoding steps by a stance)."""
+    found = [foot_steps(layout.joint_positions(x, list(FEET))) for x in motion]
+    lengths = np.asarray([end - start for clip in found for foot in clip for start, end in foot])
+    out = {"steps": len(lengths) / len(motion),
+           "data steps": float(np.mean(lengths == STANCE_SWING_FRAMES)) if len(lengths) else 0.0}
     if stance is not None:
-        lifts = np.diff(np.concatenate([np.zeros_like(stance[:, :1]), ~stance], axis=1).astype(int),
-                        axis=1) == 1
-        out["lifts"] = float(lifts.sum()) / len(stance)
+        lifted = np.concatenate([np.zeros_like(stance[:, :1]), ~stance], axis=1).astype(int)
+        out["lifts"] = float((np.diff(lifted, axis=1) == 1).sum()) / len(stance)
     return out
 
 
 def row(label: str, decoding: str, f: dict) -> str:
-    cells = [" / ".join("-" if np.isnan(f[f"{p} {kind}"]) else f"{f[f'{p} {kind}']:.0f}"
-                        for p in ("shell", *PARTS)) for kind in ("batch", "pooled")]
+    shown = {key: f"{f[key]:.0f}" if np.isfinite(f.get(key, np.nan)) else "-"
+             for key in (f"{p} {kind}" for p in ("shell", *PARTS) for kind in ("batch", "pooled"))}
+    if "shell interval" in f:
+        shown["shell batch"] += " ({:.0f}-{:.0f})".format(*f["shell interval"])
+    cells = [" / ".join(shown[f"{p} {kind}"] for p in ("shell", *PARTS))
+             for kind in ("batch", "pooled")]
     lifts = f"{f['lifts']:.1f}" if "lifts" in f else "-"
     return (f"| {label} | {decoding} | {cells[0]} | {cells[1]} | {f['steps']:.1f} | "
             f"{f['data steps']:.0%} | {lifts} |")
@@ -162,14 +181,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=EvalConfig().seed, help="sarah-eval's --seed")
     args = parser.parse_args(argv)
     tries = [[s.strip() for s in t.split(",") if s.strip()] for t in args.tries]
-    allowed = decoding_settings()
     for settings in tries:
-        wrong = [s for s in settings if s.partition("=")[0] not in allowed]
-        if wrong or not settings:
-            parser.error(f"--try {','.join(settings)!r}: only decoding settings "
-                         f"({', '.join(allowed)}) change without training")
         try:
-            RunConfig().with_overrides(settings)
+            if not settings:
+                raise ValueError("no setting given")
+            model_file.with_decoding(RunConfig(), settings)
         except ValueError as exc:
             parser.error(f"--try {','.join(settings)!r}: {exc}")
     if args.record is not None and args.shards is None:
@@ -202,18 +218,20 @@ def main(argv: list[str] | None = None) -> int:
     parts = shell_parts(ico, shell, layout.joint_names)
     print(f"\n{len(truth)} windows; FGD_acc ×10^5 (cm/s²)², shell / legs / feet; foot steps: "
           f"runs of frames a foot moves faster than the foot slide's speed\n")
-    print("| motion | decoding | FGD_acc per batch of 16 | FGD_acc pooled | foot steps a window | "
+    print("| motion | decoding | FGD_acc per batch of 16 (shell's 95 %) | FGD_acc pooled | foot steps a window | "
           f"lasting {STANCE_SWING_FRAMES} frames | stance lifts a window |\n|---|---|---|---|---|---|---|")
-    print(row("ground truth", "-", figures(truth, truth, layout, parts)))
+    print(row("ground truth", "-", steps(truth, layout, None)))
     from sarah_models.sampling.decoding import reads_stance
 
-    for label in ROWS:
-        frames, stance = recorded[f"{label}_frames"], recorded[f"{label}_stance"]
-        for settings in [[], *tries]:
-            motion = decode(models, frames, stance, settings, source)
-            print(row(label, ", ".join(settings) or "the model's", figures(
-                motion, truth, layout, parts, stance if reads_stance(models.vae) else None)),
-                flush=True)
+    real = shell_accelerations(truth, layout)
+    for settings in [[], *tries]:
+        tried = tried_models(models, source, settings)
+        for label in ROWS:
+            frames, stance = recorded[f"{label}_frames"], recorded[f"{label}_stance"]
+            motion = decode(tried, frames, stance)
+            figures = {**distances(shell_accelerations(motion, layout), real, parts),
+                       **steps(motion, layout, stance if reads_stance(tried.vae) else None)}
+            print(row(label, ", ".join(settings) or "the model's", figures), flush=True)
     return 0
 
 

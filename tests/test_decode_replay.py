@@ -39,11 +39,11 @@ def test_records_the_model_row_and_replays_other_decodings(tiny, tmp_path, capsy
         recorded = {k: data[k] for k in data.files}
     assert recorded["model_frames"].shape == recorded["gt"].shape == (3, WINDOW, recorded["gt"].shape[-1])
     # the model's own decoding of the recorded frames is sarah-eval's offline model row
-    models, source = load_run(tiny["run"], None, device="cpu")
+    models, _ = load_run(tiny["run"], None, device="cpu")
     dataset = WindowDataset.sliding(tiny["shards"], "test", extractor=models.features, window=WINDOW)
     windows = TestWindows(dataset, select_windows(len(dataset), 3))
     generate = window_generator(models, EvalConfig(protocol="offline", device="cpu"), None)
-    own = replay.decode(models, recorded["model_frames"], recorded["model_stance"], [], source)
+    own = replay.decode(models, recorded["model_frames"], recorded["model_stance"])
     with torch.inference_mode():
         for i in range(3):
             np.testing.assert_array_equal(own[i], generate(windows[i], i).motion)

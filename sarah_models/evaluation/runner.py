@@ -314,14 +314,13 @@ def _load_model(run: Path | None, config: EvalConfig, method: str = "model"):
     """The run's flow-stage models (a folder's model file first: ``load_run``); for "vae" or
     "decoded" alone, a folder's VAE checkpoint will do when it has neither."""
     from ..generation.run import GenerateError, load_run
-    from ..training.model_file import MODEL_FILE
+    from ..training.model_file import MODEL_FILE, flow_source
 
     if run is None:
         raise EvalError(f"--run is required to evaluate the {method} (or leave {method!r} out "
                         "of --methods)")
     checkpoint = None
-    if (method in ("vae", "decoded") and run.is_dir() and not (run / "flow.pt").is_file()
-            and not (run / MODEL_FILE).is_file()):
+    if method in ("vae", "decoded") and run.is_dir() and not flow_source(run).is_file():
         checkpoint = run / "vae.pt"
         if not checkpoint.is_file():
             raise EvalError(f"{run}: no {MODEL_FILE}, flow.pt or vae.pt (train the VAE stage "

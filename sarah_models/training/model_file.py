@@ -53,12 +53,7 @@ def write_model_file(source: str | Path, out: str | Path, decoding: Sequence[str
         data = with_decoder_of(data, decoder)
     config = data["config"]
     if decoding:
-        allowed = decoding_settings()
-        for text in decoding:
-            if text.partition("=")[0].strip() not in allowed:
-                raise ValueError(f"--set {text!r}: only decoding settings ({', '.join(allowed)}) "
-                                 f"change without training; train a stage to change the others")
-        config = RunConfig.from_dict(config).with_overrides(decoding).to_dict()
+        config = with_decoding(RunConfig.from_dict(config), decoding).to_dict()
     if shards is not None and "bone_length_mean" not in data["normalizer"]:
         data["normalizer"] = {**data["normalizer"], **skeleton_statistics(shards)}
     if config["vae"].get("rigid_bones") or config["vae"].get("foot_lock"):
@@ -74,6 +69,17 @@ def write_model_file(source: str | Path, out: str | Path, decoding: Sequence[str
     with atomic_path(out) as tmp:
         tmp.write_bytes(_sorted_metadata(save(tensors, metadata=metadata)))
     return out
+
+
+def with_decoding(config: RunConfig, decoding: Sequence[str]) -> RunConfig:
+    """``config`` with ``decoding`` ("vae.root_hold=0.15", ...) set; ValueError naming the first
+    setting that is not a decoding one (DECODING_FIELDS) or that the config refuses."""
+    allowed = decoding_settings()
+    for text in decoding:
+        if text.partition("=")[0].strip() not in allowed:
+            raise ValueError(f"--set {text!r}: only decoding settings ({', '.join(allowed)}) "
+                             f"change without training; train a stage to change the others")
+    return config.with_overrides(decoding)
 
 
 def vae_source(path: str | Path) -> Path:
