@@ -389,6 +389,13 @@ class FlowConfig:
     # latents change ~2x as much from one token to the next as the encoder's (docs/results.md,
     # twentieth run), and that jitter is what a position error barely sees.
     difference_weight: float = 0.0
+    # Not in the paper (0 = the paper): weight of a stance term on the flow's prediction of the
+    # clean latents, the binary cross-entropy of the VAE's stance head (``vae.stance_weight``)
+    # reading them against the data's stance, weighted by the flow time tau (near the noise the
+    # prediction cannot know it). The recipe's flow samples latents from which the head lifts a
+    # foot 8 times a window where the data's feet step 19 times, and two of its steps in three
+    # are the foot lock's drift steps (docs/results.md, seventy-fifth run).
+    stance_weight: float = 0.0
     # Not in the paper (False = the paper): the user's head velocity inside each block (the
     # differences of its s positions, in standardized units per second) beside the positions the
     # user_head encoder reads. It is a linear function of those positions, so it adds no
@@ -441,6 +448,8 @@ class FlowConfig:
                              "nothing to read without user_relative=True")
         if self.place_noise < 0:
             raise ValueError(f"FlowConfig.place_noise must be >= 0, got {self.place_noise}")
+        if not self.stance_weight >= 0:
+            raise ValueError(f"FlowConfig.stance_weight must be >= 0, got {self.stance_weight}")
         if self.difference_weight < 0:
             raise ValueError(f"FlowConfig.difference_weight must be >= 0, got "
                              f"{self.difference_weight}")

@@ -89,6 +89,49 @@ def test_the_stance_term_trains_the_head_and_reaches_the_encoder(prepared_shards
         dataclasses.replace(VAEConfig(), foot_lock=0.1, foot_lock_reads="stance")
 
 
+def test_the_flows_stance_term_reads_the_head_on_its_predicted_latents_weighted_by_tau():
+    """flow.stance_weight: the frozen stance head reads the flow's clean-latent prediction as the
+    decoder would (denormalized), against the data's stance, each sample's cross-entropy times
+    its flow time; its gradient trains the flow and leaves the VAE as it is."""
+    from torch.nn import functional as F
+
+    from sarah_models.training.objectives import FlowObjective
+
+    vae, flow, normalizer = random_models("tiny", 8, SHELL, 0, motion_std=0.02, init_std=0.05,
+                                          audio_mean=0.0, audio_std=1.0, latent_mean_std=0.1,
+                                          overrides=STANCE + ("flow.stance_weight=0.5",))
+    layout = MotionLayout(shell_points=SHELL)
+    frames, rng = 32, np.random.default_rng(0)
+    motion = normalizer.motion_mean.numpy() + rng.normal(0, 0.01, (3, frames, layout.width))
+    icosahedra, shell = layout.split(motion)
+    icosahedra[:, 8:20, JOINT["left_foot"], :, 0] += np.linspace(0, 0.4, 12)[None, :, None]
+    motion = np.concatenate([icosahedra.reshape(3, frames, -1), shell.reshape(3, frames, -1)], -1)
+    f32 = lambda a: torch.from_numpy(np.asarray(a, np.float32))  # noqa: E731
+    batch = {"motion": f32(motion), "user_head": f32(rng.normal(0, 1, (3, frames, 2))),
+             "agent_audio": f32(rng.normal(0, 1, (3, frames, 8))),
+             "user_audio": f32(rng.normal(0, 1, (3, frames, 8))),
+             "gaze": f32(rng.uniform(0, 1, (3, frames)))}
+    objective = FlowObjective(flow, vae, normalizer)
+    prepared = objective.prepare(batch)
+    stance = stance_of(batch["motion"], layout)
+    torch.testing.assert_close(prepared["stance"], stance)
+    assert 0 < stance.mean() < 1  # the left foot travels in frames 8-19
+    out = objective(prepared, torch.Generator().manual_seed(0))
+    logits = vae.stance(normalizer.denormalize("latent", out["z1_pred"]))
+    per_sample = F.binary_cross_entropy_with_logits(logits, stance, reduction="none").mean((1, 2))
+    torch.testing.assert_close(out["stance"], (out["tau"] * per_sample).mean())
+    torch.testing.assert_close(out["loss"], out["recon"] + 0.5 * out["stance"])
+    flow.zero_grad()
+    out["stance"].backward()
+    assert sum(p.grad.abs().sum() for p in flow.parameters() if p.grad is not None) > 0
+    assert all(p.grad is None for p in vae.parameters())
+    plain, _, _ = random_models("tiny", 8, SHELL, 0, overrides=("flow.stance_weight=0.5",))
+    with pytest.raises(ValueError, match="flow.stance_weight"):
+        FlowObjective(flow, plain, normalizer)
+    with pytest.raises(ValueError, match="stance_weight must be >= 0"):
+        dataclasses.replace(flow.config, stance_weight=-1.0)
+
+
 @pytest.fixture(scope="module")
 def gliding(prepared_shards):
     """A body standing as the fixture's first frame, gliding 0.5 m/s along x, feet dragged."""

@@ -290,6 +290,12 @@ class FlowObjective(nn.Module):
         super().__init__()
         self.flow, self.vae, self.normalizer, self.latent = flow, vae, normalizer, latent
         self.vae.requires_grad_(False).eval()
+        self.stance_layout = None
+        if flow.config.stance_weight > 0:
+            if vae.stance is None:
+                raise ValueError("flow.stance_weight reads the VAE's stance head, which only a "
+                                 "VAE trained with vae.stance_weight > 0 has")
+            self.stance_layout = term_layout(vae.motion_dim, "flow.stance_weight")
 
     @property
     def trainable(self) -> nn.Module:
@@ -317,6 +323,8 @@ class FlowObjective(nn.Module):
         device = self.normalizer.motion_mean.device
         inputs = self.normalizer.normalize_batch(batch, device)
         inputs["latent"] = self.normalizer.normalize("latent", self.latents(inputs["motion"], generator))
+        if self.stance_layout is not None:
+            inputs["stance"] = stance_of(batch["motion"].to(device).float(), self.stance_layout)
         if self.flow.config.user_relative:  # where the data's agent stands before each block
             motion, head = (batch[k].to(device=device, dtype=torch.float32) for k in ("motion", "user_head"))
             starts = block_starts(pelvis_floor(motion), self.flow.stride)
@@ -330,7 +338,15 @@ class FlowObjective(nn.Module):
     def forward(self, batch: Mapping[str, Tensor], generator: torch.Generator | None = None):
         """The loss of a raw batch, or of one ``prepare`` made already (it has ``"latent"``)."""
         inputs = batch if "latent" in batch else self.prepare(batch, generator)
-        return flow_matching_loss(self.flow, inputs["latent"], inputs, generator)
+        out = flow_matching_loss(self.flow, inputs["latent"], inputs, generator)
+        if self.stance_layout is not None:
+            # what the stance head reads from the predicted clean latents, as decoding reads them
+            logits = self.vae.stance(self.normalizer.denormalize("latent", out["z1_pred"].float()))
+            per_sample = F.binary_cross_entropy_with_logits(
+                logits, inputs["stance"], reduction="none").mean(dim=(1, 2))
+            out["stance"] = (out["tau"] * per_sample).mean()
+            out["loss"] = out["loss"] + self.flow.config.stance_weight * out["stance"]
+        return out
 
 
 def flow_matching_loss(flow: FlowModel, z: Tensor, cond: Mapping[str, Tensor],
@@ -352,4 +368,4 @@ def flow_matching_loss(flow: FlowModel, z: Tensor, cond: Mapping[str, Tensor],
     difference = error.diff(dim=1).square().mean() if z.shape[1] > 1 else error.new_zeros(())
     loss = recon + flow.config.difference_weight * difference
     return {"loss": loss, "recon": recon, "difference": difference, "z1_pred": z1_pred,
-            "drop_rate": drop.float().mean()}
+            "tau": tau, "drop_rate": drop.float().mean()}

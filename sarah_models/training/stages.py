@@ -171,7 +171,7 @@ FINE_TUNE_FIELDS = {
             "recon_units", "energy_weight", "energy_frames", "energy_per_point",
             *DECODING_FIELDS["vae"]),
     "flow": ("drop_prob", "gaze_drop_prob", "min_denominator", "difference_weight", "attention_window",
-             "streamed_context", "place_noise")}
+             "streamed_context", "place_noise", "stance_weight")}
 
 
 def _flow_run_config(config: RunConfig, stored_vae: Mapping[str, Any],
