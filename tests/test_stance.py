@@ -15,6 +15,7 @@ from sarah_models.config import StreamConfig, VAEConfig
 from sarah_models.nn.stance import RECEPTIVE_TOKENS, STANCE_SPEED, StanceHead, stance_of
 from sarah_models.sampling.foot_lock import (STANCE_LIFT, STANCE_REACH, STANCE_SWING_FRAMES,
                                              STEP_SHARE, FootLock)
+from sarah_models.sampling.decoding import stream_decoding
 from sarah_models.sampling.stream import StreamingGenerator, offline_with_latents
 from sarah_models.testing import random_models
 
@@ -185,20 +186,22 @@ def test_a_foot_steps_where_its_stance_lifts_along_the_datas_step(gliding):
         assert np.abs(alone - out).max() > 0.05
 
 
-@pytest.mark.parametrize("speed", [0.5, 1.2])
-def test_a_foot_whose_stance_stays_planted_steps_by_drift_along_the_datas_step(gliding, speed):
+@pytest.mark.parametrize("speed, reach", [(0.5, STANCE_REACH), (1.2, STANCE_REACH), (0.5, 0.3)])
+def test_a_foot_whose_stance_stays_planted_steps_by_drift_along_the_datas_step(gliding, speed,
+                                                                              reach):
     """The lock's targets for one foot gliding evenly under a stance that never lifts: planted
-    until the decoded foot is STANCE_REACH away, then the data's step (STANCE_SWING_FRAMES
-    frames, STEP_SHARE of the way, lifted) to where the decoded foot is when it lands, and
-    planted there for good, whatever the stance says; the arc (no stance) steps otherwise."""
+    until the decoded foot is ``reach`` away (vae.stance_reach, not the lock's radius), then the
+    data's step (STANCE_SWING_FRAMES frames, STEP_SHARE of the way, lifted) to where the decoded
+    foot is when it lands, and planted there for good, whatever the stance says; the arc (no
+    stance) steps otherwise."""
     layout, _, lengths = gliding
     feet = [np.array([speed / FPS * t, 0.03, 0.0]) for t in range(60)]
-    lock = FootLock(layout, lengths, radius=STANCE_REACH)
+    lock = FootLock(layout, lengths, radius=0.1, stance_reach=reach)
     targets = [lock._target(0, foot, True) for foot in feet]
     assert targets[0] is None  # planted where it stands
     x = np.array([feet[0][0]] + [target[0] for target in targets[1:]])
-    first = next(t for t, foot in enumerate(feet) if foot[0] - feet[0][0] > STANCE_REACH)
-    assert np.all(x[:first] == feet[0][0])  # held until the drift passes STANCE_REACH
+    first = next(t for t, foot in enumerate(feet) if foot[0] - feet[0][0] > reach)
+    assert np.all(x[:first] == feet[0][0])  # held until the drift passes the reach
     steps = 0
     start = first
     while start + STANCE_SWING_FRAMES <= len(feet):
@@ -208,15 +211,15 @@ def test_a_foot_whose_stance_stays_planted_steps_by_drift_along_the_datas_step(g
         heights = np.array([targets[t][1] - feet[t][1] for t in range(start, land + 1)])
         assert np.all(heights > 0) and heights.max() == pytest.approx(STANCE_LIFT)
         steps += 1
-        spot = feet[land][0]  # planted where it landed until the drift passes STANCE_REACH again
-        after = [t for t in range(land + 1, len(feet)) if feet[t][0] - spot > STANCE_REACH]
+        spot = feet[land][0]  # planted where it landed until the drift passes the reach again
+        after = [t for t in range(land + 1, len(feet)) if feet[t][0] - spot > reach]
         held = range(land + 1, after[0] if after else len(feet))
         assert all(x[t] == spot for t in held)
         if not after:
             break
         start = after[0]
     assert steps >= 2
-    arc = FootLock(layout, lengths, radius=STANCE_REACH, step="arc")
+    arc = FootLock(layout, lengths, radius=reach, step="arc")
     arc_targets = [arc._target(0, foot) for foot in feet]
     arc_x = [feet[0][0] if target is None else target[0] for target in arc_targets]
     assert not np.allclose(arc_x, x)
@@ -263,6 +266,12 @@ def test_a_stream_steps_by_its_stance_as_the_offline_solve_does():
     finally:
         vae.config = dataclasses.replace(vae.config, foot_lock_reads="stance")
     assert np.abs(drift - offline).max() > 1e-3
+    # the model's vae.stance_reach is the reach its lock steps by drift at
+    vae.config = dataclasses.replace(vae.config, stance_reach=0.35)
+    locks = [f for f in stream_decoding(vae, models[2]).filters if isinstance(f, FootLock)]
+    assert [lock.stance_reach for lock in locks] == [0.35]
+    with pytest.raises(ValueError, match="stance_reach must be > 0"):
+        dataclasses.replace(vae.config, stance_reach=0.0)
 
 
 def test_a_recipe_with_a_stance_head_trains_writes_its_model_file_and_generates(prepared_shards,

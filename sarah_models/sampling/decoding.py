@@ -103,5 +103,5 @@ def stream_decoding(vae, normalizer) -> StreamDecoding:
                 raise ValueError("vae.foot_lock_reads='stance' needs the VAE's stance head, and "
                                  "this VAE has none")
             filters.append(FootLock(layout, lengths, cfg.foot_lock, cfg.foot_swing_frames,
-                                    step=cfg.foot_step))
+                                    step=cfg.foot_step, stance_reach=cfg.stance_reach))
     return StreamDecoding(filters)

@@ -41,7 +41,7 @@ does that, causally, per foot:
   frame (``STEP_SHARE``), ``STANCE_LIFT`` above the decoded foot, to where the decoded foot will
   be when it lands, and is planted where it is when the stance lands (past the last frame it
   follows the decoded foot). A stance that stays planted while the decoded foot drifts
-  ``STANCE_REACH`` away (not ``radius``) still steps (``step``), and a data step then lands
+  ``stance_reach`` away (``vae.stance_reach``, not ``radius``) still steps (``step``), and a data step then lands
   after its ``STANCE_SWING_FRAMES`` frames whatever the stance says. With the data's own stance
   this took the benchmark VAE's reconstruction of the data from FGD_acc 624 to 278; a VAE of
   the same recipe with its own stance head reconstructs at 277 against 590 by drift, its legs'
@@ -92,13 +92,7 @@ STANCE_SWING_FRAMES = 5
 STEP_TIME = np.linspace(0.0, 1.0, STANCE_SWING_FRAMES + 1)
 STEP_SHARE = np.array([0.0, 0.02, 0.29, 0.72, 0.98, 1.0])
 STANCE_LIFT = 0.04
-# m: a foot whose stance stays planted while the decoded foot drifts this far from its spot steps
-# anyway (the flow's body can walk on where its stance stands). On the 314 tuning windows the
-# benchmark's model gave FGD_acc 532 at 0.2 m and 561 at 0.3 with arc steps; without them (the
-# 296 test windows) its FGD_local rose from 494 to 7,883, legs stretched to planted feet
-# (seventieth run). With the data's step profile, on 96 tuning windows: 442 at 0.12 m, 380 at
-# 0.2, 415 at 0.3 (seventy-first run).
-STANCE_REACH = 0.2
+STANCE_REACH = VAEConfig.stance_reach  # m a foot drifts from where its stance plants it, by default
 RELEASE = 0.02  # m above its planted height: the decoder is lifting the foot to step
 RELEASE_FADE = 6  # frames over which a released foot's planted offset fades out
 
@@ -113,9 +107,13 @@ class FootLock:
     the stream's frames in order. ``lengths`` are the skeleton's (one per ``layout.bones``)."""
 
     def __init__(self, layout: MotionLayout, lengths, radius: float,
-                 swing_frames: int = SWING_FRAMES, lift: float = LIFT, step: str = STEP) -> None:
+                 swing_frames: int = SWING_FRAMES, lift: float = LIFT, step: str = STEP,
+                 stance_reach: float = STANCE_REACH) -> None:
         if not radius > 0:
             raise ValueError(f"foot lock radius must be positive, got {radius}")
+        if not stance_reach > 0:
+            raise ValueError(f"foot lock stance reach must be positive, got {stance_reach}")
+        self.stance_reach = stance_reach
         if step not in FOOT_STEPS:
             raise ValueError(f"foot lock step must be one of {FOOT_STEPS}, got {step!r}")
         self.step = step
@@ -220,7 +218,7 @@ class FootLock:
             self._planted[side] = foot.copy()
             return None
         target = np.array([planted[0], foot[1], planted[2]])
-        reach = self.radius if stands is None else STANCE_REACH
+        reach = self.radius if stands is None else self.stance_reach
         drifted = np.hypot(*(foot - planted)[[0, 2]]) > reach
         if drifted and self.step == "data":
             return self._step_as_data(side, foot, previous, stands, by_stance=False)
