@@ -126,7 +126,7 @@ def test_the_flows_stance_term_reads_the_head_on_its_predicted_latents_weighted_
     out["stance"].backward()
     assert sum(p.grad.abs().sum() for p in flow.parameters() if p.grad is not None) > 0
     assert all(p.grad is None for p in vae.parameters())
-    plain, _, _ = random_models("tiny", 8, SHELL, 0, overrides=("flow.stance_weight=0.5",))
+    plain, _, _ = random_models("tiny", 8, SHELL, 0)
     with pytest.raises(ValueError, match="flow.stance_weight"):
         FlowObjective(flow, plain, normalizer)
     with pytest.raises(ValueError, match="stance_weight must be >= 0"):
@@ -307,3 +307,22 @@ def test_a_recipe_with_a_stance_head_trains_writes_its_model_file_and_generates(
                  "--set", "vae.foot_lock_reads=stance"]) == 2
     assert "vae.stance_weight" in capsys.readouterr().err
     assert not (tmp_path / "no").exists()
+
+
+def test_a_flow_stance_term_without_a_stance_head_stops_before_any_training(tmp_path, capsys):
+    """`sarah-train --stage all` with flow.stance_weight and no vae.stance_weight: one line
+    naming the setting, before the VAE stage trains (nothing written)."""
+    from sarah_cli.train import main
+    from sarah_models.config import RunConfig
+
+    with pytest.raises(ValueError, match="flow.stance_weight"):
+        RunConfig.preset("tiny").with_overrides(("flow.stance_weight=1",))
+    out = tmp_path / "run"
+    assert main(["--stage", "all", "--config", "tiny", "--shards", str(tmp_path / "shards"),
+                 "--out", str(out), "--device", "cpu", "--no-progress",
+                 "--set", "flow.stance_weight=1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "flow.stance_weight" in err[0]
+    assert not out.exists()
+    assert RunConfig.preset("tiny").with_overrides(
+        ("vae.stance_weight=0.2", "flow.stance_weight=1")).flow.stance_weight == 1

@@ -41,8 +41,8 @@ does that, causally, per foot:
   frame (``STEP_SHARE``), ``STANCE_LIFT`` above the decoded foot, to where the decoded foot will
   be when it lands, and is planted where it is when the stance lands (past the last frame it
   follows the decoded foot). A stance that stays planted while the decoded foot drifts
-  ``stance_reach`` away (``vae.stance_reach``, not ``radius``) still steps (``step``), and a data step then lands
-  after its ``STANCE_SWING_FRAMES`` frames whatever the stance says. With the data's own stance
+  ``stance_reach`` away (``vae.stance_reach``, not ``radius``) still steps (``step``), and a data
+  step then lands after its ``STANCE_SWING_FRAMES`` frames whatever the stance says. With the data's own stance
   this took the benchmark VAE's reconstruction of the data from FGD_acc 624 to 278; a VAE of
   the same recipe with its own stance head reconstructs at 277 against 590 by drift, its legs'
   acceleration energy 0.90 of the data's against 0.60 (docs/results.md, seventieth run). Its
