@@ -88,6 +88,9 @@ RECON_UNITS = ("standardized", "metres")
 MIN_SWING_FRAMES = 4  # a foot-lock step lifts off, travels and is set down (``sampling.foot_lock``)
 SEAM_MODES = ("velocity", "position")  # VAEConfig.seam_mode: what a seam's spring continues
 HOLD_READS = ("pelvis", "feet")  # VAEConfig.root_hold_reads: where the hold sees the body go
+# What a setting that reads the VAE's stance head says when the VAE has none
+NEEDS_STANCE_HEAD = ("reads the VAE's stance head, which only a VAE trained with "
+                     "vae.stance_weight > 0 has")
 LOCK_READS = ("drift", "stance")  # VAEConfig.foot_lock_reads: what makes a locked foot step
 FOOT_STEPS = ("data", "arc")  # VAEConfig.foot_step: how a locked foot steps where it drifts
 
@@ -313,8 +316,7 @@ class VAEConfig:
         if not self.stance_reach > 0:
             raise ValueError(f"VAEConfig.stance_reach must be > 0, got {self.stance_reach}")
         if self.foot_lock_reads == "stance" and not self.stance_weight > 0:
-            raise ValueError("VAEConfig.foot_lock_reads='stance' reads the stance head, which "
-                             "only a VAE trained with vae.stance_weight > 0 has")
+            raise ValueError(f"VAEConfig.foot_lock_reads='stance' {NEEDS_STANCE_HEAD}")
         if not self.stance_weight >= 0:
             raise ValueError(f"VAEConfig.stance_weight must be >= 0, got {self.stance_weight}")
         if self.seam_mode not in SEAM_MODES:
@@ -595,8 +597,7 @@ class RunConfig:
     def __post_init__(self) -> None:
         # Checked here, before a run trains its VAE: the flow's term reads the VAE's head
         if self.flow.stance_weight > 0 and not self.vae.stance_weight > 0:
-            raise ValueError("flow.stance_weight reads the VAE's stance head, which only a VAE "
-                             "trained with vae.stance_weight > 0 has")
+            raise ValueError(f"flow.stance_weight {NEEDS_STANCE_HEAD}")
 
     @classmethod
     def preset(cls, name: str) -> "RunConfig":

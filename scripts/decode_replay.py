@@ -37,6 +37,7 @@ from sarah_models.evaluation.metrics.clips import accelerations
 from sarah_models.evaluation.metrics.frechet import frechet_distance
 from sarah_models.evaluation.metrics.table import bootstrap_interval
 from sarah_models.evaluation.runner import EvalConfig
+from sarah_models.sampling.decoding import reads_stance, stream_decoding
 # how long the fixtures' feet travel in a step, which the foot lock's data steps copy
 from sarah_models.sampling.foot_lock import STANCE_SWING_FRAMES
 
@@ -56,7 +57,7 @@ def record(models, shards: Path, split: str, windows: int, sampling: EvalConfig,
     from sarah_data.dataset import WindowDataset
     from sarah_models.evaluation.runner import window_generator, window_seed
     from sarah_models.evaluation.windows import TestWindows, select_windows
-    from sarah_models.sampling.decoding import decoder_frames, stream_decoding
+    from sarah_models.sampling.decoding import decoder_frames
     from sarah_models.sampling.stream import window_history
 
     if models.flow.config.user_relative:
@@ -103,8 +104,6 @@ def tried_models(models, source: Path, settings: list[str]):
 
 def decode(models, frames: np.ndarray, stance: np.ndarray) -> np.ndarray:
     """Every window's recorded frames through a new chain of ``models``' decoding."""
-    from sarah_models.sampling.decoding import reads_stance, stream_decoding
-
     steps = reads_stance(models.vae)
     return np.stack([stream_decoding(models.vae, models.normalizer)(
         f.astype(np.float64), s if steps else None).astype(np.float32)
@@ -221,8 +220,6 @@ def main(argv: list[str] | None = None) -> int:
     print("| motion | decoding | FGD_acc per batch of 16 (shell's 95 %) | FGD_acc pooled | foot steps a window | "
           f"lasting {STANCE_SWING_FRAMES} frames | stance lifts a window |\n|---|---|---|---|---|---|---|")
     print(row("ground truth", "-", steps(truth, layout, None)))
-    from sarah_models.sampling.decoding import reads_stance
-
     real = shell_accelerations(truth, layout)
     for settings in [[], *tries]:
         tried = tried_models(models, source, settings)

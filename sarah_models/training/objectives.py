@@ -25,7 +25,7 @@ from sarah_data.gaze import FACING_AXIS
 from sarah_data.skeleton import (FEET, HEAD, ICOSAHEDRON_POINTS, JOINT_GROUPS, ROOT, MotionLayout,
                                  shell_parts)
 
-from ..config import STREAMED_TOKENS
+from ..config import NEEDS_STANCE_HEAD, STREAMED_TOKENS
 from ..nn.flow import FlowModel, build_block_mask
 from ..nn.normalizer import Normalizer
 from ..nn.stance import stance_of
@@ -293,8 +293,7 @@ class FlowObjective(nn.Module):
         self.stance_layout = None
         if flow.config.stance_weight > 0:
             if vae.stance is None:
-                raise ValueError("flow.stance_weight reads the VAE's stance head, which only a "
-                                 "VAE trained with vae.stance_weight > 0 has")
+                raise ValueError(f"flow.stance_weight {NEEDS_STANCE_HEAD}")
             self.stance_layout = term_layout(vae.motion_dim, "flow.stance_weight")
 
     @property

@@ -177,7 +177,10 @@ FINE_TUNE_FIELDS = {
 def _flow_run_config(config: RunConfig, stored_vae: Mapping[str, Any],
                      vae_settings: Collection[str], path: Path) -> RunConfig:
     """The flow stage's config: ``config`` with the VAE of ``path`` (see ``train``)."""
-    stored = RunConfig.from_dict({**config.to_dict(), "vae": stored_vae})
+    try:
+        stored = RunConfig.from_dict({**config.to_dict(), "vae": stored_vae})
+    except ValueError as error:  # a flow setting this VAE cannot serve (flow.stance_weight)
+        raise ValueError(f"{path}: the flow stage trains on this VAE: {error}") from None
     decoding = set(DECODING_FIELDS["vae"])
     differ = {name: (getattr(config.vae, name), getattr(stored.vae, name))
               for name in sorted(vae_settings)
