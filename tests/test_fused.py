@@ -17,11 +17,14 @@ from pathlib import Path
 
 import pytest
 import torch
+import torch.nn.functional as F
 from hypothesis import given, settings, strategies as st
 
 from sarah_models.accel import linears as linears_module
 from sarah_models.accel import optimize_for_inference
-from sarah_models.accel.fused import FusedAdaLNZeroBlock, FusedAdaLNZeroOutput, FusedAttention
+from sarah_models.accel.fused import (SIGMOID_FORM_MIN_WIDTH, FusedAdaLNZeroBlock,
+                                      FusedAdaLNZeroOutput, FusedAttention, gelu_tanh,
+                                      mlp_function)
 from sarah_models.accel.linears import (ByRowsLinear, PackedLinear, packed_linears_available,
                                         replace_module)
 from sarah_models.accel.memo import RopeTable
@@ -29,7 +32,7 @@ from sarah_models.accel.optimize import fuse_flow, table_decoder_rope
 from sarah_models.accel.traced import TracedAdaLNZeroBlock
 from sarah_models.config import StreamConfig
 from sarah_models.nn.flow import FlowModel
-from sarah_models.nn.layers import AdaLNZeroBlock, RopeAngles
+from sarah_models.nn.layers import MLP, AdaLNZeroBlock, RopeAngles
 from sarah_models.nn.vae import CausalVAE
 from sarah_models.sampling.stream import StreamingGenerator, generate_offline, step_together
 from sarah_models.testing import random_models, stream_deviation, stream_inputs
@@ -50,6 +53,23 @@ def fused_copy(flow: FlowModel) -> FlowModel:
     fused = copy.deepcopy(flow)
     fuse_flow(fused)
     return fused
+
+
+@settings(max_examples=25, deadline=None)
+@given(rows=st.integers(1, 12), scale=st.sampled_from([0.1, 1.0, 4.0, 30.0]),
+       seed=st.integers(0, 2**16))
+def test_the_sigmoid_form_of_gelu_is_torchs_tanh_gelu(rows, scale, seed):
+    """Small and saturating inputs, the input left untouched, and a wide MLP through it."""
+    x = torch.randn(rows, 64, generator=torch.Generator().manual_seed(seed)) * scale
+    x[0, :3] = torch.tensor([0.0, -50.0, 50.0]) * scale
+    before = x.clone()
+    torch.testing.assert_close(gelu_tanh(x), F.gelu(x, approximate="tanh"), rtol=1e-5, atol=1e-6)
+    assert torch.equal(x, before)
+    mlp = MLP(8, SIGMOID_FORM_MIN_WIDTH // 8).eval()
+    assert mlp[0].out_features == SIGMOID_FORM_MIN_WIDTH
+    h = x[:, :8]
+    with torch.inference_mode():
+        torch.testing.assert_close(mlp_function(mlp)(h), mlp(h), rtol=1e-5, atol=1e-6)
 
 
 @settings(max_examples=30, deadline=None)
