@@ -282,6 +282,11 @@ class VAEConfig:
     # pelvis goes; "feet": only how far the whole body glides, the standing foot's own moves; the
     # body's moves over its standing foot pass as decoded, so real walking is not held back.
     root_hold_reads: str = "pelvis"
+    # Not in the paper (0 = off): the share of the change in the body's bearing to its user that
+    # the hold turns the held body by, so that it faces its user as the decoded body, where it
+    # walked, does (``sampling.root_hold``). A body held in place and never turned faces its user
+    # more than the data's people do (seventy-sixth run: head angle +0.11 over the data's).
+    root_hold_turn: float = 0.0
     # Not in the paper (0 = off): a causal second-order low-pass of this cutoff (Hz) on the arms'
     # and hands' motion relative to the pelvis (``sampling.limb_lowpass``): the decoder's arms
     # jitter above 6 Hz, where the data's arms have a tenth of their acceleration power, and the
@@ -304,6 +309,12 @@ class VAEConfig:
         if not 0 <= self.limb_lowpass < FPS / 2:
             raise ValueError(f"VAEConfig.limb_lowpass (Hz) must be 0 (off) or below the Nyquist "
                              f"frequency {FPS / 2:g}, got {self.limb_lowpass}")
+        if not 0 <= self.root_hold_turn <= 1:
+            raise ValueError(f"VAEConfig.root_hold_turn must be in [0, 1] (a share of the bearing's "
+                             f"change), got {self.root_hold_turn}")
+        if self.root_hold_turn and not self.root_hold:
+            raise ValueError("VAEConfig.root_hold_turn turns the held body, and vae.root_hold is 0 "
+                             "(off): set vae.root_hold too")
         if self.root_hold_reads not in HOLD_READS:
             raise ValueError(f"VAEConfig.root_hold_reads must be one of {HOLD_READS}, got "
                              f"{self.root_hold_reads!r}")
@@ -492,7 +503,7 @@ class FlowConfig:
 DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "seam_mode", "rigid_bones",
                            "foot_lock", "foot_swing_frames", "foot_lock_reads", "stance_reach",
                            "foot_step",
-                           "root_hold", "root_hold_reads", "limb_lowpass")}
+                           "root_hold", "root_hold_reads", "root_hold_turn", "limb_lowpass")}
 
 
 def decoding_settings() -> list[str]:

@@ -71,14 +71,16 @@ def record(models, shards: Path, split: str, windows: int, sampling: EvalConfig,
         sampling = replace(sampling, history_tokens=window_history(models.flow))
     generate = window_generator(models, replace(sampling, protocol="offline"), None)
     vae, nz = models.vae, models.normalizer
-    out: dict[str, list] = {"gt": [], **{f"{r}_{k}": [] for r in ROWS for k in ("frames", "stance")}}
+    out: dict[str, list] = {"gt": [], "user": [],
+                            **{f"{r}_{k}": [] for r in ROWS for k in ("frames", "stance")}}
     with torch.inference_mode():
         for i in range(len(chosen)):
             item = chosen[i]
             result = generate(item, i)
             tokens = nz.denormalize("latent", torch.as_tensor(result.latents))[None]
             frames, stance = decoder_frames(vae, nz, tokens, window_seed(sampling.seed, i))
-            if not np.array_equal(stream_decoding(vae, nz)(frames, stance).astype(np.float32),
+            user = item["user_head"].double().numpy()  # the window frame, as the chain's
+            if not np.array_equal(stream_decoding(vae, nz)(frames, stance, user).astype(np.float32),
                                   result.motion):
                 sys.exit(f"decode_replay: window {i}: the chain does not give the model row back "
                          f"from its recorded frames")
@@ -89,6 +91,7 @@ def record(models, shards: Path, split: str, windows: int, sampling: EvalConfig,
                 out[f"{row}_stance"].append(np.ones(f.shape[:1] + (len(FEET),), bool)
                                             if s is None else s)
             out["gt"].append(item["motion"].numpy())
+            out["user"].append(user)
     return {key: np.stack(value) for key, value in out.items()}
 
 
@@ -102,12 +105,17 @@ def tried_models(models, source: Path, settings: list[str]):
         return model_file.load_model_file(path, device="cpu")
 
 
-def decode(models, frames: np.ndarray, stance: np.ndarray) -> np.ndarray:
-    """Every window's recorded frames through a new chain of ``models``' decoding."""
+def decode(models, frames: np.ndarray, stance: np.ndarray, users: np.ndarray | None) -> np.ndarray:
+    """Every window's recorded frames through a new chain of ``models``' decoding; ``users``
+    (windows, T, 2) the user's floor paths, which a root hold that turns reads (recordings
+    before the seventy-seventh run have none: SystemExit for such a chain)."""
     steps = reads_stance(models.vae)
+    if users is None and stream_decoding(models.vae, models.normalizer).reads_user:
+        sys.exit("decode_replay: this decoding turns the held body toward the user "
+                 "(vae.root_hold_turn) and the recording has no user paths: record it again")
     return np.stack([stream_decoding(models.vae, models.normalizer)(
-        f.astype(np.float64), s if steps else None).astype(np.float32)
-        for f, s in zip(frames, stance)])
+        f.astype(np.float64), s if steps else None, None if users is None else u).astype(np.float32)
+        for f, s, u in zip(frames, stance, users if users is not None else [None] * len(frames))])
 
 
 def shell_accelerations(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
@@ -225,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
         tried = tried_models(models, source, settings)
         for label in ROWS:
             frames, stance = recorded[f"{label}_frames"], recorded[f"{label}_stance"]
-            motion = decode(tried, frames, stance)
+            motion = decode(tried, frames, stance, recorded.get("user"))
             figures = {**distances(shell_accelerations(motion, layout), real, parts),
                        **steps(motion, layout, stance if reads_stance(tried.vae) else None)}
             print(row(label, ", ".join(settings) or "the model's", figures), flush=True)

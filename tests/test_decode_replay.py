@@ -43,7 +43,8 @@ def test_records_the_model_row_and_replays_other_decodings(tiny, tmp_path, capsy
     dataset = WindowDataset.sliding(tiny["shards"], "test", extractor=models.features, window=WINDOW)
     windows = TestWindows(dataset, select_windows(len(dataset), 3))
     generate = window_generator(models, EvalConfig(protocol="offline", device="cpu"), None)
-    own = replay.decode(models, recorded["model_frames"], recorded["model_stance"])
+    assert recorded["user"].shape == (3, WINDOW, 2)
+    own = replay.decode(models, recorded["model_frames"], recorded["model_stance"], recorded["user"])
     with torch.inference_mode():
         for i in range(3):
             np.testing.assert_array_equal(own[i], generate(windows[i], i).motion)
@@ -52,6 +53,16 @@ def test_records_the_model_row_and_replays_other_decodings(tiny, tmp_path, capsy
                         "vae.boundary_inertia=0.8"]) == 0
     table = lambda text: text[text.index("| motion |"):]
     assert table(capsys.readouterr().out) == table(printed)
+    # a hold that turns toward the user replays the recorded users' paths; a recording without
+    # them (before the seventy-seventh run) is refused for it, by name
+    turning = "vae.root_hold=0.05,vae.root_hold_turn=1"
+    assert replay.main(["--run", str(tiny["run"]), "--replay", str(out), "--try", turning]) == 0
+    assert f"| model | {turning.replace(',', ', ')} |" in capsys.readouterr().out
+    old = tmp_path / "old.npz"
+    np.savez(old, **{k: v for k, v in recorded.items() if k != "user"})
+    with pytest.raises(SystemExit) as stop:
+        replay.main(["--run", str(tiny["run"]), "--replay", str(old), "--try", turning])
+    assert "no user paths" in str(stop.value.code)
 
 
 @pytest.mark.parametrize("argv, words", [

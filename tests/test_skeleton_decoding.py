@@ -504,3 +504,68 @@ def test_a_hold_reading_the_feet_holds_a_gliding_body_and_lets_a_stepping_one_wa
     np.testing.assert_array_equal(chunks, held)
     with pytest.raises(ValueError, match="reads"):
         RootHold(layout, radius=0.2, reads="hands")
+
+
+def test_a_held_body_turns_to_face_its_user_as_the_decoded_body_does(windows):
+    """Held back from where the decoder walked it, the body faces its user from another place;
+    with ``turn`` it turns about its pelvis by the change in bearing, at a bounded rate, causal
+    as the hold is (sampling.root_hold)."""
+    from sarah_data import icosahedron
+    from sarah_data.constants import FPS
+    from sarah_data.skeleton import ROOT
+    from sarah_models.evaluation.metrics.head_angle import head_angle
+    from sarah_models.sampling.root_hold import TURN_RATE, RootHold
+
+    layout = MotionLayout.from_width(windows.motion_dim)
+    body = standing(windows[0], layout)
+    t = np.arange(len(body))
+    floor = lambda m: layout.joint_positions(m, [ROOT])[:, 0, [0, 2]]  # noqa: E731
+    head = JOINT["head"]
+
+    def gaze(motion, user):  # the head's gaze score toward the user, frame by frame
+        positions, rotations = icosahedron.decode(layout.split(motion)[0])
+        return np.array([head_angle(positions[i:i + 1, head], rotations[i:i + 1, head], user[i:i + 1])
+                         for i in range(len(motion))])
+
+    # decoded walking sideways at 0.75 m/s away from a user 2 m off to its side, held with a 0.5 m
+    # radius
+    walk = np.stack([np.minimum(t, 40) * 0.025, np.zeros(len(t))], axis=-1)
+    walking = whole_body_moved(body, walk)
+    user = np.tile(floor(body)[:1] + [-1.5, 1.3], (len(t), 1))
+    held = RootHold(layout, radius=0.5)(walking)
+    out = RootHold(layout, radius=0.5, turn=1.0)(walking, None, user)
+    np.testing.assert_allclose(floor(out), floor(held), atol=1e-9)  # it stands where it is held
+    np.testing.assert_allclose(out[:, 1::3], walking[:, 1::3])  # every height as decoded
+    settled = slice(-8, None)
+    assert np.abs(gaze(held, user)[settled] - gaze(walking, user)[settled]).max() > 0.02
+    np.testing.assert_allclose(gaze(out, user)[settled], gaze(walking, user)[settled], atol=0.002)
+    # half the turn: half way
+    half = RootHold(layout, radius=0.5, turn=0.5)(walking, None, user)
+    assert (np.abs(gaze(half, user) - gaze(walking, user))[settled]
+            < np.abs(gaze(held, user) - gaze(walking, user))[settled]).all()
+    # a user who walks right past it: the bearing swings by half a turn, the body turns no faster
+    # than TURN_RATE
+    passing = np.stack([np.linspace(-3.0, 3.0, len(t)), np.full(len(t), 0.3)], axis=-1)
+    out = RootHold(layout, radius=0.5, turn=1.0)(walking, None, passing)
+    point = layout.joint_positions(out, ["left_wrist"])[:, 0, [0, 2]] - floor(out)
+    yaw = np.unwrap(np.arctan2(point[:, 1], point[:, 0]))
+    assert np.abs(np.diff(yaw)).max() <= TURN_RATE / FPS + 1e-9
+    # causal: a stream fed in chunks gets the frames it gets at once
+    hold = RootHold(layout, radius=0.5, turn=1.0)
+    chunks = np.concatenate([hold(walking[i:i + 4], None, passing[i:i + 4])
+                             for i in range(0, len(t), 4)])
+    np.testing.assert_array_equal(chunks, out)
+    with pytest.raises(ValueError, match="user's floor path"):
+        RootHold(layout, radius=0.5, turn=1.0)(walking)
+    with pytest.raises(ValueError, match="turn"):
+        RootHold(layout, radius=0.5, turn=1.5)
+
+
+def test_a_turn_without_a_hold_or_past_a_whole_one_is_refused():
+    from sarah_models.config import VAEConfig
+
+    with pytest.raises(ValueError, match="vae.root_hold is 0"):
+        VAEConfig(root_hold_turn=0.5)
+    with pytest.raises(ValueError, match=r"root_hold_turn must be in \[0, 1\]"):
+        VAEConfig(root_hold=0.5, root_hold_turn=1.5)
+    assert VAEConfig(root_hold=0.5, root_hold_turn=1.0).root_hold_turn == 1.0

@@ -606,3 +606,30 @@ def test_a_stream_carries_the_users_head_travel_as_offline_does():
                                offline_with_latents(*travel, *inputs, config)[1], atol=1e-5, rtol=0)
     assert walk_reaches_the_last_token(travel) > 1e-2
     assert walk_reaches_the_last_token(plain) < 1e-4
+
+
+def test_a_turning_hold_reads_the_user_in_the_generation_frame_streamed_and_offline():
+    """vae.root_hold_turn turns the held body by its bearing to the user, which the decoding
+    reads in the generation frame: a stream is the offline solve with it, and the same motion
+    put anywhere in the world (an anchor) comes out the same, moved with it."""
+    from sarah_data.frames import WindowTransform
+
+    _, _, vae, flow, normalizer = tiny_models()
+    models = (vae, flow, normalizer)
+    inputs = make_inputs(4 * 12)
+    config = StreamConfig(imputation="trajectory", noise_scale=0.6)
+    vae.config = dataclasses.replace(vae.config, root_hold=0.005)
+    held = generate_offline(*models, *inputs, config)
+    vae.config = dataclasses.replace(vae.config, root_hold_turn=1.0)
+    assert stream_decoding(vae, normalizer).reads_user
+    turned = generate_offline(*models, *inputs, config)
+    assert np.abs(turned - held).max() > 1e-4  # the turn reached the decoding
+    anchor = WindowTransform(0.7, 1.0, -2.0)  # world -> generation frame
+    head = anchor.invert_floor(inputs[0].astype(np.float64)).astype(np.float32)
+    moved = (head, *inputs[1:])
+    gen = StreamingGenerator(*models, config, anchor)
+    streamed = np.concatenate([gen.step(*(x[i:i + S] for x in moved)) for i in range(0, len(head), S)])
+    offline = generate_offline(*models, *moved, config, anchor)
+    np.testing.assert_allclose(streamed, offline, atol=1e-5)
+    back = anchor.apply_points(offline.reshape(len(offline), -1, 3).astype(np.float64))
+    np.testing.assert_allclose(back.reshape(turned.shape), turned, atol=1e-4)

@@ -282,6 +282,12 @@ def _encoder_latents(models):
     return lambda item: models.normalizer.normalize("latent", means(item))[0].float().cpu().numpy()
 
 
+def _user_floor(item: dict, decoding) -> np.ndarray | None:
+    """A window's user floor path (T, 2) in the frame its motion is in (the window frame), where
+    ``decoding``'s root hold turns the body by it (``vae.root_hold_turn``); else None."""
+    return item["user_head"].double().cpu().numpy() if decoding.reads_user else None
+
+
 def _vae_producer(models):
     """The run's VAE reconstructing the ground truth (encoder mean, then decoder, decoded the way
     the generators decode: ``sampling.decoding``): the best any flow sample can decode to,
@@ -293,7 +299,8 @@ def _vae_producer(models):
     def produce(item: dict, index: int) -> np.ndarray:
         # a stochastic decoder (vae.detail_dim) draws its detail as a stream seeded by the window does
         frames, stance = decoder_frames(vae, nz, means(item), index)
-        return stream_decoding(vae, nz)(frames, stance).astype(np.float32)
+        decoding = stream_decoding(vae, nz)
+        return decoding(frames, stance, _user_floor(item, decoding)).astype(np.float32)
 
     return produce
 
@@ -305,7 +312,8 @@ def _decoded_producer(models):
 
     def produce(item: dict, index: int) -> np.ndarray:
         motion = item["motion"].double().cpu().numpy()
-        return stream_decoding(models.vae, models.normalizer)(motion).astype(np.float32)
+        decoding = stream_decoding(models.vae, models.normalizer)
+        return decoding(motion, None, _user_floor(item, decoding)).astype(np.float32)
 
     return produce
 

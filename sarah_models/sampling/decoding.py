@@ -36,10 +36,18 @@ class StreamDecoding:
         for f in self.filters:
             f.reset()
 
-    def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None) -> np.ndarray:
-        """``stance`` (n, feet) bool, the frames' decoded stance: for the foot lock."""
+    @property
+    def reads_user(self) -> bool:
+        """Whether a filter reads the user's floor path (``RootHold`` that turns)."""
+        return any(getattr(f, "reads_user", False) for f in self.filters)
+
+    def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None,
+                 user: np.ndarray | None = None) -> np.ndarray:
+        """``stance`` (n, feet) bool, the frames' decoded stance: for the foot lock; ``user``
+        (n, 2), the user's floor-projected head in the motion's frame: for a root hold that
+        turns."""
         for f in self.filters:
-            motion = f(motion, stance)
+            motion = f(motion, stance, user) if getattr(f, "reads_user", False) else f(motion, stance)
         return motion
 
 
@@ -93,7 +101,8 @@ def stream_decoding(vae, normalizer) -> StreamDecoding:
     if cfg.limb_lowpass:
         filters.append(LimbLowpass(layout, cfg.limb_lowpass))
     if cfg.root_hold:
-        filters.append(RootHold(layout, cfg.root_hold, reads=cfg.root_hold_reads))
+        filters.append(RootHold(layout, cfg.root_hold, reads=cfg.root_hold_reads,
+                                turn=cfg.root_hold_turn))
     if cfg.rigid_bones or cfg.foot_lock:
         lengths = skeleton_lengths(normalizer)
         if cfg.rigid_bones:

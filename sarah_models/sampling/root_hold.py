@@ -30,6 +30,17 @@ one early in its swing), else the one that moved less; the hold holds the sum of
 moves, and the body's moves over its standing foot pass as decoded. Real motion, whose standing
 feet do not move, passes unchanged.
 
+What the hold turns (``turn``, ``vae.root_hold_turn``). Holding the body back moves it, and
+moving it changes its bearing to the user: the decoded body walked somewhere and faces its user
+from there, and the held one, kept where it stood with the decoded orientation, faces its user
+more than the data's people do (head angle +0.11 over the data's on the fixture benchmark's test
+windows, look-away 0.04 against 0.22; docs/results.md, seventy-sixth run). With ``turn`` the
+held body turns about its pelvis by that share of the change in bearing, from where the decoded
+pelvis is to where the held one is, so that it faces its user as the decoded body does. The turn
+follows the bearing at ``TURN_FOLLOW`` per frame, never faster than ``TURN_RATE``: a user who
+walks past the body swings its bearing by up to half a turn in a few frames. It reads the
+user's floor-projected head in the frame the motion is in, frame by frame (``user``).
+
 The held position starts at the origin. Decoding runs in the generation frame, which puts the
 agent's pelvis at the origin at the stream's first frame (``sarah_data.frames``, paper 3.1): where
 the body starts is known, not generated. The decoder alone starts it 15 cm away on average
@@ -53,6 +64,22 @@ FOLLOW = 0.2  # of the distance beyond the radius, per frame: a 1 / 0.2 = 5-fram
 # (offline), and no step the data takes keeps feet under a body that fast (docs/results.md,
 # twenty-sixth run).
 MAX_SPEED = 2.0
+# The turn's lag and speed limit, chosen on the fixture benchmark's tuning windows (followed
+# at once and unlimited, the turn swung bodies whose user came near: FGD_acc 421 against 334 so;
+# docs/results.md, seventy-seventh run).
+TURN_FOLLOW = 0.2  # of the remaining angle, per frame
+TURN_RATE = 1.0  # rad/s
+
+
+def bearing(target: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """The floor angle (rad) of ``target - origin``, both (..., 2) as (x, z)."""
+    d = target - origin
+    return np.arctan2(d[..., 1], d[..., 0])
+
+
+def wrapped(angle):
+    """An angle in [-pi, pi)."""
+    return (angle + np.pi) % (2 * np.pi) - np.pi
 
 
 class RootHold:
@@ -60,7 +87,7 @@ class RootHold:
     frames in order."""
 
     def __init__(self, layout: MotionLayout, radius: float, follow: float = FOLLOW,
-                 max_speed: float = MAX_SPEED, reads: str = "pelvis") -> None:
+                 max_speed: float = MAX_SPEED, reads: str = "pelvis", turn: float = 0.0) -> None:
         if not radius > 0:
             raise ValueError(f"root hold radius must be positive, got {radius}")
         if not 0 < follow <= 1:
@@ -71,7 +98,10 @@ class RootHold:
             raise ValueError(f"root hold reads one of {HOLD_READS}, got {reads!r}")
         if reads == "feet" and not all(name in layout.joint_names for name in FEET):
             raise ValueError(f"root hold: the motion's layout has no {' and '.join(FEET)}")
+        if not 0 <= turn <= 1:
+            raise ValueError(f"root hold turn must be in [0, 1], got {turn}")
         self.layout, self.radius, self.follow, self.reads = layout, radius, follow, reads
+        self.turn = turn
         self.max_move = max_speed / FPS
         self.reset()
 
@@ -79,12 +109,28 @@ class RootHold:
         self._held = np.zeros(2)  # the body's pelvis on the floor (x, z): the frame's origin
         self._glide: np.ndarray | None = None  # "feet": the pelvis's start plus the feet's glide
         self._feet: np.ndarray | None = None  # "feet": the previous frame's decoded feet (x, z)
+        self._angle = 0.0  # the held body's turn (rad, about y), with ``turn``
 
-    def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None) -> np.ndarray:
+    @property
+    def reads_user(self) -> bool:
+        """Whether each call needs the user's floor path (``turn``)."""
+        return self.turn > 0
+
+    def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None,
+                 user: np.ndarray | None = None) -> np.ndarray:
+        """``user`` (n, 2): the user's floor-projected head (x, z) at these frames, in the
+        motion's frame; needed with ``turn``."""
         x = np.asarray(motion, dtype=np.float64)
+        if self.turn and (user is None or np.shape(user) != (len(x), 2)):
+            raise ValueError(f"a root hold that turns (vae.root_hold_turn) reads the user's floor "
+                             f"path at every frame: ({len(x)}, 2) wanted, got "
+                             f"{None if user is None else np.shape(user)}")
         joints = self.layout.joint_positions(x, [ROOT, *FEET] if self.reads == "feet" else [ROOT])
-        path = joints[:, 0, [0, 2]] if self.reads == "pelvis" else self._glide_path(joints)
+        pelvis = joints[:, 0, [0, 2]]
+        path = pelvis if self.reads == "pelvis" else self._glide_path(joints)
         shift = np.zeros((len(x), 3))
+        angles = np.zeros(len(x))
+        limit = TURN_RATE / FPS
         for t in range(len(x)):
             away = path[t] - self._held
             distance = float(np.hypot(*away))
@@ -92,7 +138,14 @@ class RootHold:
                 move = min(self.follow * (distance - self.radius), self.max_move)
                 self._held += away * (move / distance)
             shift[t, [0, 2]] = self._held - path[t]
+            if self.turn:
+                held_pelvis = pelvis[t] + shift[t, [0, 2]]
+                target = self.turn * wrapped(bearing(user[t], held_pelvis) - bearing(user[t], pelvis[t]))
+                self._angle += float(np.clip(TURN_FOLLOW * wrapped(target - self._angle), -limit, limit))
+                angles[t] = self._angle
         points = x.reshape(len(x), -1, 3) + shift[:, None]
+        if self.turn:
+            points = turned(points, pelvis + shift[:, [0, 2]], angles)
         return points.reshape(x.shape).astype(motion.dtype)
 
     def _glide_path(self, joints: np.ndarray) -> np.ndarray:
@@ -113,3 +166,14 @@ class RootHold:
         path = np.cumsum(np.concatenate([self._glide[None], glide]), axis=0)[1:]
         self._glide, self._feet = path[-1], feet[-1]
         return path
+
+
+def turned(points: np.ndarray, centres: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """(n, P, 3) points turned about the vertical through ``centres`` (n, 2: x, z) by ``angles``
+    (n,) rad, each frame's: a floor angle (``bearing``) grows by it."""
+    c, s = np.cos(angles)[:, None], np.sin(angles)[:, None]
+    dx, dz = points[..., 0] - centres[:, :1], points[..., 2] - centres[:, 1:]
+    out = points.copy()
+    out[..., 0] = centres[:, :1] + c * dx - s * dz
+    out[..., 2] = centres[:, 1:] + s * dx + c * dz
+    return out

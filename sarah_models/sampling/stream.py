@@ -158,8 +158,7 @@ class _Models:
         t = head.shape[0]
         a = _as_tensor(agent_audio, (self.audio_dim,), "agent_audio", t)
         b = _as_tensor(user_audio, (self.audio_dim,), "user_audio", t)
-        head = torch.from_numpy(self.anchor.apply_floor(head.numpy().astype(np.float64))
-                                .astype(np.float32))
+        head = torch.from_numpy(self.user_floor(head).astype(np.float32))
         nz = self.normalizer
         cond = {"user_head": nz.normalize("user_head", head.to(self.device)),
                 "agent_audio": nz.normalize(self.audio_keys["agent_audio"], a.to(self.device)),
@@ -174,6 +173,11 @@ class _Models:
             cond["user_offset"] = user_offset(head.to(self.device)[None], starts, self.stride)[0]
         return {k: v[None] for k, v in cond.items()}
 
+    def user_floor(self, user_head) -> np.ndarray:
+        """World-frame user head (T, 2) -> the generation frame, float64: what the flow reads
+        and a root hold that turns (``vae.root_hold_turn``) turns the body by."""
+        return self.anchor.apply_floor(np.asarray(user_head, dtype=np.float64))
+
     def cond_tokens(self, cond: Mapping[str, Tensor], gaze: float | None,
                     first_token: int = 0) -> Tensor:
         masks = drop_masks(gaze, self.config.guide, self.config.cfg_scale).to(self.device)
@@ -184,13 +188,14 @@ class _Models:
         """A new stream's decoding (seams, skeleton, feet: as the VAE config asks)."""
         return stream_decoding(self.vae, self.normalizer)
 
-    def decode(self, motion: Tensor, decoding: StreamDecoding,
-               stance: np.ndarray | None = None) -> np.ndarray:
+    def decode(self, motion: Tensor, decoding: StreamDecoding, stance: np.ndarray | None,
+               user: np.ndarray) -> np.ndarray:
         """Standardized decoder output, the stream's next T frames (T, Dx) -> motion in the
         generation frame (T, Dx) float64, through the stream's ``decoding``; ``stance`` (T,
-        feet): the frames' decoded stance (``decoding.decoded_stance``), for the foot lock."""
+        feet): the frames' decoded stance (``decoding.decoded_stance``), for the foot lock;
+        ``user`` (T, 2): the user's floor path in the generation frame (``user_floor``)."""
         return decoding(self.normalizer.denormalize("motion", motion).double().cpu().numpy(),
-                        stance)
+                        stance, user)
 
     def to_world(self, x: np.ndarray) -> np.ndarray:
         """Generation-frame motion (T, Dx) -> world-frame motion vector (T, Dx) float32."""
@@ -273,7 +278,8 @@ class StreamingGenerator:
             m.condition(user_head, agent_audio, user_audio, self.gaze, m.stride, self._place),
             self._carried)
         return BlockCondition(
-            m.cond_tokens(cond, self.gaze, first_token=self.frames_generated // m.stride), carried)
+            m.cond_tokens(cond, self.gaze, first_token=self.frames_generated // m.stride), carried,
+            m.user_floor(user_head))
 
     def begin_step(self, condition: BlockCondition) -> PendingBlock:
         """``step`` up to the flow's solve: the block's conditioning (``block_condition``)
@@ -289,7 +295,7 @@ class StreamingGenerator:
         history = self._states if self.config.imputation == "trajectory" else self._latents
         return PendingBlock(m.flow, self.config, torch.cat(window, dim=1),
                             torch.stack([*self._noise, eps]),
-                            torch.stack(list(history)) if history else None, eps)
+                            torch.stack(list(history)) if history else None, eps, condition.user)
 
     def end_step(self, block: PendingBlock, z: Tensor, states: Tensor | None = None) -> np.ndarray:
         """``step`` after the solve: the new token's latent z (Dz,) joins the history and is
@@ -311,7 +317,7 @@ class StreamingGenerator:
             stance = decoded_stance(m.vae, torch.stack(list(self._stance_tokens), dim=1), last=True)
         frames = m.decode(m.vae.decoder_step(token, self._decoder,
                                              None if detail is None else detail[:, 0])[0],
-                          self._decoding, stance)
+                          self._decoding, stance, block.user)
         if m.flow.config.user_relative:  # where the next block's offset is taken from
             self._place = pelvis_floor(torch.from_numpy(frames[-1:]))[0].float()
         self.frames_generated += m.stride
@@ -325,6 +331,7 @@ class BlockCondition:
 
     tokens: Tensor
     carried: TravelState | None
+    user: np.ndarray  # (s, 2): the user's floor path in the generation frame, for the decoding
 
 
 @dataclass
@@ -337,6 +344,7 @@ class PendingBlock:
     noise: Tensor  # (L, Dz): the history tokens' eps, then the new one's
     known: Tensor | None  # the history: final latents (m, Dz) or trajectories (m, E + 1, Dz)
     eps: Tensor  # (Dz,): the new token's noise
+    user: np.ndarray  # (s, 2): the user's floor path in the generation frame, for the decoding
 
     def batch_key(self) -> tuple:
         """Blocks with equal keys can be solved as one batch: the same flow, solver and
@@ -407,7 +415,7 @@ def offline_with_latents(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer
                          for _ in range(t // m.stride)]).to(m.device)
     z = solve(flow, m.cond_tokens(cond, config.gaze), noise, None, config)
     frames, stance = decoder_frames(vae, normalizer, m.latent_for_decoder(z)[None], config.seed)
-    return m.to_world(m.decoding()(frames, stance)), z
+    return m.to_world(m.decoding()(frames, stance, m.user_floor(user_head))), z
 
 
 def _offline_by_blocks(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer, user_head,
