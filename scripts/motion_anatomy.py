@@ -350,14 +350,16 @@ def chain_steps(clips, layout: MotionLayout, decoding) -> None:
     """Table 8: the ground truth and its gliding legs through ``decoding()`` (a new stream's
     decoding chain; causal, so a whole window decodes as a stream's blocks do, as in
     sarah-eval's "decoded" row)."""
-    truth = [c[0] for c in clips]
+    truth, users = [c[0] for c in clips], [c[2] for c in clips]  # a turning hold reads the user
     gliding = [gliding_legs(m, layout) for m in truth]
     parts = reference_parts(truth[0], layout)
     print("| clips | FGD_acc (÷1e5) | legs FGD_acc | legs energy / GT | feet FGD_acc | feet energy / GT "
           "| foot slide (95 % over windows) |\n|---|---|---|---|---|---|---|")
-    for label, motions in (("ground truth through the chain", [decoding()(m) for m in truth]),
+    for label, motions in (("ground truth through the chain",
+                            [decoding()(m, None, u) for m, u in zip(truth, users)]),
                            ("its legs gliding with the pelvis", gliding),
-                           ("the same through the chain", [decoding()(m) for m in gliding])):
+                           ("the same through the chain",
+                            [decoding()(m, None, u) for m, u in zip(gliding, users)])):
         table = by_part(motions, truth, layout, parts)
         slides = [foot_slide(layout.joint_positions(m)) for m in motions]
         print(f"| {label} | {fgd_acc_cell(table)} | " + " | ".join(
