@@ -92,7 +92,8 @@ class NaiveStreamer:
             detail = torch.stack(self._details[-len(context):])[None]
         motion = self.vae.decode(latents, detail)[0, -self.stride:]
         out = self._decoding(nz.denormalize("motion", motion).double().numpy(),
-                             decoded_stance(self.vae, latents, last=True)).astype(np.float32)
+                             decoded_stance(self.vae, latents, last=True),
+                             np.asarray(user_head, np.float64)).astype(np.float32)
         if flow.config.user_relative:
             self._places.append(pelvis_floor(torch.from_numpy(out[-1:]).double())[0].numpy())
         if timings is not None:
