@@ -7,9 +7,11 @@ that the chain gives the model row back to the bit, and scores the chain's outpu
 model's own decoding settings and with each ``--try`` (decoding settings only, as ``sarah-train
 --stage model --set`` takes them; several joined by commas): FGD_acc per batch of 16 and pooled
 (the whole shell, the legs, the feet; ×10^5 (cm/s²)², as sarah-eval's), the feet's steps a
-window (``metrics.foot_steps``), the share of them lasting the fixtures' 5 frames, and the
-stance head's lifts a window. A decoding setting is read in seconds, not a new evaluation
-(docs/results.md, seventy-fifth run):
+window (``metrics.foot_steps``), the share of them lasting the fixtures' 5 frames, the
+stance head's lifts a window, and, from recordings that hold the users' floor paths (since the
+seventy-seventh run), Head Ang. beside the data's and the look-away share: a decoding that holds
+or turns the body moves where it looks. A decoding setting is read in seconds, not a new
+evaluation (docs/results.md, seventy-fifth run):
 
     python scripts/decode_replay.py --run MODEL --shards test_shards --split train --windows 96 \\
         --noise-scale 0.3 --cfg 4.5 --guide user_head --guidance-interval 0,0.75 \\
@@ -33,6 +35,7 @@ from sarah_data.skeleton import FEET, MotionLayout, shell_parts
 from sarah_models.config import HISTORY_WINDOW, RunConfig
 from sarah_models.training import model_file
 from sarah_models.evaluation.metrics import foot_steps
+from sarah_models.evaluation.metrics.head_angle import head_angle
 from sarah_models.evaluation.metrics.clips import accelerations
 from sarah_models.evaluation.metrics.frechet import frechet_distance
 from sarah_models.evaluation.metrics.table import bootstrap_interval
@@ -156,6 +159,24 @@ def steps(motion: np.ndarray, layout: MotionLayout, stance: np.ndarray | None) -
     return out
 
 
+def head_angles(motion: np.ndarray, users: np.ndarray, layout: MotionLayout) -> np.ndarray:
+    """Each window's Head Ang. (sarah-eval's: the mean gaze score toward the user), (windows,)."""
+    from sarah_data import icosahedron
+    from sarah_models.evaluation.metrics.spec import MetricsConfig
+
+    head = layout.joint(MetricsConfig().head_joint)
+    out = []
+    for x, user in zip(motion, users):
+        position, rotation = icosahedron.decode(layout.split(x.astype(np.float64))[0][:, head])
+        out.append(head_angle(position, rotation, user))
+    return np.asarray(out)
+
+
+def gaze(angles: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+    """Head Ang. beside the data's on the same windows, and the look-away share (below 0.5)."""
+    return {"head": float(np.mean(angles - truth)), "look-away": float(np.mean(angles < 0.5))}
+
+
 def row(label: str, decoding: str, f: dict) -> str:
     shown = {key: f"{f[key]:.0f}" if np.isfinite(f.get(key, np.nan)) else "-"
              for key in (f"{p} {kind}" for p in ("shell", *PARTS) for kind in ("batch", "pooled"))}
@@ -164,8 +185,9 @@ def row(label: str, decoding: str, f: dict) -> str:
     cells = [" / ".join(shown[f"{p} {kind}"] for p in ("shell", *PARTS))
              for kind in ("batch", "pooled")]
     lifts = f"{f['lifts']:.1f}" if "lifts" in f else "-"
+    head = (f"{f['head']:+.3f} | {f['look-away']:.2f}" if "head" in f else "- | -")
     return (f"| {label} | {decoding} | {cells[0]} | {cells[1]} | {f['steps']:.1f} | "
-            f"{f['data steps']:.0%} | {lifts} |")
+            f"{f['data steps']:.0%} | {lifts} | {head} |")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -225,17 +247,22 @@ def main(argv: list[str] | None = None) -> int:
     parts = shell_parts(ico, shell, layout.joint_names)
     print(f"\n{len(truth)} windows; FGD_acc ×10^5 (cm/s²)², shell / legs / feet; foot steps: "
           f"runs of frames a foot moves faster than the foot slide's speed\n")
+    users = recorded.get("user")  # recordings before the seventy-seventh run have none
+    truth_angles = None if users is None else head_angles(truth, users, layout)
     print("| motion | decoding | FGD_acc per batch of 16 (shell's 95 %) | FGD_acc pooled | foot steps a window | "
-          f"lasting {STANCE_SWING_FRAMES} frames | stance lifts a window |\n|---|---|---|---|---|---|---|")
-    print(row("ground truth", "-", steps(truth, layout, None)))
+          f"lasting {STANCE_SWING_FRAMES} frames | stance lifts a window | Head Ang. − GT | "
+          "look-away |\n|---|---|---|---|---|---|---|---|---|")
+    print(row("ground truth", "-", {**steps(truth, layout, None),
+                                    **({} if users is None else gaze(truth_angles, truth_angles))}))
     real = shell_accelerations(truth, layout)
     for settings in [[], *tries]:
         tried = tried_models(models, source, settings)
         for label in ROWS:
             frames, stance = recorded[f"{label}_frames"], recorded[f"{label}_stance"]
-            motion = decode(tried, frames, stance, recorded.get("user"))
+            motion = decode(tried, frames, stance, users)
             figures = {**distances(shell_accelerations(motion, layout), real, parts),
-                       **steps(motion, layout, stance if reads_stance(tried.vae) else None)}
+                       **steps(motion, layout, stance if reads_stance(tried.vae) else None),
+                       **({} if users is None else gaze(head_angles(motion, users, layout), truth_angles))}
             print(row(label, ", ".join(settings) or "the model's", figures), flush=True)
     return 0
 

@@ -53,6 +53,19 @@ def test_records_the_model_row_and_replays_other_decodings(tiny, tmp_path, capsy
                         "vae.boundary_inertia=0.8"]) == 0
     table = lambda text: text[text.index("| motion |"):]
     assert table(capsys.readouterr().out) == table(printed)
+    # the head column is sarah-eval's Head Ang. (the recorded ground truth against itself: 0)
+    from sarah_data.skeleton import MotionLayout
+    from sarah_models.evaluation.metrics.clips import Clip, DecodedClip
+    from sarah_models.evaluation.metrics.head_angle import clip_head_angle
+    from sarah_models.evaluation.metrics.spec import MetricsConfig as Config
+
+    layout = MotionLayout.from_width(recorded["gt"].shape[-1])
+    for motion, user in zip(recorded["gt"], recorded["user"]):
+        ico, shell = layout.split(motion)
+        clip = DecodedClip(Clip(ico, shell, user), Config().root_joint, False)
+        np.testing.assert_allclose(replay.head_angles(motion[None], user[None], layout),
+                                   [clip_head_angle(clip, Config())], atol=1e-12)
+    assert "| ground truth | - |" in printed and "| +0.000 |" in printed.split("| ground truth |")[1].splitlines()[0]
     # a hold that turns toward the user replays the recorded users' paths; a recording without
     # them (before the seventy-seventh run) is refused for it, by name
     turning = "vae.root_hold=0.05,vae.root_hold_turn=1"
