@@ -21,6 +21,11 @@ def yaw_of(rotation: np.ndarray) -> np.ndarray:
     return np.arctan2(forward[..., 0], forward[..., 2])
 
 
+def wrap_angle(angle):
+    """Angles (rad) in [-pi, pi)."""
+    return (angle + np.pi) % (2.0 * np.pi) - np.pi
+
+
 def rotation_about_y(angle) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     zero, one = np.zeros_like(c), np.ones_like(c)

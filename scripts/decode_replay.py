@@ -36,6 +36,7 @@ from sarah_models.config import HISTORY_WINDOW, RunConfig
 from sarah_models.training import model_file
 from sarah_models.evaluation.metrics import foot_steps
 from sarah_models.evaluation.metrics.head_angle import head_angle
+from sarah_models.evaluation.metrics.look_away import looks_away
 from sarah_models.evaluation.metrics.clips import accelerations
 from sarah_models.evaluation.metrics.frechet import frechet_distance
 from sarah_models.evaluation.metrics.table import bootstrap_interval
@@ -113,12 +114,14 @@ def decode(models, frames: np.ndarray, stance: np.ndarray, users: np.ndarray | N
     (windows, T, 2) the user's floor paths, which a root hold that turns reads (recordings
     before the seventy-seventh run have none: SystemExit for such a chain)."""
     steps = reads_stance(models.vae)
-    if users is None and stream_decoding(models.vae, models.normalizer).reads_user:
-        sys.exit("decode_replay: this decoding turns the held body toward the user "
-                 "(vae.root_hold_turn) and the recording has no user paths: record it again")
+    if users is None:
+        if stream_decoding(models.vae, models.normalizer).reads_user:
+            sys.exit("decode_replay: this decoding turns the held body toward the user "
+                     "(vae.root_hold_turn) and the recording has no user paths: record it again")
+        users = [None] * len(frames)
     return np.stack([stream_decoding(models.vae, models.normalizer)(
-        f.astype(np.float64), s if steps else None, None if users is None else u).astype(np.float32)
-        for f, s, u in zip(frames, stance, users if users is not None else [None] * len(frames))])
+        f.astype(np.float64), s if steps else None, u).astype(np.float32)
+        for f, s, u in zip(frames, stance, users)])
 
 
 def shell_accelerations(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
@@ -173,8 +176,9 @@ def head_angles(motion: np.ndarray, users: np.ndarray, layout: MotionLayout) -> 
 
 
 def gaze(angles: np.ndarray, truth: np.ndarray) -> dict[str, float]:
-    """Head Ang. beside the data's on the same windows, and the look-away share (below 0.5)."""
-    return {"head": float(np.mean(angles - truth)), "look-away": float(np.mean(angles < 0.5))}
+    """Head Ang. beside the data's on the same windows, and the look-away share (sarah-eval's)."""
+    return {"head": float(np.mean(angles - truth)),
+            "look-away": float(np.mean([looks_away(a) for a in angles]))}
 
 
 def row(label: str, decoding: str, f: dict) -> str:
@@ -188,6 +192,19 @@ def row(label: str, decoding: str, f: dict) -> str:
     head = (f"{f['head']:+.3f} | {f['look-away']:.2f}" if "head" in f else "- | -")
     return (f"| {label} | {decoding} | {cells[0]} | {cells[1]} | {f['steps']:.1f} | "
             f"{f['data steps']:.0%} | {lifts} | {head} |")
+
+
+def check_tries(parser: argparse.ArgumentParser, tries: list[list[str]], config: RunConfig) -> None:
+    """Each ``--try`` is decoding settings the model's ``config`` takes (parser.error naming the
+    first that is not), checked there because a setting may need another the model sets
+    (vae.root_hold_turn needs vae.root_hold); before anything is recorded or replayed."""
+    for settings in tries:
+        try:
+            if not settings:
+                raise ValueError("no setting given")
+            model_file.with_decoding(config, settings)
+        except ValueError as exc:
+            parser.error(f"--try {','.join(settings)!r}: {exc}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -209,29 +226,23 @@ def main(argv: list[str] | None = None) -> int:
     add_sampling_arguments(parser, EvalConfig())
     parser.add_argument("--seed", type=int, default=EvalConfig().seed, help="sarah-eval's --seed")
     args = parser.parse_args(argv)
+    import torch
+
+    from sarah_models.generation.run import GenerateError, load_run
+
+    torch.set_num_threads(args.threads)
+    try:  # first: the --try settings are checked on the model's config
+        models, source = load_run(args.run, None, device="cpu", need_flow=True)
+    except GenerateError as exc:
+        parser.error(str(exc))
     tries = [[s.strip() for s in t.split(",") if s.strip()] for t in args.tries]
-    for settings in tries:
-        try:
-            if not settings:
-                raise ValueError("no setting given")
-            model_file.with_decoding(RunConfig(), settings)
-        except ValueError as exc:
-            parser.error(f"--try {','.join(settings)!r}: {exc}")
+    check_tries(parser, tries, models.config)
     if args.record is not None and args.shards is None:
         parser.error("--record needs --shards")
     if args.replay is not None and not args.replay.is_file():
         parser.error(f"--replay {args.replay}: no such file")
     if args.windows < 1:
         parser.error(f"--windows must be at least 1, got {args.windows}")
-    import torch
-
-    from sarah_models.generation.run import GenerateError, load_run
-
-    torch.set_num_threads(args.threads)
-    try:
-        models, source = load_run(args.run, None, device="cpu", need_flow=True)
-    except GenerateError as exc:
-        parser.error(str(exc))
     if args.record is not None:
         sampling = sampling_of(args, EvalConfig(seed=args.seed))
         recorded = record(models, args.shards, args.split, args.windows, sampling, args.window)

@@ -81,6 +81,7 @@ def test_records_the_model_row_and_replays_other_decodings(tiny, tmp_path, capsy
 @pytest.mark.parametrize("argv, words", [
     (["--try", "vae.latent_dim=8"], "only decoding settings"),
     (["--try", "vae.root_hold=-1"], "--try 'vae.root_hold=-1'"),
+    (["--try", "vae.root_hold_turn=1"], "set vae.root_hold too"),  # this model holds nothing
     (["--record", "x.npz"], "--record needs --shards"),
     (["--replay", "missing.npz"], "no such file"),
 ])

@@ -76,7 +76,8 @@ class SeamInertia:
     def reset(self) -> None:
         self._last: np.ndarray | None = None  # the last two output frames, (2, P, 3)
 
-    def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None) -> np.ndarray:
+    def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None,
+                 user: np.ndarray | None = None) -> np.ndarray:
         """(n, Dx) motion vectors in metres, the stream's next n frames (whole blocks) -> the
         same frames, continued across each seam."""
         if self.decay == 0 and self.root_decay == 0:

@@ -6,9 +6,10 @@ walks it), ``RigidSkeleton`` (``vae.rigid_bones``: bones at the training data's 
 ``FootLock`` (``vae.foot_lock``: planted feet, and steps). All five are causal and off in
 the paper's config; one ``StreamDecoding`` per stream, fed its frames in order, whole blocks at a
 time; streaming, the offline protocol and sarah-eval's VAE row all decode through it. A filter
-is called with a block's frames and the stance the VAE's head reads from their latent tokens
+is called with a block's frames, the stance the VAE's head reads from their latent tokens
 (``decoded_stance``; None unless ``vae.foot_lock_reads="stance"``), which only the foot lock
-reads.
+reads, and the user's floor-projected head at those frames in the same frame, which only a root
+hold that turns reads (``vae.root_hold_turn``).
 """
 
 from __future__ import annotations
@@ -38,8 +39,8 @@ class StreamDecoding:
 
     @property
     def reads_user(self) -> bool:
-        """Whether a filter reads the user's floor path (``RootHold`` that turns)."""
-        return any(getattr(f, "reads_user", False) for f in self.filters)
+        """Whether a filter reads the user's floor path (a ``RootHold`` that turns)."""
+        return any(isinstance(f, RootHold) and f.reads_user for f in self.filters)
 
     def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None,
                  user: np.ndarray | None = None) -> np.ndarray:
@@ -47,7 +48,7 @@ class StreamDecoding:
         (n, 2), the user's floor-projected head in the motion's frame: for a root hold that
         turns."""
         for f in self.filters:
-            motion = f(motion, stance, user) if getattr(f, "reads_user", False) else f(motion, stance)
+            motion = f(motion, stance, user)
         return motion
 
 

@@ -141,7 +141,8 @@ class FootLock:
         # its frames (False: a drift step, ``step="data"``)
         self._data_step: list[tuple | None] = [None] * len(self.legs)
 
-    def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None) -> np.ndarray:
+    def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None,
+                 user: np.ndarray | None = None) -> np.ndarray:
         """``stance`` (frames, legs) bool: the decoded stance of these frames (True: planted),
         or None to step by drift alone."""
         x = np.asarray(motion, dtype=np.float64)

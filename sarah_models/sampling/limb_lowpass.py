@@ -60,7 +60,8 @@ class LimbLowpass:
         offset = self.layout.num_joints * ICOSAHEDRON_POINTS
         self.points = np.concatenate([self.joint_points, offset + np.asarray(shell_points, int)])
 
-    def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None) -> np.ndarray:
+    def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None,
+                 user: np.ndarray | None = None) -> np.ndarray:
         out = np.array(motion, dtype=np.float64)
         if not len(out):
             return out

@@ -93,7 +93,8 @@ class RigidSkeleton:
     def reset(self) -> None:
         self.shell.reset()
 
-    def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None) -> np.ndarray:
+    def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None,
+                 user: np.ndarray | None = None) -> np.ndarray:
         x = np.asarray(motion, dtype=np.float64)
         icosahedra, shell = self.layout.split(x)
         joints = icosahedra.mean(axis=-2)

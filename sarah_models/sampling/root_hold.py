@@ -53,6 +53,7 @@ from __future__ import annotations
 import numpy as np
 
 from sarah_data.constants import FPS
+from sarah_data.frames import rotation_about_y, wrap_angle
 from sarah_data.skeleton import FEET, ROOT, MotionLayout
 
 from ..config import HOLD_READS
@@ -71,15 +72,11 @@ TURN_FOLLOW = 0.2  # of the remaining angle, per frame
 TURN_RATE = 1.0  # rad/s
 
 
-def bearing(target: np.ndarray, origin: np.ndarray) -> np.ndarray:
-    """The floor angle (rad) of ``target - origin``, both (..., 2) as (x, z)."""
+def heading(target: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """The heading (rad about +y, as ``sarah_data.frames.yaw_of``: 0 = toward +z) from
+    ``origin`` to ``target``, both (..., 2) floor points (x, z)."""
     d = target - origin
-    return np.arctan2(d[..., 1], d[..., 0])
-
-
-def wrapped(angle):
-    """An angle in [-pi, pi)."""
-    return (angle + np.pi) % (2 * np.pi) - np.pi
+    return np.arctan2(d[..., 0], d[..., 1])
 
 
 class RootHold:
@@ -129,8 +126,6 @@ class RootHold:
         pelvis = joints[:, 0, [0, 2]]
         path = pelvis if self.reads == "pelvis" else self._glide_path(joints)
         shift = np.zeros((len(x), 3))
-        angles = np.zeros(len(x))
-        limit = TURN_RATE / FPS
         for t in range(len(x)):
             away = path[t] - self._held
             distance = float(np.hypot(*away))
@@ -138,15 +133,22 @@ class RootHold:
                 move = min(self.follow * (distance - self.radius), self.max_move)
                 self._held += away * (move / distance)
             shift[t, [0, 2]] = self._held - path[t]
-            if self.turn:
-                held_pelvis = pelvis[t] + shift[t, [0, 2]]
-                target = self.turn * wrapped(bearing(user[t], held_pelvis) - bearing(user[t], pelvis[t]))
-                self._angle += float(np.clip(TURN_FOLLOW * wrapped(target - self._angle), -limit, limit))
-                angles[t] = self._angle
         points = x.reshape(len(x), -1, 3) + shift[:, None]
         if self.turn:
-            points = turned(points, pelvis + shift[:, [0, 2]], angles)
+            held = pelvis + shift[:, [0, 2]]
+            change = wrap_angle(heading(user, held) - heading(user, pelvis))
+            points = turned(points, held, self._follow_turn(self.turn * change))
         return points.reshape(x.shape).astype(motion.dtype)
+
+    def _follow_turn(self, targets: np.ndarray) -> np.ndarray:
+        """The body's turn at each frame (rad), following ``targets`` at ``TURN_FOLLOW`` of the
+        rest per frame, at most ``TURN_RATE``."""
+        limit, angles = TURN_RATE / FPS, np.empty(len(targets))
+        for t, target in enumerate(targets):
+            step = TURN_FOLLOW * wrap_angle(float(target) - self._angle)
+            self._angle += min(max(step, -limit), limit)
+            angles[t] = self._angle
+        return angles
 
     def _glide_path(self, joints: np.ndarray) -> np.ndarray:
         """(n, 3 [pelvis, feet], 3) -> (n, 2): where the whole body has glided, the stream's first
@@ -170,10 +172,6 @@ class RootHold:
 
 def turned(points: np.ndarray, centres: np.ndarray, angles: np.ndarray) -> np.ndarray:
     """(n, P, 3) points turned about the vertical through ``centres`` (n, 2: x, z) by ``angles``
-    (n,) rad, each frame's: a floor angle (``bearing``) grows by it."""
-    c, s = np.cos(angles)[:, None], np.sin(angles)[:, None]
-    dx, dz = points[..., 0] - centres[:, :1], points[..., 2] - centres[:, 1:]
-    out = points.copy()
-    out[..., 0] = centres[:, :1] + c * dx - s * dz
-    out[..., 2] = centres[:, 1:] + s * dx + c * dz
-    return out
+    (n,) rad, each frame's: every heading (``heading``) grows by it; heights stay."""
+    centre = np.stack([centres[:, 0], np.zeros(len(centres)), centres[:, 1]], axis=-1)[:, None]
+    return centre + np.einsum("tij,tpj->tpi", rotation_about_y(angles), points - centre)

@@ -149,16 +149,23 @@ class _Models:
         self.stride, self.audio_dim = vae.stride, flow.audio_dim
         self.audio_keys = {k: normalizer.stats_key(k) for k in ("agent_audio", "user_audio")}
 
-    def condition(self, user_head, agent_audio, user_audio, gaze: float | None,
-                  frames: int | None, place: Tensor | None = None) -> dict[str, Tensor]:
-        """Standardized model inputs (1, T, .) from world-frame user head and raw features;
-        with ``flow.user_relative`` also user_offset, the head less ``place`` (2,), where the
-        agent stands in the generation frame as these frames begin (one block of them)."""
+    def user_floor(self, user_head, frames: int | None) -> np.ndarray:
+        """World-frame user head (T, 2), which it checks (``frames`` of them unless None) ->
+        the generation frame (T, 2) float64: what the flow reads (``condition``) and a root hold
+        that turns (``vae.root_hold_turn``) turns the body by."""
         head = _as_tensor(user_head, (2,), "user_head", frames)
-        t = head.shape[0]
+        return self.anchor.apply_floor(head.numpy().astype(np.float64))
+
+    def condition(self, floor: np.ndarray, agent_audio, user_audio, gaze: float | None,
+                  place: Tensor | None = None) -> dict[str, Tensor]:
+        """Standardized model inputs (1, T, .) from the user's head in the generation frame
+        (``user_floor``) and raw features; with ``flow.user_relative`` also user_offset, the head
+        less ``place`` (2,), where the agent stands in the generation frame as these frames
+        begin (one block of them)."""
+        t = floor.shape[0]
         a = _as_tensor(agent_audio, (self.audio_dim,), "agent_audio", t)
         b = _as_tensor(user_audio, (self.audio_dim,), "user_audio", t)
-        head = torch.from_numpy(self.user_floor(head).astype(np.float32))
+        head = torch.from_numpy(floor.astype(np.float32))
         nz = self.normalizer
         cond = {"user_head": nz.normalize("user_head", head.to(self.device)),
                 "agent_audio": nz.normalize(self.audio_keys["agent_audio"], a.to(self.device)),
@@ -172,11 +179,6 @@ class _Models:
             starts = place.reshape(1, 1, 2).to(self.device)
             cond["user_offset"] = user_offset(head.to(self.device)[None], starts, self.stride)[0]
         return {k: v[None] for k, v in cond.items()}
-
-    def user_floor(self, user_head) -> np.ndarray:
-        """World-frame user head (T, 2) -> the generation frame, float64: what the flow reads
-        and a root hold that turns (``vae.root_hold_turn``) turns the body by."""
-        return self.anchor.apply_floor(np.asarray(user_head, dtype=np.float64))
 
     def cond_tokens(self, cond: Mapping[str, Tensor], gaze: float | None,
                     first_token: int = 0) -> Tensor:
@@ -274,12 +276,12 @@ class StreamingGenerator:
         """The next block's conditioning from its inputs, which it checks (ValueError naming
         the input); the stream's state is left as it was."""
         m = self._m
+        floor = m.user_floor(user_head, m.stride)
         cond, carried = m.flow.carry_condition(
-            m.condition(user_head, agent_audio, user_audio, self.gaze, m.stride, self._place),
-            self._carried)
+            m.condition(floor, agent_audio, user_audio, self.gaze, self._place), self._carried)
         return BlockCondition(
             m.cond_tokens(cond, self.gaze, first_token=self.frames_generated // m.stride), carried,
-            m.user_floor(user_head))
+            floor)
 
     def begin_step(self, condition: BlockCondition) -> PendingBlock:
         """``step`` up to the flow's solve: the block's conditioning (``block_condition``)
@@ -409,13 +411,14 @@ def offline_with_latents(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer
         return _offline_by_blocks(vae, flow, normalizer, user_head, agent_audio, user_audio,
                                   config, anchor)
     m = _Models(vae, flow, normalizer, config, anchor)
-    cond = m.condition(user_head, agent_audio, user_audio, config.gaze, None)
+    floor = m.user_floor(user_head, None)
+    cond = m.condition(floor, agent_audio, user_audio, config.gaze)
     generator = torch.Generator().manual_seed(config.seed)
     noise = torch.stack([token_noise(generator, flow.latent_dim, config.noise_scale)
                          for _ in range(t // m.stride)]).to(m.device)
     z = solve(flow, m.cond_tokens(cond, config.gaze), noise, None, config)
     frames, stance = decoder_frames(vae, normalizer, m.latent_for_decoder(z)[None], config.seed)
-    return m.to_world(m.decoding()(frames, stance, m.user_floor(user_head))), z
+    return m.to_world(m.decoding()(frames, stance, floor)), z
 
 
 def _offline_by_blocks(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer, user_head,
