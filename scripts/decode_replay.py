@@ -11,12 +11,15 @@ window (``metrics.foot_steps``), the share of them lasting the fixtures' 5 frame
 stance head's lifts a window, and, from recordings that hold the users' floor paths (since the
 seventy-seventh run), Head Ang. beside the data's and the look-away share: a decoding that holds
 or turns the body moves where it looks. A decoding setting is read in seconds, not a new
-evaluation (docs/results.md, seventy-fifth run):
+evaluation (docs/results.md, seventy-fifth run). ``--anatomy`` adds a table of each body part's
+acceleration by time scale and by place in a latent block: its energy below and above
+``BAND_HZ`` against the data's, and its seam share (docs/results.md, seventy-eighth run):
 
     python scripts/decode_replay.py --run MODEL --shards test_shards --split train --windows 96 \\
         --noise-scale 0.3 --cfg 4.5 --guide user_head --guidance-interval 0,0.75 \\
         --imputation trajectory --record decodes.npz --try vae.root_hold=0.15
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --try vae.foot_lock=0.2
+    python scripts/decode_replay.py --run MODEL --replay decodes.npz --anatomy
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import numpy as np
 
 from sarah_cli.arguments import add_sampling_arguments, sampling_of
 from sarah_data.atomic import atomic_path
+from sarah_data.constants import FPS
 from sarah_data.skeleton import FEET, MotionLayout, shell_parts
 from sarah_models.config import HISTORY_WINDOW, RunConfig
 from sarah_models.training import model_file
@@ -39,6 +43,7 @@ from sarah_models.evaluation.metrics.head_angle import head_angle
 from sarah_models.evaluation.metrics.look_away import looks_away
 from sarah_models.evaluation.metrics.clips import accelerations
 from sarah_models.evaluation.metrics.frechet import frechet_distance
+from sarah_models.evaluation.metrics.seam_share import points_seam_share
 from sarah_models.evaluation.metrics.table import bootstrap_interval
 from sarah_models.evaluation.runner import EvalConfig
 from sarah_models.sampling.decoding import reads_stance, stream_decoding
@@ -46,6 +51,11 @@ from sarah_models.sampling.decoding import reads_stance, stream_decoding
 from sarah_models.sampling.foot_lock import STANCE_SWING_FRAMES
 
 BATCH = 16  # clips per batch of the per-batch column, as sarah-eval's default
+# The anatomy's time scales: the accelerations of the motion averaged over BAND_FRAMES frames (a
+# moving average, which passes gestures and steps and has its first zero at fps / BAND_FRAMES =
+# BAND_HZ), and what is left above them.
+BAND_FRAMES = 5
+BAND_HZ = FPS / BAND_FRAMES
 PARTS = ("legs", "feet")
 ROWS = ("model", "vae")
 
@@ -149,6 +159,40 @@ def distances(acc: np.ndarray, real: np.ndarray, parts: dict) -> dict[str, float
     return out
 
 
+def anatomy(motion: np.ndarray, layout: MotionLayout, parts: dict, stride: int
+            ) -> dict[str, tuple[float, float, float]]:
+    """Each body part's shell points: their seam share (``metrics.seam_share``'s, every window's
+    points together, the windows' mean) and their acceleration energy (mean squared, (m/s²)²)
+    below and above ``BAND_HZ``, on the frames whose average lies inside the window."""
+    from scipy.ndimage import uniform_filter1d
+
+    inside = slice(BAND_FRAMES // 2, -(BAND_FRAMES // 2))
+    acc = shell_accelerations(motion, layout)[:, inside]
+    slow = shell_accelerations(uniform_filter1d(motion.astype(np.float64), BAND_FRAMES, axis=1),
+                               layout)[:, inside]
+    out = {}
+    for part, points in parts.items():
+        points = list(points)
+        seams = np.mean([points_seam_share(layout.split(x)[1][:, points], stride) for x in motion])
+        low = slow[:, :, points]
+        out[part] = (float(seams), float(np.mean(np.sum(low ** 2, axis=-1))),
+                     float(np.mean(np.sum((acc[:, :, points] - low) ** 2, axis=-1))))
+    return out
+
+
+def anatomy_row(label: str, decoding: str, found: dict, truth: dict) -> str:
+    """Seam share / energy below / above BAND_HZ of each part, the energies ÷ the data's
+    (``truth``'s own row, ``found is truth``: their RMS in cm/s²)."""
+    cells = []
+    for part, (seams, low, high) in found.items():
+        if found is truth:
+            cells.append(f"{seams:.2f} / {100 * low ** 0.5:.0f} / {100 * high ** 0.5:.0f} cm/s²")
+        else:
+            ratio = [value / max(truth[part][k + 1], 1e-12) for k, value in enumerate((low, high))]
+            cells.append(f"{seams:.2f} / {ratio[0]:.2f}x / {ratio[1]:.2f}x")
+    return f"| {label} | {decoding} | " + " | ".join(cells) + " |"
+
+
 def steps(motion: np.ndarray, layout: MotionLayout, stance: np.ndarray | None) -> dict[str, float]:
     """The feet's steps a window, the share lasting the data's step, and the stance's lifts a
     window (when the decoding steps by a stance)."""
@@ -222,6 +266,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--try", dest="tries", action="append", default=[], metavar="SETTINGS",
                         help="decoding settings to replay with, e.g. vae.root_hold=0.15 or "
                              "vae.foot_lock=0.2,vae.root_hold=0.1 (repeatable)")
+    parser.add_argument("--anatomy", action="store_true",
+                        help=f"also print each body part's seam share and acceleration energy "
+                             f"below and above {BAND_HZ:g} Hz against the data's")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     add_sampling_arguments(parser, EvalConfig())
     parser.add_argument("--seed", type=int, default=EvalConfig().seed, help="sarah-eval's --seed")
@@ -266,6 +313,8 @@ def main(argv: list[str] | None = None) -> int:
     print(row("ground truth", "-", {**steps(truth, layout, None),
                                     **({} if users is None else gaze(truth_angles, truth_angles))}))
     real = shell_accelerations(truth, layout)
+    stride = models.vae.config.stride
+    anatomies = [("ground truth", "-", anatomy(truth, layout, parts, stride))] if args.anatomy else []
     for settings in [[], *tries]:
         tried = tried_models(models, source, settings)
         for label in ROWS:
@@ -274,7 +323,20 @@ def main(argv: list[str] | None = None) -> int:
             figures = {**distances(shell_accelerations(motion, layout), real, parts),
                        **steps(motion, layout, stance if reads_stance(tried.vae) else None),
                        **({} if users is None else gaze(head_angles(motion, users, layout), truth_angles))}
-            print(row(label, ", ".join(settings) or "the model's", figures), flush=True)
+            decoding = ", ".join(settings) or "the model's"
+            print(row(label, decoding, figures), flush=True)
+            if args.anatomy:
+                anatomies.append((label, decoding, anatomy(motion, layout, parts, stride)))
+    if args.anatomy:
+        truth_parts = anatomies[0][2]
+        print(f"\nBy body part: seam share (the share of the acceleration on the second "
+              f"differences centred on a latent block's last or first frame; {2 / stride:.2f} "
+              f"without seams) / acceleration energy below / above {BAND_HZ:g} Hz (the "
+              f"{BAND_FRAMES}-frame average's and the rest), ÷ the data's\n")
+        print("| motion | decoding | " + " | ".join(truth_parts) + " |\n|---|---|"
+              + "---|" * len(truth_parts))
+        for label, decoding, found in anatomies:
+            print(anatomy_row(label, decoding, found, truth_parts))
     return 0
 
 

@@ -93,3 +93,51 @@ def test_bad_arguments_stop_before_any_work(tiny, tmp_path, capsys, argv, words)
         replay.main(argv)
     assert stop.value.code == 2 and words in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
+
+
+def test_the_anatomy_tells_seams_and_time_scales_apart(tiny, tmp_path, capsys):
+    """--anatomy: motion whose velocity changes only between latent blocks has all of its
+    acceleration on the seams, a slow sway none above the band and about 2 / s of it on the
+    seams, millimetre jitter nearly all of it above the band; the table gives the data's row
+    in cm/s² and every decoding's against it."""
+    from sarah_data.dataset import WindowDataset
+    from sarah_data.skeleton import MotionLayout, shell_parts
+
+    dataset = WindowDataset.sliding(tiny["shards"], "test", extractor="logmel", window=WINDOW)
+    frame = dataset[0]["motion"].numpy().astype(np.float64)[0]
+    layout = MotionLayout.from_width(len(frame))
+    parts = shell_parts(*layout.split(frame), layout.joint_names)
+    stride, frames, windows = 4, 120, 3
+    rng = np.random.default_rng(0)
+    still = np.broadcast_to(frame, (windows, frames, len(frame)))
+
+    def moved(path):  # (windows, frames, 3): every point moved along it
+        return still + np.tile(path, (1, 1, len(frame) // 3))
+
+    block_velocity = rng.normal(scale=0.01, size=(windows, frames // stride, 3))
+    kinked = moved(np.cumsum(np.repeat(block_velocity, stride, axis=1), axis=1))
+    sway = moved(0.05 * np.sin(2 * np.pi * np.arange(frames) / 30)[None, :, None] * [1, 0, 1])
+    jitter = still + rng.normal(scale=0.001, size=still.shape)
+    for part, (seams, low, high) in replay.anatomy(kinked, layout, parts, stride).items():
+        assert seams == pytest.approx(1.0), part
+    for part, (seams, low, high) in replay.anatomy(sway, layout, parts, stride).items():
+        assert abs(seams - 2 / stride) < 0.05 and high < 0.01 * low, part
+    for part, (seams, low, high) in replay.anatomy(jitter, layout, parts, stride).items():
+        assert high > 10 * low, part
+    truth = replay.anatomy(sway, layout, parts, stride)
+    assert replay.anatomy_row("ground truth", "-", truth, truth).count("cm/s²") == len(parts)
+    found = replay.anatomy(kinked, layout, parts, stride)
+    part = next(iter(parts))
+    ratios = [found[part][k] / truth[part][k] for k in (1, 2)]
+    assert (f"| model | x | 1.00 / {ratios[0]:.2f}x / {ratios[1]:.2f}x |"
+            in replay.anatomy_row("model", "x", found, truth))
+    # the command line: the table after the main one, a row per motion and decoding
+    out = tmp_path / "decodes.npz"
+    assert replay.main(["--run", str(tiny["run"]), "--shards", str(tiny["shards"]), "--window",
+                        str(WINDOW), "--windows", "2", "--record", str(out), "--anatomy",
+                        "--try", "vae.boundary_inertia=0.8"]) == 0
+    printed = capsys.readouterr().out
+    table = printed[printed.index("By body part"):]
+    assert [line.split(" | ")[0:2] for line in table.splitlines() if line.startswith("| ") and "---" not in line][1:] == [
+        ["| ground truth", "-"], ["| model", "the model's"], ["| vae", "the model's"],
+        ["| model", "vae.boundary_inertia=0.8"], ["| vae", "vae.boundary_inertia=0.8"]]

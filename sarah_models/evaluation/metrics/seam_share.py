@@ -25,11 +25,18 @@ def seam_share(joint_positions, block_frames: int, root_joint: str = ROOT) -> fl
     """Share of the root's squared acceleration on the second differences centred on the last
     and the first frame of a block (frame 0 starts a block); 2 / block_frames without seams."""
     p = np.asarray(joint_positions, dtype=np.float64)[:, JOINT[root_joint]]
+    return points_seam_share(p, block_frames)
+
+
+def points_seam_share(points, block_frames: int) -> float:
+    """``seam_share`` of any points (T, ..., 3) together: the share of their squared
+    acceleration on the second differences centred on a block's last or first frame."""
+    p = np.asarray(points, dtype=np.float64)
     if block_frames < 2:
         raise ValueError(f"seam_share needs blocks of at least 2 frames, got {block_frames}")
     if len(p) < block_frames + 2:
         raise ValueError(f"seam_share needs at least {block_frames + 2} frames, got {len(p)}")
-    energy = np.sum((p[2:] - 2.0 * p[1:-1] + p[:-2]) ** 2, axis=-1)
+    energy = ((p[2:] - 2.0 * p[1:-1] + p[:-2]) ** 2).reshape(len(p) - 2, -1).sum(axis=-1)
     centre = np.arange(1, len(p) - 1)  # the frame each second difference is centred on
     at_seam = (centre % block_frames == 0) | (centre % block_frames == block_frames - 1)
     total = energy.sum()
