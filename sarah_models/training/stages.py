@@ -167,8 +167,8 @@ def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
 # which (flow.attention_window and flow.streamed_context: masks, no weight), not the weights.
 FINE_TUNE_FIELDS = {
     "vae": ("beta", "velocity_weight", "acceleration_weight", "contact_weight", "head_weight",
-            "lift_weight", "spectral_weight", "moment_weight", "moment_parts", "latent_noise",
-            "recon_units", "energy_weight", "energy_frames", "energy_per_point",
+            "root_weight", "lift_weight", "spectral_weight", "moment_weight", "moment_parts",
+            "latent_noise", "recon_units", "energy_weight", "energy_frames", "energy_per_point",
             *DECODING_FIELDS["vae"]),
     "flow": ("drop_prob", "gaze_drop_prob", "min_denominator", "difference_weight", "attention_window",
              "streamed_context", "place_noise", "stance_weight")}
