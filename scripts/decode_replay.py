@@ -159,15 +159,16 @@ def distances(acc: np.ndarray, real: np.ndarray, parts: dict) -> dict[str, float
     return out
 
 
-def anatomy(motion: np.ndarray, layout: MotionLayout, parts: dict, stride: int
+def anatomy(motion: np.ndarray, acc: np.ndarray, layout: MotionLayout, parts: dict, stride: int
             ) -> dict[str, tuple[float, float, float]]:
     """Each body part's shell points: their seam share (``metrics.seam_share``'s, every window's
     points together, the windows' mean) and their acceleration energy (mean squared, (m/s²)²)
-    below and above ``BAND_HZ``, on the frames whose average lies inside the window."""
+    below and above ``BAND_HZ``, on the frames whose average lies inside the window; ``acc`` is
+    ``shell_accelerations(motion, layout)``, which the FGD_acc columns have computed already."""
     from scipy.ndimage import uniform_filter1d
 
     inside = slice(BAND_FRAMES // 2, -(BAND_FRAMES // 2))
-    acc = shell_accelerations(motion, layout)[:, inside]
+    acc = acc[:, inside]
     slow = shell_accelerations(uniform_filter1d(motion.astype(np.float64), BAND_FRAMES, axis=1),
                                layout)[:, inside]
     out = {}
@@ -314,19 +315,20 @@ def main(argv: list[str] | None = None) -> int:
                                     **({} if users is None else gaze(truth_angles, truth_angles))}))
     real = shell_accelerations(truth, layout)
     stride = models.vae.config.stride
-    anatomies = [("ground truth", "-", anatomy(truth, layout, parts, stride))] if args.anatomy else []
+    anatomies = [("ground truth", "-", anatomy(truth, real, layout, parts, stride))] if args.anatomy else []
     for settings in [[], *tries]:
         tried = tried_models(models, source, settings)
         for label in ROWS:
             frames, stance = recorded[f"{label}_frames"], recorded[f"{label}_stance"]
             motion = decode(tried, frames, stance, users)
-            figures = {**distances(shell_accelerations(motion, layout), real, parts),
+            acc = shell_accelerations(motion, layout)
+            figures = {**distances(acc, real, parts),
                        **steps(motion, layout, stance if reads_stance(tried.vae) else None),
                        **({} if users is None else gaze(head_angles(motion, users, layout), truth_angles))}
             decoding = ", ".join(settings) or "the model's"
             print(row(label, decoding, figures), flush=True)
             if args.anatomy:
-                anatomies.append((label, decoding, anatomy(motion, layout, parts, stride)))
+                anatomies.append((label, decoding, anatomy(motion, acc, layout, parts, stride)))
     if args.anatomy:
         truth_parts = anatomies[0][2]
         print(f"\nBy body part: seam share (the share of the acceleration on the second "

@@ -114,19 +114,23 @@ def test_the_anatomy_tells_seams_and_time_scales_apart(tiny, tmp_path, capsys):
     def moved(path):  # (windows, frames, 3): every point moved along it
         return still + np.tile(path, (1, 1, len(frame) // 3))
 
+    def anatomy(motion):
+        return replay.anatomy(motion, replay.shell_accelerations(motion, layout), layout, parts,
+                              stride)
+
     block_velocity = rng.normal(scale=0.01, size=(windows, frames // stride, 3))
     kinked = moved(np.cumsum(np.repeat(block_velocity, stride, axis=1), axis=1))
     sway = moved(0.05 * np.sin(2 * np.pi * np.arange(frames) / 30)[None, :, None] * [1, 0, 1])
     jitter = still + rng.normal(scale=0.001, size=still.shape)
-    for part, (seams, low, high) in replay.anatomy(kinked, layout, parts, stride).items():
+    for part, (seams, low, high) in anatomy(kinked).items():
         assert seams == pytest.approx(1.0), part
-    for part, (seams, low, high) in replay.anatomy(sway, layout, parts, stride).items():
+    for part, (seams, low, high) in anatomy(sway).items():
         assert abs(seams - 2 / stride) < 0.05 and high < 0.01 * low, part
-    for part, (seams, low, high) in replay.anatomy(jitter, layout, parts, stride).items():
+    for part, (seams, low, high) in anatomy(jitter).items():
         assert high > 10 * low, part
-    truth = replay.anatomy(sway, layout, parts, stride)
+    truth = anatomy(sway)
     assert replay.anatomy_row("ground truth", "-", truth, truth).count("cm/s²") == len(parts)
-    found = replay.anatomy(kinked, layout, parts, stride)
+    found = anatomy(kinked)
     part = next(iter(parts))
     ratios = [found[part][k] / truth[part][k] for k in (1, 2)]
     assert (f"| model | x | 1.00 / {ratios[0]:.2f}x / {ratios[1]:.2f}x |"
