@@ -44,7 +44,7 @@ from sarah_models.evaluation.metrics.look_away import looks_away
 from sarah_models.evaluation.metrics.clips import accelerations
 from sarah_models.evaluation.metrics.frechet import frechet_distance
 from sarah_models.evaluation.metrics.seam_share import points_seam_share
-from sarah_models.evaluation.metrics.table import bootstrap_interval
+from sarah_models.evaluation.metrics.table import bootstrap_interval, paired_comparison
 from sarah_models.evaluation.runner import EvalConfig
 from sarah_models.sampling.decoding import reads_stance, stream_decoding
 # how long the fixtures' feet travel in a step, which the foot lock's data steps copy
@@ -160,11 +160,12 @@ def distances(acc: np.ndarray, real: np.ndarray, parts: dict) -> dict[str, float
 
 
 def anatomy(motion: np.ndarray, acc: np.ndarray, layout: MotionLayout, parts: dict, stride: int
-            ) -> dict[str, tuple[float, float, float]]:
-    """Each body part's shell points: their seam share (``metrics.seam_share``'s, every window's
-    points together, the windows' mean) and their acceleration energy (mean squared, (m/s²)²)
-    below and above ``BAND_HZ``, on the frames whose average lies inside the window; ``acc`` is
-    ``shell_accelerations(motion, layout)``, which the FGD_acc columns have computed already."""
+            ) -> dict[str, np.ndarray]:
+    """Each body part's shell points, window by window (windows, 3): their seam share
+    (``metrics.seam_share``'s, the part's points together) and their acceleration energy (mean
+    squared, (m/s²)²) below and above ``BAND_HZ``, on the frames whose average lies inside the
+    window; ``acc`` is ``shell_accelerations(motion, layout)``, which the FGD_acc columns have
+    computed already."""
     from scipy.ndimage import uniform_filter1d
 
     inside = slice(BAND_FRAMES // 2, -(BAND_FRAMES // 2))
@@ -174,23 +175,28 @@ def anatomy(motion: np.ndarray, acc: np.ndarray, layout: MotionLayout, parts: di
     out = {}
     for part, points in parts.items():
         points = list(points)
-        seams = np.mean([points_seam_share(layout.split(x)[1][:, points], stride) for x in motion])
+        seams = [points_seam_share(layout.split(x)[1][:, points], stride) for x in motion]
         low = slow[:, :, points]
-        out[part] = (float(seams), float(np.mean(np.sum(low ** 2, axis=-1))),
-                     float(np.mean(np.sum((acc[:, :, points] - low) ** 2, axis=-1))))
+        out[part] = np.stack([seams, np.mean(np.sum(low ** 2, axis=-1), axis=(1, 2)),
+                              np.mean(np.sum((acc[:, :, points] - low) ** 2, axis=-1), axis=(1, 2))],
+                             axis=1)
     return out
 
 
 def anatomy_row(label: str, decoding: str, found: dict, truth: dict) -> str:
-    """Seam share / energy below / above BAND_HZ of each part, the energies ÷ the data's
+    """Seam share / energy below / above BAND_HZ of each part, the windows' means with 95 %
+    bootstrap intervals over windows; the energies ÷ the data's on the same windows, paired
     (``truth``'s own row, ``found is truth``: their RMS in cm/s²)."""
     cells = []
-    for part, (seams, low, high) in found.items():
+    for part, windows in found.items():
+        seams, low, high = windows.mean(axis=0)
+        seam = "{:.2f} ({:.2f}-{:.2f})".format(seams, *bootstrap_interval(windows[:, 0]))
         if found is truth:
-            cells.append(f"{seams:.2f} / {100 * low ** 0.5:.0f} / {100 * high ** 0.5:.0f} cm/s²")
-        else:
-            ratio = [value / max(truth[part][k + 1], 1e-12) for k, value in enumerate((low, high))]
-            cells.append(f"{seams:.2f} / {ratio[0]:.2f}x / {ratio[1]:.2f}x")
+            cells.append(f"{seam} / {100 * low ** 0.5:.0f} / {100 * high ** 0.5:.0f} cm/s²")
+            continue
+        ratios = [paired_comparison(windows[:, k], truth[part][:, k]) for k in (1, 2)]
+        cells.append(seam + "".join(" / {ratio:.2f}x ({ratio_low:.2f}-{ratio_high:.2f})".format(**r)
+                                    for r in ratios))
     return f"| {label} | {decoding} | " + " | ".join(cells) + " |"
 
 
@@ -334,7 +340,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\nBy body part: seam share (the share of the acceleration on the second "
               f"differences centred on a latent block's last or first frame; {2 / stride:.2f} "
               f"without seams) / acceleration energy below / above {BAND_HZ:g} Hz (the "
-              f"{BAND_FRAMES}-frame average's and the rest), ÷ the data's\n")
+              f"{BAND_FRAMES}-frame average's and the rest), ÷ the data's on the same windows; "
+              f"95 % bootstrap intervals over the {len(truth)} windows, paired\n")
         print("| motion | decoding | " + " | ".join(truth_parts) + " |\n|---|---|"
               + "---|" * len(truth_parts))
         for label, decoding, found in anatomies:
