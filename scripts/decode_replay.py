@@ -13,7 +13,9 @@ seventy-seventh run), Head Ang. beside the data's and the look-away share: a dec
 or turns the body moves where it looks. A decoding setting is read in seconds, not a new
 evaluation (docs/results.md, seventy-fifth run). ``--anatomy`` adds a table of each body part's
 acceleration by time scale and by place in a latent block: its energy below and above
-``BAND_HZ`` against the data's, and its seam share (docs/results.md, seventy-eighth run):
+``BAND_HZ`` against the data's, and its seam share (docs/results.md, seventy-eighth run), and a
+table of each body part's FGD_acc beside the real floor's, the recording's first half of windows
+against its second: where a decoding's distance lies (seventy-ninth run):
 
     python scripts/decode_replay.py --run MODEL --shards test_shards --split train --windows 96 \\
         --noise-scale 0.3 --cfg 4.5 --guide user_head --guidance-interval 0,0.75 \\
@@ -139,6 +141,22 @@ def shell_accelerations(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
     return np.stack([accelerations(layout.split(x)[1]) for x in motion])
 
 
+SCALE = 1e4 / 1e5  # FGD_acc of accelerations in m/s²: m -> cm, shown ÷1e5
+
+
+def features(acc: np.ndarray, points, clips=slice(None)) -> np.ndarray:
+    """(clips, frames, points, 3) accelerations -> (samples, 3 * len(points)): FGD_acc's
+    samples, one a frame, of ``points``."""
+    return acc[clips][:, :, points].reshape(-1, 3 * len(points))
+
+
+def batch_distances(acc: np.ndarray, real: np.ndarray, points) -> list[float]:
+    """FGD_acc of ``points`` per batch of ``BATCH`` clips (clip i against real clip i), ×10^5."""
+    return [frechet_distance(features(acc, points, slice(s, s + BATCH)),
+                             features(real, points, slice(s, s + BATCH))) * SCALE
+            for s in range(0, len(acc), BATCH)]
+
+
 def distances(acc: np.ndarray, real: np.ndarray, parts: dict) -> dict[str, float]:
     """FGD_acc per batch of ``BATCH`` clips and pooled, of the shell and of ``PARTS``, ×10^5
     (cm/s²)², with the shell's 95 % bootstrap interval over batches; NaN for a part no shell
@@ -146,17 +164,41 @@ def distances(acc: np.ndarray, real: np.ndarray, parts: dict) -> dict[str, float
     out = {f"{part} {kind}": float("nan") for part in PARTS for kind in ("batch", "pooled")}
     for part, points in (("shell", np.arange(acc.shape[2])),
                          *((p, list(parts[p])) for p in PARTS if p in parts)):
-        def features(a, clips=slice(None)):  # (clips, frames, points, 3) -> (samples, 3 points)
-            return a[clips][:, :, points].reshape(-1, 3 * len(points))
-        batches = [frechet_distance(features(acc, slice(s, s + BATCH)),
-                                    features(real, slice(s, s + BATCH)))
-                   for s in range(0, len(acc), BATCH)]
-        scale = 1e4 / 1e5  # m -> cm, shown ÷1e5
-        out[f"{part} batch"] = float(np.mean(batches)) * scale
-        out[f"{part} pooled"] = frechet_distance(features(acc), features(real)) * scale
+        batches = batch_distances(acc, real, points)
+        out[f"{part} batch"] = float(np.mean(batches))
+        out[f"{part} pooled"] = frechet_distance(features(acc, points), features(real, points)) * SCALE
         if part == "shell":  # sarah-eval's interval: the batches' mean, bootstrapped
-            out["shell interval"] = tuple(v * scale for v in bootstrap_interval(batches))
+            out["shell interval"] = bootstrap_interval(batches)
     return out
+
+
+def part_distances(acc: np.ndarray, real: np.ndarray, parts: dict) -> dict[str, np.ndarray]:
+    """FGD_acc per batch of ``BATCH`` clips of the whole shell and of every body part, each
+    part's batches as an array (its mean is the figure, its batches the interval's samples)."""
+    return {part: np.asarray(batch_distances(acc, real, list(points)))
+            for part, points in (("shell", range(acc.shape[2])), *parts.items())}
+
+
+def real_floor(real: np.ndarray, parts: dict) -> dict[str, np.ndarray] | None:
+    """``part_distances`` of the data's first half of windows against its second half: what two
+    sets of real windows score, the floor no decoding gets under at this batch size; None with
+    fewer than two batches' windows."""
+    half = len(real) // 2
+    if half < BATCH:
+        return None
+    return part_distances(real[:half], real[half:2 * half], parts)
+
+
+def parts_row(label: str, decoding: str, found: dict, floor: dict | None) -> str:
+    """Each part's FGD_acc with its 95 % bootstrap interval over batches and, given the real
+    floor, the figure ÷ the floor's."""
+    cells = []
+    for part, batches in found.items():
+        cell = "{:.1f} ({:.1f}-{:.1f})".format(batches.mean(), *bootstrap_interval(batches))
+        if floor is not None and found is not floor:
+            cell += f", {batches.mean() / floor[part].mean():.1f}x"
+        cells.append(cell)
+    return f"| {label} | {decoding} | " + " | ".join(cells) + " |"
 
 
 def anatomy(motion: np.ndarray, acc: np.ndarray, layout: MotionLayout, parts: dict, stride: int
@@ -322,6 +364,8 @@ def main(argv: list[str] | None = None) -> int:
     real = shell_accelerations(truth, layout)
     stride = models.vae.config.stride
     anatomies = [("ground truth", "-", anatomy(truth, real, layout, parts, stride))] if args.anatomy else []
+    floor = real_floor(real, parts) if args.anatomy else None
+    by_part = [] if floor is None else [("real floor", "-", floor)]
     for settings in [[], *tries]:
         tried = tried_models(models, source, settings)
         for label in ROWS:
@@ -335,7 +379,17 @@ def main(argv: list[str] | None = None) -> int:
             print(row(label, decoding, figures), flush=True)
             if args.anatomy:
                 anatomies.append((label, decoding, anatomy(motion, acc, layout, parts, stride)))
+                by_part.append((label, decoding, part_distances(acc, real, parts)))
     if args.anatomy:
+        print(f"\nFGD_acc by body part, per batch of {BATCH} (95 % bootstrap over batches)"
+              + (", and ÷ the real floor's: the data's first half of windows against its "
+                 "second half\n" if floor is not None else
+                 f"; no real floor: it needs {2 * BATCH} windows, the recording has "
+                 f"{len(truth)}\n"))
+        print("| motion | decoding | " + " | ".join(("shell", *parts))
+              + " |\n|---|---|" + "---|" * (len(parts) + 1))
+        for label, decoding, found in by_part:
+            print(parts_row(label, decoding, found, floor))
         truth_parts = anatomies[0][2]
         print(f"\nBy body part: seam share (the share of the acceleration on the second "
               f"differences centred on a latent block's last or first frame; {2 / stride:.2f} "

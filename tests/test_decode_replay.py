@@ -149,3 +149,33 @@ def test_the_anatomy_tells_seams_and_time_scales_apart(tiny, tmp_path, capsys):
     assert [line.split(" | ")[0:2] for line in table.splitlines() if line.startswith("| ") and "---" not in line][1:] == [
         ["| ground truth", "-"], ["| model", "the model's"], ["| vae", "the model's"],
         ["| model", "vae.boundary_inertia=0.8"], ["| vae", "vae.boundary_inertia=0.8"]]
+    # ... and before it the parts' FGD_acc, a row per decoding: no floor from 2 windows
+    parts_table = printed[printed.index("FGD_acc by body part"):printed.index("By body part")]
+    assert "no real floor: it needs 32 windows, the recording has 2" in parts_table
+    assert [line.split(" | ")[0] for line in parts_table.splitlines()
+            if line.startswith("| ") and "---" not in line][1:] == ["| model", "| vae"] * 2
+
+
+def test_the_parts_table_reads_each_part_against_the_real_floor():
+    """Each part's FGD_acc reads its own points: jitter on the arms' points moves the arms' and
+    the shell's figures, not the legs'; the real floor is the data's halves against each other,
+    and a row reads each part ÷ the floor's."""
+    rng = np.random.default_rng(0)
+    parts = {"legs": (0, 1, 2), "arms": (3, 4)}
+    real = rng.normal(size=(64, 30, 5, 3))
+    same = replay.part_distances(real, real, parts)
+    assert list(same) == ["shell", "legs", "arms"]
+    assert all(np.allclose(batches, 0.0, atol=1e-9) and len(batches) == 4 for batches in same.values())
+    shaken = real.copy()
+    shaken[:, :, [3, 4]] += rng.normal(scale=2.0, size=shaken[:, :, [3, 4]].shape)
+    found = replay.part_distances(shaken, real, parts)
+    assert np.allclose(found["legs"], 0.0, atol=1e-9)
+    assert found["arms"].min() > 0 and found["shell"].mean() >= found["arms"].mean() * 0.99
+    floor = replay.real_floor(real, parts)
+    assert len(floor["shell"]) == 2 and floor["shell"].mean() > 0
+    assert np.allclose(floor["legs"], replay.part_distances(real[:32], real[32:], parts)["legs"])
+    assert replay.real_floor(real[:31], parts) is None
+    line = replay.parts_row("model", "x", found, floor)
+    assert line.startswith("| model | x | ")
+    assert f", {found['arms'].mean() / floor['arms'].mean():.1f}x |" in line
+    assert "x" not in replay.parts_row("real floor", "-", floor, floor).split(" | ", 2)[2]
