@@ -44,7 +44,9 @@ from sarah_models.evaluation.metrics import foot_steps
 from sarah_models.evaluation.metrics.head_angle import head_angle
 from sarah_models.evaluation.metrics.look_away import looks_away
 from sarah_models.evaluation.metrics.clips import accelerations
+from sarah_models.evaluation.metrics.fgd_acc import METRIC as FGD_ACC
 from sarah_models.evaluation.metrics.frechet import frechet_distance
+from sarah_models.evaluation.metrics.spec import MetricsConfig
 from sarah_models.evaluation.metrics.seam_share import points_seam_share
 from sarah_models.evaluation.metrics.table import bootstrap_interval, paired_comparison
 from sarah_models.evaluation.runner import EvalConfig
@@ -141,7 +143,8 @@ def shell_accelerations(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
     return np.stack([accelerations(layout.split(x)[1]) for x in motion])
 
 
-SCALE = 1e4 / 1e5  # FGD_acc of accelerations in m/s²: m -> cm, shown ÷1e5
+# FGD_acc of accelerations in m/s² as sarah-eval shows it: in its report unit, ÷ its display scale
+SCALE = (1.0 / MetricsConfig().report_unit) ** FGD_ACC.length_power / FGD_ACC.scale
 
 
 def features(acc: np.ndarray, points, clips=slice(None)) -> np.ndarray:
@@ -157,18 +160,21 @@ def batch_distances(acc: np.ndarray, real: np.ndarray, points) -> list[float]:
             for s in range(0, len(acc), BATCH)]
 
 
-def distances(acc: np.ndarray, real: np.ndarray, parts: dict) -> dict[str, float]:
+def distances(acc: np.ndarray, real: np.ndarray, parts: dict,
+              batches: dict[str, np.ndarray] | None = None) -> dict[str, float]:
     """FGD_acc per batch of ``BATCH`` clips and pooled, of the shell and of ``PARTS``, ×10^5
     (cm/s²)², with the shell's 95 % bootstrap interval over batches; NaN for a part no shell
-    point lies nearest to."""
+    point lies nearest to. ``batches``: ``part_distances`` of the same accelerations, when
+    computed already (the parts' table)."""
     out = {f"{part} {kind}": float("nan") for part in PARTS for kind in ("batch", "pooled")}
-    for part, points in (("shell", np.arange(acc.shape[2])),
-                         *((p, list(parts[p])) for p in PARTS if p in parts)):
-        batches = batch_distances(acc, real, points)
-        out[f"{part} batch"] = float(np.mean(batches))
+    shown = {p: parts[p] for p in PARTS if p in parts}
+    if batches is None:
+        batches = part_distances(acc, real, shown)
+    for part, points in (("shell", np.arange(acc.shape[2])), *((p, list(q)) for p, q in shown.items())):
+        out[f"{part} batch"] = float(np.mean(batches[part]))
         out[f"{part} pooled"] = frechet_distance(features(acc, points), features(real, points)) * SCALE
         if part == "shell":  # sarah-eval's interval: the batches' mean, bootstrapped
-            out["shell interval"] = bootstrap_interval(batches)
+            out["shell interval"] = bootstrap_interval(batches[part])
     return out
 
 
@@ -372,14 +378,15 @@ def main(argv: list[str] | None = None) -> int:
             frames, stance = recorded[f"{label}_frames"], recorded[f"{label}_stance"]
             motion = decode(tried, frames, stance, users)
             acc = shell_accelerations(motion, layout)
-            figures = {**distances(acc, real, parts),
+            batches = part_distances(acc, real, parts) if args.anatomy else None
+            figures = {**distances(acc, real, parts, batches),
                        **steps(motion, layout, stance if reads_stance(tried.vae) else None),
                        **({} if users is None else gaze(head_angles(motion, users, layout), truth_angles))}
             decoding = ", ".join(settings) or "the model's"
             print(row(label, decoding, figures), flush=True)
             if args.anatomy:
                 anatomies.append((label, decoding, anatomy(motion, acc, layout, parts, stride)))
-                by_part.append((label, decoding, part_distances(acc, real, parts)))
+                by_part.append((label, decoding, batches))
     if args.anatomy:
         print(f"\nFGD_acc by body part, per batch of {BATCH} (95 % bootstrap over batches)"
               + (", and ÷ the real floor's: the data's first half of windows against its "
