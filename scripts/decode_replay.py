@@ -322,8 +322,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="decoding settings to replay with, e.g. vae.root_hold=0.15 or "
                              "vae.foot_lock=0.2,vae.root_hold=0.1 (repeatable)")
     parser.add_argument("--anatomy", action="store_true",
-                        help=f"also print each body part's seam share and acceleration energy "
-                             f"below and above {BAND_HZ:g} Hz against the data's")
+                        help=f"also print each body part's FGD_acc beside the real floor's (the "
+                             f"recording's two halves of windows, from {2 * BATCH} windows), and its "
+                             f"seam share and acceleration energy below and above {BAND_HZ:g} Hz "
+                             f"against the data's")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     add_sampling_arguments(parser, EvalConfig())
     parser.add_argument("--seed", type=int, default=EvalConfig().seed, help="sarah-eval's --seed")
