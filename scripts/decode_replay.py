@@ -15,13 +15,16 @@ evaluation (docs/results.md, seventy-fifth run). ``--anatomy`` adds a table of e
 acceleration by time scale and by place in a latent block: its energy below and above
 ``BAND_HZ`` against the data's, and its seam share (docs/results.md, seventy-eighth run), and a
 table of each body part's FGD_acc beside the real floor's, the recording's first half of windows
-against its second: where a decoding's distance lies (seventy-ninth run):
+against its second: where a decoding's distance lies (seventy-ninth run). ``--stages`` adds
+the shell's FGD_acc and the anatomy's figures after each filter of the chain in turn, the
+decoder's own frames first: what each filter adds to and takes from each part (eightieth run):
 
     python scripts/decode_replay.py --run MODEL --shards test_shards --split train --windows 96 \\
         --noise-scale 0.3 --cfg 4.5 --guide user_head --guidance-interval 0,0.75 \\
         --imputation trajectory --record decodes.npz --try vae.root_hold=0.15
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --try vae.foot_lock=0.2
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --anatomy
+    python scripts/decode_replay.py --run MODEL --replay decodes.npz --stages
 """
 
 from __future__ import annotations
@@ -123,19 +126,40 @@ def tried_models(models, source: Path, settings: list[str]):
         return model_file.load_model_file(path, device="cpu")
 
 
+def chain_users(models, users: np.ndarray | None, windows: int) -> list:
+    """The users' floor paths each window's chain reads: ``users``, or Nones where the recording
+    has none (recordings before the seventy-seventh run), SystemExit where the chain needs them."""
+    if users is not None:
+        return list(users)
+    if stream_decoding(models.vae, models.normalizer).reads_user:
+        sys.exit("decode_replay: this decoding turns the held body toward the user "
+                 "(vae.root_hold_turn) and the recording has no user paths: record it again")
+    return [None] * windows
+
+
 def decode(models, frames: np.ndarray, stance: np.ndarray, users: np.ndarray | None) -> np.ndarray:
     """Every window's recorded frames through a new chain of ``models``' decoding; ``users``
-    (windows, T, 2) the user's floor paths, which a root hold that turns reads (recordings
-    before the seventy-seventh run have none: SystemExit for such a chain)."""
+    (windows, T, 2) the user's floor paths, which a root hold that turns reads."""
     steps = reads_stance(models.vae)
-    if users is None:
-        if stream_decoding(models.vae, models.normalizer).reads_user:
-            sys.exit("decode_replay: this decoding turns the held body toward the user "
-                     "(vae.root_hold_turn) and the recording has no user paths: record it again")
-        users = [None] * len(frames)
     return np.stack([stream_decoding(models.vae, models.normalizer)(
         f.astype(np.float64), s if steps else None, u).astype(np.float32)
-        for f, s, u in zip(frames, stance, users)])
+        for f, s, u in zip(frames, stance, chain_users(models, users, len(frames)))])
+
+
+def stages(models, frames: np.ndarray, stance: np.ndarray, users: np.ndarray | None):
+    """The recorded frames, then every window's motion after each filter of ``models``' decoding
+    chain in turn: (the filter's name, (windows, T, D) float32) pairs, ``"decoder"`` first; the
+    last is ``decode``'s. Each window's chain is fed its frames as ``decode`` feeds them, one
+    filter at a time."""
+    steps = reads_stance(models.vae)
+    chains = [stream_decoding(models.vae, models.normalizer) for _ in frames]
+    users = chain_users(models, users, len(frames))
+    motion = [f.astype(np.float64) for f in frames]
+    yield "decoder", np.stack(motion).astype(np.float32)
+    for k, name in enumerate(type(f).__name__ for f in chains[0].filters):
+        motion = [chain.filters[k](m, s if steps else None, u)
+                  for chain, m, s, u in zip(chains, motion, stance, users)]
+        yield name, np.stack(motion).astype(np.float32)
 
 
 def shell_accelerations(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
@@ -231,10 +255,10 @@ def anatomy(motion: np.ndarray, acc: np.ndarray, layout: MotionLayout, parts: di
     return out
 
 
-def anatomy_row(label: str, decoding: str, found: dict, truth: dict) -> str:
+def anatomy_cells(found: dict, truth: dict) -> list[str]:
     """Seam share / energy below / above BAND_HZ of each part, the windows' means with 95 %
     bootstrap intervals over windows; the energies ÷ the data's on the same windows, paired
-    (``truth``'s own row, ``found is truth``: their RMS in cm/s²)."""
+    (``truth``'s own cells, ``found is truth``: their RMS in cm/s²)."""
     cells = []
     for part, windows in found.items():
         seams, low, high = windows.mean(axis=0)
@@ -245,7 +269,21 @@ def anatomy_row(label: str, decoding: str, found: dict, truth: dict) -> str:
         ratios = [paired_comparison(windows[:, k], truth[part][:, k]) for k in (1, 2)]
         cells.append(seam + "".join(" / {ratio:.2f}x ({ratio_low:.2f}-{ratio_high:.2f})".format(**r)
                                     for r in ratios))
-    return f"| {label} | {decoding} | " + " | ".join(cells) + " |"
+    return cells
+
+
+def anatomy_row(label: str, decoding: str, found: dict, truth: dict) -> str:
+    """``anatomy_cells`` as a row of the anatomy's table."""
+    return f"| {label} | {decoding} | " + " | ".join(anatomy_cells(found, truth)) + " |"
+
+
+def stage_row(label: str, decoding: str, stage: str, shell: np.ndarray, found: dict,
+              truth: dict) -> str:
+    """A row of the stages' table: the shell's FGD_acc per batch after ``stage`` (95 % bootstrap
+    over batches) and ``anatomy_cells``."""
+    fgd = "{:.1f} ({:.1f}-{:.1f})".format(shell.mean(), *bootstrap_interval(shell))
+    return (f"| {label} | {decoding} | {stage} | {fgd} | "
+            + " | ".join(anatomy_cells(found, truth)) + " |")
 
 
 def steps(motion: np.ndarray, layout: MotionLayout, stance: np.ndarray | None) -> dict[str, float]:
@@ -326,6 +364,11 @@ def main(argv: list[str] | None = None) -> int:
                              f"recording's two halves of windows, from {2 * BATCH} windows), and its "
                              f"seam share and acceleration energy below and above {BAND_HZ:g} Hz "
                              f"against the data's")
+    parser.add_argument("--stages", action="store_true",
+                        help=f"also print, for each decoding, the shell's FGD_acc and each body "
+                             f"part's seam share and acceleration energy below and above "
+                             f"{BAND_HZ:g} Hz after each filter of the decoding chain in turn, "
+                             f"the decoder's own frames first: what each filter adds and takes")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     add_sampling_arguments(parser, EvalConfig())
     parser.add_argument("--seed", type=int, default=EvalConfig().seed, help="sarah-eval's --seed")
@@ -371,7 +414,9 @@ def main(argv: list[str] | None = None) -> int:
                                     **({} if users is None else gaze(truth_angles, truth_angles))}))
     real = shell_accelerations(truth, layout)
     stride = models.vae.config.stride
-    anatomies = [("ground truth", "-", anatomy(truth, real, layout, parts, stride))] if args.anatomy else []
+    truth_parts = anatomy(truth, real, layout, parts, stride) if args.anatomy or args.stages else None
+    anatomies = [("ground truth", "-", truth_parts)] if args.anatomy else []
+    by_stage = []
     floor = real_floor(real, parts) if args.anatomy else None
     by_part = [] if floor is None else [("real floor", "-", floor)]
     for settings in [[], *tries]:
@@ -389,6 +434,13 @@ def main(argv: list[str] | None = None) -> int:
             if args.anatomy:
                 anatomies.append((label, decoding, anatomy(motion, acc, layout, parts, stride)))
                 by_part.append((label, decoding, batches))
+            if args.stages:
+                for stage, staged in stages(tried, frames, stance, users):
+                    staged_acc = shell_accelerations(staged, layout)
+                    by_stage.append(stage_row(
+                        label, decoding, stage,
+                        np.asarray(batch_distances(staged_acc, real, np.arange(real.shape[2]))),
+                        anatomy(staged, staged_acc, layout, parts, stride), truth_parts))
     if args.anatomy:
         print(f"\nFGD_acc by body part, per batch of {BATCH} (95 % bootstrap over batches)"
               + (", and ÷ the real floor's: the data's first half of windows against its "
@@ -399,7 +451,6 @@ def main(argv: list[str] | None = None) -> int:
               + " |\n|---|---|" + "---|" * (len(parts) + 1))
         for label, decoding, found in by_part:
             print(parts_row(label, decoding, found, floor))
-        truth_parts = anatomies[0][2]
         print(f"\nBy body part: seam share (the share of the acceleration on the second "
               f"differences centred on a latent block's last or first frame; {2 / stride:.2f} "
               f"without seams) / acceleration energy below / above {BAND_HZ:g} Hz (the "
@@ -409,6 +460,14 @@ def main(argv: list[str] | None = None) -> int:
               + "---|" * len(truth_parts))
         for label, decoding, found in anatomies:
             print(anatomy_row(label, decoding, found, truth_parts))
+    if args.stages:
+        print(f"\nBy stage of the decoding chain: the decoder's frames, then the motion after each "
+              f"filter in turn; the shell's FGD_acc per batch of {BATCH} (95 % bootstrap over "
+              f"batches), then by body part as above: seam share / acceleration energy below / "
+              f"above {BAND_HZ:g} Hz ÷ the data's, paired over the {len(truth)} windows\n")
+        print("| motion | decoding | after | FGD_acc (shell) | " + " | ".join(truth_parts)
+              + " |\n|---|---|---|---|" + "---|" * len(truth_parts))
+        print("\n".join(by_stage))
     return 0
 
 

@@ -179,3 +179,49 @@ def test_the_parts_table_reads_each_part_against_the_real_floor():
     assert line.startswith("| model | x | ")
     assert f", {found['arms'].mean() / floor['arms'].mean():.1f}x |" in line
     assert "x" not in replay.parts_row("real floor", "-", floor, floor).split(" | ", 2)[2]
+
+
+def test_the_stages_follow_the_chain_filter_by_filter(tiny, tmp_path, capsys):
+    """--stages: the decoder's frames first, then the motion after each filter of the chain in
+    order, the last of them what the whole chain decodes; the table prints a row per stage of
+    every motion and decoding, its last stage's FGD_acc the main table's."""
+    from sarah_models.generation.run import load_run
+    from sarah_models.sampling.decoding import stream_decoding
+
+    out = tmp_path / "decodes.npz"
+    settings = "vae.boundary_inertia=0.8,vae.root_hold=0.05"
+    assert replay.main(["--run", str(tiny["run"]), "--shards", str(tiny["shards"]), "--window",
+                        str(WINDOW), "--windows", "3", "--record", str(out)]) == 0
+    capsys.readouterr()
+    with np.load(out, allow_pickle=False) as data:
+        recorded = {k: data[k] for k in data.files}
+    models, source = load_run(tiny["run"], None, device="cpu")
+    tried = replay.tried_models(models, source, settings.split(","))
+    frames, stance, users = (recorded[k] for k in ("model_frames", "model_stance", "user"))
+    staged = list(replay.stages(tried, frames, stance, users))
+    assert [name for name, _ in staged] == ["decoder", "SeamInertia", "RootHold"]
+    assert [type(f).__name__ for f in stream_decoding(tried.vae, tried.normalizer).filters] == \
+        [name for name, _ in staged[1:]]
+    np.testing.assert_array_equal(staged[0][1], frames)
+    np.testing.assert_array_equal(staged[-1][1], replay.decode(tried, frames, stance, users))
+    # each filter does its own part: the seam filter changes the frames, the hold moves them on
+    assert not np.array_equal(staged[1][1], staged[0][1])
+    assert not np.array_equal(staged[2][1], staged[1][1])
+    # the command line: a row per stage of each motion and decoding, after the other tables
+    assert replay.main(["--run", str(tiny["run"]), "--replay", str(out), "--stages",
+                        "--try", settings]) == 0
+    printed = capsys.readouterr().out
+    table = printed[printed.index("By stage of the decoding chain"):]
+    rows = [line.split(" | ") for line in table.splitlines()
+            if line.startswith("| ") and "---" not in line][1:]
+    assert [r[:3] for r in rows] == [
+        [f"| {label}", decoding, stage] for decoding, names in (
+            ("the model's", ("decoder", "SeamInertia")),
+            (settings.replace(",", ", "), ("decoder", "SeamInertia", "RootHold")))
+        for label in ("model", "vae") for stage in names]
+    main_rows = [line.split(" | ") for line in printed[:printed.index("By stage")].splitlines()
+                 if line.startswith(("| model |", "| vae |"))]
+    assert len(main_rows) == 4
+    for label, decoding, shown, *_ in main_rows:  # shown: "shell (interval) / legs / feet"
+        last = [r for r in rows if r[0] == label and r[1] == decoding][-1]
+        assert f"{float(last[3].split()[0]):.0f}" == shown.split()[0]
