@@ -17,14 +17,15 @@ acceleration by time scale and by place in a latent block: its energy below and 
 table of each body part's FGD_acc beside the real floor's, the recording's first half of windows
 against its second: where a decoding's distance lies (seventy-ninth run). ``--stages`` adds
 the shell's FGD_acc and the anatomy's figures after each filter of the chain in turn, the
-decoder's own frames first: what each filter adds to and takes from each part (eightieth run):
+decoder's own frames first: what each filter adds to and takes from each part, and
+``--stages-plot`` draws it (eightieth run):
 
     python scripts/decode_replay.py --run MODEL --shards test_shards --split train --windows 96 \\
         --noise-scale 0.3 --cfg 4.5 --guide user_head --guidance-interval 0,0.75 \\
         --imputation trajectory --record decodes.npz --try vae.root_hold=0.15
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --try vae.foot_lock=0.2
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --anatomy
-    python scripts/decode_replay.py --run MODEL --replay decodes.npz --stages
+    python scripts/decode_replay.py --run MODEL --replay decodes.npz --stages-plot stages.png
 """
 
 from __future__ import annotations
@@ -286,6 +287,67 @@ def stage_row(label: str, decoding: str, stage: str, shell: np.ndarray, found: d
             + " | ".join(anatomy_cells(found, truth)) + " |")
 
 
+def stage_series(by_stage: list, truth: dict) -> dict[tuple[str, str], dict]:
+    """The stages' table as numbers, per (motion, decoding) in the table's order: ``stages`` (the
+    names), ``fgd`` (stages, 3: the shell's FGD_acc per batch, its 95 % interval's ends) and
+    ``parts``: each body part's (stages, 2, 3) energy below and above ``BAND_HZ`` ÷ the data's, each
+    with its paired 95 % interval's ends (NaN where the data's energy is 0). ``by_stage`` holds
+    (motion, decoding, stage, shell batches, ``anatomy``) tuples."""
+    out: dict[tuple[str, str], dict] = {}
+    for label, decoding, stage, shell, found in by_stage:
+        group = out.setdefault((label, decoding), {"stages": [], "fgd": [],
+                                                    "parts": {part: [] for part in found}})
+        group["stages"].append(stage)
+        group["fgd"].append((float(np.mean(shell)), *bootstrap_interval(shell)))
+        for part, windows in found.items():
+            ratios = [paired_comparison(windows[:, k], truth[part][:, k]) for k in (1, 2)]
+            group["parts"][part].append([[r.get(key, np.nan) for key in ("ratio", "ratio_low", "ratio_high")]
+                                         for r in ratios])
+    for group in out.values():
+        group["fgd"] = np.asarray(group["fgd"], dtype=np.float64)
+        group["parts"] = {part: np.asarray(v, dtype=np.float64) for part, v in group["parts"].items()}
+    return out
+
+
+def plot_stages(path: Path, series: dict[tuple[str, str], dict]) -> Path:
+    """``stage_series`` drawn: a column per motion and decoding, the shell's FGD_acc on top and
+    each part's energy below and above ``BAND_HZ`` ÷ the data's under it (log scales, 95 %
+    intervals as bars, the data's energy as a dashed line at 1)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sarah_models.generation.plots import save_figure
+
+    def bars(ax, x, values, **style):  # values (stages, 3): figure, interval's low and high ends
+        ax.errorbar(x, values[:, 0], yerr=np.abs(values[:, 1:].T - values[:, 0]), marker="o",
+                    capsize=2, **style)
+
+    fig, axes = plt.subplots(3, len(series), figsize=(4.5 * len(series), 9.5), squeeze=False,
+                             sharey="row")
+    for column, ((label, decoding), group) in enumerate(series.items()):
+        x = np.arange(len(group["stages"]))
+        bars(axes[0, column], x, group["fgd"], color="black")
+        axes[0, column].set_title(f"{label}, {decoding}", fontsize=9)
+        for band in (0, 1):
+            ax = axes[band + 1, column]
+            for part, values in group["parts"].items():
+                bars(ax, x, values[:, band], label=part)
+            ax.axhline(1.0, color="grey", linestyle="--", linewidth=1)
+        for ax in axes[:, column]:
+            ax.set_yscale("log", nonpositive="mask")
+            ax.set_xticks(x, group["stages"], rotation=30, ha="right", fontsize=8)
+    axes[0, 0].set_ylabel(f"FGD_acc of the shell, per batch of {BATCH}")
+    axes[1, 0].set_ylabel(f"energy below {BAND_HZ:g} Hz ÷ the data's")
+    axes[2, 0].set_ylabel(f"energy above {BAND_HZ:g} Hz ÷ the data's")
+    axes[1, -1].legend(fontsize=7, loc="best")
+    fig.suptitle("The decoding chain, stage by stage: the decoder's frames, then after each filter",
+                 fontsize=10)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
 def steps(motion: np.ndarray, layout: MotionLayout, stance: np.ndarray | None) -> dict[str, float]:
     """The feet's steps a window, the share lasting the data's step, and the stance's lifts a
     window (when the decoding steps by a stance)."""
@@ -369,6 +431,8 @@ def main(argv: list[str] | None = None) -> int:
                              f"part's seam share and acceleration energy below and above "
                              f"{BAND_HZ:g} Hz after each filter of the decoding chain in turn, "
                              f"the decoder's own frames first: what each filter adds and takes")
+    parser.add_argument("--stages-plot", type=Path, metavar="PNG",
+                        help="also draw the stages' table as a figure to this PNG (implies --stages)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     add_sampling_arguments(parser, EvalConfig())
     parser.add_argument("--seed", type=int, default=EvalConfig().seed, help="sarah-eval's --seed")
@@ -384,6 +448,13 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(exc))
     tries = [[s.strip() for s in t.split(",") if s.strip()] for t in args.tries]
     check_tries(parser, tries, models.config)
+    if args.stages_plot is not None:
+        if args.stages_plot.suffix.lower() != ".png":
+            parser.error(f"--stages-plot {args.stages_plot}: the figure is a PNG (name it .png)")
+        if not args.stages_plot.parent.is_dir():
+            parser.error(f"--stages-plot {args.stages_plot}: no such folder "
+                         f"{args.stages_plot.parent}")
+        args.stages = True
     if args.record is not None and args.shards is None:
         parser.error("--record needs --shards")
     if args.replay is not None and not args.replay.is_file():
@@ -437,10 +508,10 @@ def main(argv: list[str] | None = None) -> int:
             if args.stages:
                 for stage, staged in stages(tried, frames, stance, users):
                     staged_acc = shell_accelerations(staged, layout)
-                    by_stage.append(stage_row(
+                    by_stage.append((
                         label, decoding, stage,
                         np.asarray(batch_distances(staged_acc, real, np.arange(real.shape[2]))),
-                        anatomy(staged, staged_acc, layout, parts, stride), truth_parts))
+                        anatomy(staged, staged_acc, layout, parts, stride)))
     if args.anatomy:
         print(f"\nFGD_acc by body part, per batch of {BATCH} (95 % bootstrap over batches)"
               + (", and ÷ the real floor's: the data's first half of windows against its "
@@ -467,7 +538,9 @@ def main(argv: list[str] | None = None) -> int:
               f"above {BAND_HZ:g} Hz ÷ the data's, paired over the {len(truth)} windows\n")
         print("| motion | decoding | after | FGD_acc (shell) | " + " | ".join(truth_parts)
               + " |\n|---|---|---|---|" + "---|" * len(truth_parts))
-        print("\n".join(by_stage))
+        print("\n".join(stage_row(*entry, truth_parts) for entry in by_stage))
+    if args.stages_plot is not None:
+        print(f"\nwrote {plot_stages(args.stages_plot, stage_series(by_stage, truth_parts))}")
     return 0
 
 

@@ -84,6 +84,8 @@ def test_records_the_model_row_and_replays_other_decodings(tiny, tmp_path, capsy
     (["--try", "vae.root_hold_turn=1"], "set vae.root_hold too"),  # this model holds nothing
     (["--record", "x.npz"], "--record needs --shards"),
     (["--replay", "missing.npz"], "no such file"),
+    (["--stages-plot", "no-such-folder/stages.png"], "no such folder"),
+    (["--stages-plot", "stages.svg"], "name it .png"),
 ])
 def test_bad_arguments_stop_before_any_work(tiny, tmp_path, capsys, argv, words):
     argv = ["--run", str(tiny["run"]), *argv]
@@ -225,3 +227,21 @@ def test_the_stages_follow_the_chain_filter_by_filter(tiny, tmp_path, capsys):
     for label, decoding, shown, *_ in main_rows:  # shown: "shell (interval) / legs / feet"
         last = [r for r in rows if r[0] == label and r[1] == decoding][-1]
         assert f"{float(last[3].split()[0]):.0f}" == shown.split()[0]
+    # --stages-plot: the same table drawn; its numbers are the table's
+    import matplotlib.image
+
+    picture = tmp_path / "stages.png"
+    assert replay.main(["--run", str(tiny["run"]), "--replay", str(out), "--stages-plot",
+                        str(picture), "--try", settings]) == 0
+    again = capsys.readouterr().out
+    assert again[again.index("By stage"):].startswith(table.rstrip("\n").split("\n")[0])
+    assert f"wrote {picture}" in again and matplotlib.image.imread(picture).ndim == 3
+    truth = {part: np.ones((3, 3)) for part in ("legs", "arms")}
+    found = {"legs": np.array([[0.5, 2.0, 4.0]] * 3), "arms": np.array([[0.5, 0.5, 0.25]] * 3)}
+    series = replay.stage_series([("model", "x", "decoder", np.array([10.0, 12.0]), found),
+                                  ("model", "x", "FootLock", np.array([3.0]), truth)], truth)
+    group = series[("model", "x")]
+    assert group["stages"] == ["decoder", "FootLock"] and group["fgd"][:, 0].tolist() == [11.0, 3.0]
+    np.testing.assert_allclose(group["parts"]["legs"][:, :, 0], [[2.0, 4.0], [1.0, 1.0]])
+    np.testing.assert_allclose(group["parts"]["arms"][:, :, 0], [[0.5, 0.25], [1.0, 1.0]])
+    assert replay.plot_stages(tmp_path / "two.png", series).is_file()
