@@ -256,6 +256,12 @@ def anatomy(motion: np.ndarray, acc: np.ndarray, layout: MotionLayout, parts: di
     return out
 
 
+def energy_ratios(windows: np.ndarray, truth: np.ndarray) -> list[dict[str, float]]:
+    """A part's ``anatomy`` (windows, 3) against the data's on the same windows: its energy below
+    and above ``BAND_HZ`` ÷ the data's, each ``paired_comparison``'s dict."""
+    return [paired_comparison(windows[:, k], truth[:, k]) for k in (1, 2)]
+
+
 def anatomy_cells(found: dict, truth: dict) -> list[str]:
     """Seam share / energy below / above BAND_HZ of each part, the windows' means with 95 %
     bootstrap intervals over windows; the energies ÷ the data's on the same windows, paired
@@ -267,7 +273,7 @@ def anatomy_cells(found: dict, truth: dict) -> list[str]:
         if found is truth:
             cells.append(f"{seam} / {100 * low ** 0.5:.0f} / {100 * high ** 0.5:.0f} cm/s²")
             continue
-        ratios = [paired_comparison(windows[:, k], truth[part][:, k]) for k in (1, 2)]
+        ratios = energy_ratios(windows, truth[part])
         cells.append(seam + "".join(" / {ratio:.2f}x ({ratio_low:.2f}-{ratio_high:.2f})".format(**r)
                                     for r in ratios))
     return cells
@@ -300,7 +306,7 @@ def stage_series(by_stage: list, truth: dict) -> dict[tuple[str, str], dict]:
         group["stages"].append(stage)
         group["fgd"].append((float(np.mean(shell)), *bootstrap_interval(shell)))
         for part, windows in found.items():
-            ratios = [paired_comparison(windows[:, k], truth[part][:, k]) for k in (1, 2)]
+            ratios = energy_ratios(windows, truth[part])
             group["parts"][part].append([[r.get(key, np.nan) for key in ("ratio", "ratio_low", "ratio_high")]
                                          for r in ratios])
     for group in out.values():
@@ -391,6 +397,11 @@ def row(label: str, decoding: str, f: dict) -> str:
     head = (f"{f['head']:+.3f} | {f['look-away']:.2f}" if "head" in f else "- | -")
     return (f"| {label} | {decoding} | {cells[0]} | {cells[1]} | {f['steps']:.1f} | "
             f"{f['data steps']:.0%} | {lifts} | {head} |")
+
+
+def decoding_of(settings: list[str]) -> str:
+    """How the tables name a decoding: its ``--try`` settings, or the model's own."""
+    return ", ".join(settings) or "the model's"
 
 
 def check_tries(parser: argparse.ArgumentParser, tries: list[list[str]], config: RunConfig) -> None:
@@ -494,24 +505,26 @@ def main(argv: list[str] | None = None) -> int:
         tried = tried_models(models, source, settings)
         for label in ROWS:
             frames, stance = recorded[f"{label}_frames"], recorded[f"{label}_stance"]
-            motion = decode(tried, frames, stance, users)
-            acc = shell_accelerations(motion, layout)
+            if args.stages:  # the chain a filter at a time; its last stage is the decoded motion
+                for stage, motion in stages(tried, frames, stance, users):
+                    acc = shell_accelerations(motion, layout)
+                    by_stage.append((
+                        label, decoding_of(settings), stage,
+                        np.asarray(batch_distances(acc, real, np.arange(real.shape[2]))),
+                        anatomy(motion, acc, layout, parts, stride)))
+            else:
+                motion = decode(tried, frames, stance, users)
+                acc = shell_accelerations(motion, layout)
             batches = part_distances(acc, real, parts) if args.anatomy else None
             figures = {**distances(acc, real, parts, batches),
                        **steps(motion, layout, stance if reads_stance(tried.vae) else None),
                        **({} if users is None else gaze(head_angles(motion, users, layout), truth_angles))}
-            decoding = ", ".join(settings) or "the model's"
+            decoding = decoding_of(settings)
             print(row(label, decoding, figures), flush=True)
             if args.anatomy:
-                anatomies.append((label, decoding, anatomy(motion, acc, layout, parts, stride)))
+                anatomies.append((label, decoding, by_stage[-1][4] if args.stages else
+                                  anatomy(motion, acc, layout, parts, stride)))
                 by_part.append((label, decoding, batches))
-            if args.stages:
-                for stage, staged in stages(tried, frames, stance, users):
-                    staged_acc = shell_accelerations(staged, layout)
-                    by_stage.append((
-                        label, decoding, stage,
-                        np.asarray(batch_distances(staged_acc, real, np.arange(real.shape[2]))),
-                        anatomy(staged, staged_acc, layout, parts, stride)))
     if args.anatomy:
         print(f"\nFGD_acc by body part, per batch of {BATCH} (95 % bootstrap over batches)"
               + (", and ÷ the real floor's: the data's first half of windows against its "
