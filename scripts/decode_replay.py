@@ -18,7 +18,11 @@ table of each body part's FGD_acc beside the real floor's, the recording's first
 against its second: where a decoding's distance lies (seventy-ninth run). ``--stages`` adds
 the shell's FGD_acc and the anatomy's figures after each filter of the chain in turn, the
 decoder's own frames first: what each filter adds to and takes from each part, and
-``--stages-plot`` draws it (eightieth run):
+``--stages-plot`` draws it (eightieth run). ``--legs`` splits the legs' FGD_acc by the leg joints
+their points lie nearest to (the hips, by axis too, and each knee and ankle), with what lies
+between the two legs (both together less each alone) beside the real floor's, and correlates the
+left and right knees' and ankles' accelerations: the data's legs move together, the lock's each
+on its own (eighty-first run):
 
     python scripts/decode_replay.py --run MODEL --shards test_shards --split train --windows 96 \\
         --noise-scale 0.3 --cfg 4.5 --guide user_head --guidance-interval 0,0.75 \\
@@ -26,6 +30,7 @@ decoder's own frames first: what each filter adds to and takes from each part, a
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --try vae.foot_lock=0.2
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --anatomy
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --stages-plot stages.png
+    python scripts/decode_replay.py --run MODEL --replay decodes.npz --legs
 """
 
 from __future__ import annotations
@@ -172,16 +177,17 @@ def shell_accelerations(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
 SCALE = (1.0 / MetricsConfig().report_unit) ** FGD_ACC.length_power / FGD_ACC.scale
 
 
-def features(acc: np.ndarray, points, clips=slice(None)) -> np.ndarray:
-    """(clips, frames, points, 3) accelerations -> (samples, 3 * len(points)): FGD_acc's
-    samples, one a frame, of ``points``."""
-    return acc[clips][:, :, points].reshape(-1, 3 * len(points))
+def features(acc: np.ndarray, points, clips=slice(None), axes=(0, 1, 2)) -> np.ndarray:
+    """(clips, frames, points, 3) accelerations -> (samples, len(axes) * len(points)): FGD_acc's
+    samples, one a frame, of ``points`` (of their ``axes`` alone: 1 is the vertical)."""
+    return acc[clips][:, :, points][..., list(axes)].reshape(-1, len(axes) * len(points))
 
 
-def batch_distances(acc: np.ndarray, real: np.ndarray, points) -> list[float]:
-    """FGD_acc of ``points`` per batch of ``BATCH`` clips (clip i against real clip i), ×10^5."""
-    return [frechet_distance(features(acc, points, slice(s, s + BATCH)),
-                             features(real, points, slice(s, s + BATCH))) * SCALE
+def batch_distances(acc: np.ndarray, real: np.ndarray, points, axes=(0, 1, 2)) -> list[float]:
+    """FGD_acc of ``points`` per batch of ``BATCH`` clips (clip i against real clip i), ×10^5;
+    of their ``axes`` alone where given."""
+    return [frechet_distance(features(acc, points, slice(s, s + BATCH), axes),
+                             features(real, points, slice(s, s + BATCH), axes)) * SCALE
             for s in range(0, len(acc), BATCH)]
 
 
@@ -354,6 +360,69 @@ def plot_stages(path: Path, series: dict[tuple[str, str], dict]) -> Path:
     return save_figure(fig, path)
 
 
+# The legs' table: the legs' shell points by the leg joints each lies nearest to, a group per
+# entry; "between the two" is what the two legs' points score together beyond each leg alone.
+LEG_GROUPS = {"hips": ("left_hip", "right_hip"), "left knee and ankle": ("left_knee", "left_ankle"),
+              "right knee and ankle": ("right_knee", "right_ankle")}
+LEG_COLUMNS = ("hips", "hips horizontal", "hips vertical", "left knee and ankle",
+               "right knee and ankle", "both knees and ankles", "between the two")
+# the left and right joints' accelerations the table correlates: the data's knees move together
+# on the floor, their ankles vertically (docs/results.md, seventy-eighth run)
+LEG_PAIRS = (("knee", 0), ("knee", 2), ("ankle", 1))
+
+
+def leg_groups(icosahedra: np.ndarray, shell: np.ndarray, layout: MotionLayout) -> dict[str, list[int]]:
+    """One frame's icosahedra and shell -> the legs' shell points (``shell_parts``' "legs") by
+    the ``LEG_GROUPS`` entry whose joint each lies nearest to."""
+    legs = list(shell_parts(icosahedra, shell, layout.joint_names).get("legs", ()))
+    names = [name for joints in LEG_GROUPS.values() for name in joints]
+    centres = icosahedra.mean(axis=-2)[[layout.joint(name) for name in names]]
+    nearest = np.argmin(np.sum((shell[legs][:, None] - centres[None]) ** 2, axis=-1), axis=1)
+    return {group: [p for p, j in zip(legs, nearest) if names[j] in joints]
+            for group, joints in LEG_GROUPS.items()}
+
+
+def leg_distances(acc: np.ndarray, real: np.ndarray, groups: dict[str, list[int]]
+                  ) -> dict[str, np.ndarray]:
+    """FGD_acc per batch of ``BATCH`` clips of each of ``LEG_COLUMNS``: the hips' points (all
+    three axes, the floor's two, the vertical), each leg's knee and ankle points, both legs'
+    together, and both less each alone, batch by batch; NaN where a group has no points."""
+    hips, left, right = (groups[g] for g in LEG_GROUPS)
+    out = {column: np.asarray(batch_distances(acc, real, points, axes) if points else [np.nan])
+           for column, points, axes in (
+        ("hips", hips, (0, 1, 2)), ("hips horizontal", hips, (0, 2)), ("hips vertical", hips, (1,)),
+        ("left knee and ankle", left, (0, 1, 2)), ("right knee and ankle", right, (0, 1, 2)),
+        ("both knees and ankles", left + right, (0, 1, 2)))}
+    out["between the two"] = (out["both knees and ankles"] - out["left knee and ankle"]
+                              - out["right knee and ankle"])
+    return out
+
+
+def leg_correlations(motion: np.ndarray, layout: MotionLayout) -> list[float]:
+    """The correlation of the left and right joint's frame-to-frame accelerations along an axis,
+    pooled over every window's frames, for each of ``LEG_PAIRS`` (NaN where either stands still)."""
+    out = []
+    for joint, axis in LEG_PAIRS:
+        both = np.stack([layout.joint_positions(x.astype(np.float64), [f"left_{joint}", f"right_{joint}"])
+                         for x in motion])[..., axis]
+        acc = np.diff(both, 2, axis=1).reshape(-1, 2)
+        still = not np.all(acc.std(axis=0) > 0)
+        out.append(np.nan if still else float(np.corrcoef(acc[:, 0], acc[:, 1])[0, 1]))
+    return out
+
+
+def legs_row(label: str, decoding: str, found: dict[str, np.ndarray] | None,
+             correlations: list[float]) -> str:
+    """A row of the legs' table: each column's FGD_acc with its 95 % bootstrap interval over
+    batches ("-" where ``found`` is None, the data's row without a real floor, or where a group
+    has no points), and the left / right correlations."""
+    cells = (["-"] * len(LEG_COLUMNS) if found is None else
+             ["{:.1f} ({:.1f}-{:.1f})".format(found[c].mean(), *bootstrap_interval(found[c]))
+              if np.isfinite(found[c]).all() else "-" for c in LEG_COLUMNS])
+    return (f"| {label} | {decoding} | " + " | ".join(cells) + " | "
+            + " / ".join(f"{c:.2f}" if np.isfinite(c) else "-" for c in correlations) + " |")
+
+
 def steps(motion: np.ndarray, layout: MotionLayout, stance: np.ndarray | None) -> dict[str, float]:
     """The feet's steps a window, the share lasting the data's step, and the stance's lifts a
     window (when the decoding steps by a stance)."""
@@ -444,6 +513,12 @@ def main(argv: list[str] | None = None) -> int:
                              f"the decoder's own frames first: what each filter adds and takes")
     parser.add_argument("--stages-plot", type=Path, metavar="PNG",
                         help="also draw the stages' table as a figure to this PNG (implies --stages)")
+    parser.add_argument("--legs", action="store_true",
+                        help=f"also print the legs' FGD_acc by the leg joints their points lie "
+                             f"nearest to (the hips, each knee and ankle, both, and both less "
+                             f"each alone: what lies between the two legs) beside the real floor's "
+                             f"(from {2 * BATCH} windows), and the correlation of the left and "
+                             f"right knees' and ankles' accelerations")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     add_sampling_arguments(parser, EvalConfig())
     parser.add_argument("--seed", type=int, default=EvalConfig().seed, help="sarah-eval's --seed")
@@ -501,6 +576,12 @@ def main(argv: list[str] | None = None) -> int:
     by_stage = []
     floor = real_floor(real, parts) if args.anatomy else None
     by_part = [] if floor is None else [("real floor", "-", floor)]
+    if args.legs:
+        groups = leg_groups(ico, shell, layout)
+        half = len(truth) // 2
+        legs = [legs_row("real floor" if half >= BATCH else "ground truth", "-",
+                         leg_distances(real[:half], real[half:2 * half], groups) if half >= BATCH
+                         else None, leg_correlations(truth, layout))]
     for settings in [[], *tries]:
         tried = tried_models(models, source, settings)
         for label in ROWS:
@@ -521,6 +602,9 @@ def main(argv: list[str] | None = None) -> int:
                        **({} if users is None else gaze(head_angles(motion, users, layout), truth_angles))}
             decoding = decoding_of(settings)
             print(row(label, decoding, figures), flush=True)
+            if args.legs:
+                legs.append(legs_row(label, decoding, leg_distances(acc, real, groups),
+                                     leg_correlations(motion, layout)))
             if args.anatomy:
                 anatomies.append((label, decoding, by_stage[-1][4] if args.stages else
                                   anatomy(motion, acc, layout, parts, stride)))
@@ -544,6 +628,16 @@ def main(argv: list[str] | None = None) -> int:
               + "---|" * len(truth_parts))
         for label, decoding, found in anatomies:
             print(anatomy_row(label, decoding, found, truth_parts))
+    if args.legs:
+        print(f"\nThe legs' FGD_acc by the leg joints their shell points lie nearest to, per "
+              f"batch of {BATCH} (95 % bootstrap over batches; the real floor: the data's first "
+              f"half of windows against its second half, from {2 * BATCH} windows), and the "
+              f"correlation of the left and right joints' accelerations, pooled over every "
+              f"window's frames\n")
+        pairs = " / ".join(f"{joint} {'xyz'[axis]}" for joint, axis in LEG_PAIRS)
+        print("| motion | decoding | " + " | ".join(LEG_COLUMNS) + f" | left / right: {pairs} |\n"
+              + "|---|---|" + "---|" * (len(LEG_COLUMNS) + 1))
+        print("\n".join(legs))
     if args.stages:
         print(f"\nBy stage of the decoding chain: the decoder's frames, then the motion after each "
               f"filter in turn; the shell's FGD_acc per batch of {BATCH} (95 % bootstrap over "

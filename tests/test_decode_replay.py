@@ -245,3 +245,76 @@ def test_the_stages_follow_the_chain_filter_by_filter(tiny, tmp_path, capsys):
     np.testing.assert_allclose(group["parts"]["legs"][:, :, 0], [[2.0, 4.0], [1.0, 1.0]])
     np.testing.assert_allclose(group["parts"]["arms"][:, :, 0], [[0.5, 0.25], [1.0, 1.0]])
     assert replay.plot_stages(tmp_path / "two.png", series).is_file()
+
+
+def test_the_legs_table_splits_the_legs_and_what_lies_between(tiny, tmp_path, capsys):
+    """--legs: the legs' points split by the leg joint each lies nearest to; legs that each move
+    as the data's but in step with each other score nothing alone and all of it between the two;
+    a vertical shake of the hips reads in their vertical column; left and right knees moved
+    together correlate at 1, moved apart near 0."""
+    from sarah_data.dataset import WindowDataset
+    from sarah_data.skeleton import MotionLayout, shell_parts
+
+    dataset = WindowDataset.sliding(tiny["shards"], "test", extractor="logmel", window=WINDOW)
+    frame = dataset[0]["motion"].numpy().astype(np.float64)[0]
+    layout = MotionLayout.from_width(len(frame))
+    icosahedra, shell = layout.split(frame)
+    centres = icosahedra.mean(axis=-2)
+    # the test shards' four shell points put a millimetre from a joint each: the right knee, the
+    # left hip, the left ankle and the head, which is no leg's
+    placed = shell.copy()
+    for p, name in enumerate(("right_knee", "left_hip", "left_ankle", "head")):
+        placed[p] = centres[layout.joint(name)] + 0.001
+    groups = replay.leg_groups(icosahedra, placed, layout)
+    assert groups == {"hips": [1], "left knee and ankle": [2], "right knee and ankle": [0]}
+    assert sorted(p for points in groups.values() for p in points) == \
+        sorted(shell_parts(icosahedra, placed, layout.joint_names)["legs"])
+    # FGD_acc of made-up accelerations: two points a group
+    rng = np.random.default_rng(0)
+    made = {"hips": [0, 1], "left knee and ankle": [2, 3], "right knee and ankle": [4, 5]}
+    real = rng.normal(size=(64, 30, 6, 3))
+    assert all(np.allclose(v, 0.0, atol=1e-9) for v in replay.leg_distances(real, real, made).values())
+    apart = rng.normal(size=real.shape)
+    in_step = apart.copy()
+    in_step[:, :, [4, 5]] = in_step[:, :, [2, 3]]
+    loose, locked = (replay.leg_distances(a, real, made) for a in (apart, in_step))
+    assert list(locked) == list(replay.LEG_COLUMNS)
+    assert locked["between the two"].mean() > 10 * max(loose["between the two"].mean(),
+                                                       locked["right knee and ankle"].mean())
+    shaken = apart.copy()
+    shaken[:, :, [0, 1], 1] *= 3.0
+    hips = replay.leg_distances(shaken, real, made)
+    assert hips["hips vertical"].mean() > 10 * hips["hips horizontal"].mean()
+    np.testing.assert_allclose(hips["hips horizontal"], loose["hips horizontal"])
+    # the correlation of the left and right joints' accelerations
+    frames = 60
+    still = np.tile(frame, (2, frames, 1))
+
+    def knees(left, right):  # (2, frames, 3) displacements of each knee's icosahedron
+        motion = still.copy()
+        for name, path in (("left_knee", left), ("right_knee", right)):
+            motion[..., layout.joint_slice(name)] += np.tile(path, 12)
+        return motion
+
+    path = rng.normal(scale=0.01, size=(2, frames, 3))
+    same = replay.leg_correlations(knees(path, path), layout)
+    assert same[0] == pytest.approx(1.0) and same[1] == pytest.approx(1.0)
+    assert np.isnan(same[2])  # the ankles stand still
+    assert replay.legs_row("x", "-", None, same).endswith(" | 1.00 / 1.00 / - |")
+    other = replay.leg_correlations(knees(path, rng.normal(scale=0.01, size=path.shape)), layout)
+    assert abs(other[0]) < 0.2 and abs(other[1]) < 0.2
+    # the command line: the data's row (no floor from 3 windows), then a row per motion and decoding
+    out = tmp_path / "decodes.npz"
+    assert replay.main(["--run", str(tiny["run"]), "--shards", str(tiny["shards"]), "--window",
+                        str(WINDOW), "--windows", "3", "--record", str(out), "--legs"]) == 0
+    printed = capsys.readouterr().out
+    table = printed[printed.index("The legs' FGD_acc"):]
+    rows = [line.split(" | ") for line in table.splitlines() if line.startswith("| ") and "---" not in line]
+    assert len(rows[0]) == len(replay.LEG_COLUMNS) + 3
+    assert [r[:2] for r in rows[1:]] == [["| ground truth", "-"], ["| model", "the model's"],
+                                         ["| vae", "the model's"]]
+    assert rows[1][2:-1] == ["-"] * len(replay.LEG_COLUMNS)
+    assert all(len(r) == len(rows[0]) for r in rows)
+    # these shards' shell has no leg points: every FGD_acc column reads "-", the correlations not
+    assert all(r[2:-1] == ["-"] * len(replay.LEG_COLUMNS) for r in rows[2:])
+    assert all(len(r[-1].split(" / ")) == len(replay.LEG_PAIRS) for r in rows[1:])
