@@ -216,14 +216,18 @@ def part_distances(acc: np.ndarray, real: np.ndarray, parts: dict) -> dict[str, 
             for part, points in (("shell", range(acc.shape[2])), *parts.items())}
 
 
-def real_floor(real: np.ndarray, parts: dict) -> dict[str, np.ndarray] | None:
-    """``part_distances`` of the data's first half of windows against its second half: what two
-    sets of real windows score, the floor no decoding gets under at this batch size; None with
-    fewer than two batches' windows."""
+def real_halves(real: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The data's first half of windows and its second, whose distance is the real floor: what
+    two sets of real windows score, the floor no decoding gets under at this batch size; None
+    with fewer than two batches' windows."""
     half = len(real) // 2
-    if half < BATCH:
-        return None
-    return part_distances(real[:half], real[half:2 * half], parts)
+    return None if half < BATCH else (real[:half], real[half:2 * half])
+
+
+def real_floor(real: np.ndarray, parts: dict) -> dict[str, np.ndarray] | None:
+    """``part_distances`` of the data's ``real_halves``; None without them."""
+    halves = real_halves(real)
+    return None if halves is None else part_distances(*halves, parts)
 
 
 def parts_row(label: str, decoding: str, found: dict, floor: dict | None) -> str:
@@ -577,11 +581,10 @@ def main(argv: list[str] | None = None) -> int:
     floor = real_floor(real, parts) if args.anatomy else None
     by_part = [] if floor is None else [("real floor", "-", floor)]
     if args.legs:
-        groups = leg_groups(ico, shell, layout)
-        half = len(truth) // 2
-        legs = [legs_row("real floor" if half >= BATCH else "ground truth", "-",
-                         leg_distances(real[:half], real[half:2 * half], groups) if half >= BATCH
-                         else None, leg_correlations(truth, layout))]
+        groups, halves = leg_groups(ico, shell, layout), real_halves(real)
+        legs = [legs_row("ground truth" if halves is None else "real floor", "-",
+                         None if halves is None else leg_distances(*halves, groups),
+                         leg_correlations(truth, layout))]
     for settings in [[], *tries]:
         tried = tried_models(models, source, settings)
         for label in ROWS:
