@@ -10,7 +10,7 @@ Works on numpy arrays and torch tensors alike (reshape and mean only).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -40,20 +40,21 @@ JOINT_GROUPS: dict[str, tuple[str, ...]] = {
 }
 
 
-def shell_parts(icosahedra, shell, joint_names: Sequence[str] = JOINT_NAMES
-                ) -> dict[str, tuple[int, ...]]:
+def shell_parts(icosahedra, shell, joint_names: Sequence[str] = JOINT_NAMES,
+                groups: Mapping[str, Sequence[str]] = JOINT_GROUPS) -> dict[str, tuple[int, ...]]:
     """One frame's icosahedra (J, 12, 3) and shell points (V, 3) -> the shell point indices of
-    each joint group, by the joint each point lies nearest to; groups in ``JOINT_GROUPS`` order,
-    those no point lies nearest to left out."""
+    each of ``groups`` (name -> joint names; the body's parts by default), by the joint each point
+    lies nearest to among all joints; groups in ``groups`` order, those no point lies nearest to
+    left out (a point nearest a joint of no group is in none)."""
     icosahedra, shell = np.asarray(icosahedra, np.float64), np.asarray(shell, np.float64)
     if icosahedra.ndim != 3 or icosahedra.shape[0] != len(joint_names) or shell.ndim != 2:
         raise ValueError(f"shell_parts: want one frame's icosahedra ({len(joint_names)}, 12, 3) "
                          f"and shell (V, 3), got {icosahedra.shape} and {shell.shape}")
     centres = icosahedra.mean(axis=-2)
     nearest = np.argmin(np.sum((shell[:, None] - centres[None]) ** 2, axis=-1), axis=1)
-    group_of = {name: group for group, names in JOINT_GROUPS.items() for name in names}
-    groups = np.array([group_of.get(joint_names[j], "") for j in nearest])
-    parts = {group: tuple(int(p) for p in np.flatnonzero(groups == group)) for group in JOINT_GROUPS}
+    group_of = {name: group for group, names in groups.items() for name in names}
+    found = np.array([group_of.get(joint_names[j], "") for j in nearest])
+    parts = {group: tuple(int(p) for p in np.flatnonzero(found == group)) for group in groups}
     return {group: points for group, points in parts.items() if points}
 
 

@@ -376,14 +376,11 @@ LEG_PAIRS = (("knee", 0), ("knee", 2), ("ankle", 1))
 
 
 def leg_groups(icosahedra: np.ndarray, shell: np.ndarray, layout: MotionLayout) -> dict[str, list[int]]:
-    """One frame's icosahedra and shell -> the legs' shell points (``shell_parts``' "legs") by
-    the ``LEG_GROUPS`` entry whose joint each lies nearest to."""
-    legs = list(shell_parts(icosahedra, shell, layout.joint_names).get("legs", ()))
-    names = [name for joints in LEG_GROUPS.values() for name in joints]
-    centres = icosahedra.mean(axis=-2)[[layout.joint(name) for name in names]]
-    nearest = np.argmin(np.sum((shell[legs][:, None] - centres[None]) ** 2, axis=-1), axis=1)
-    return {group: [p for p, j in zip(legs, nearest) if names[j] in joints]
-            for group, joints in LEG_GROUPS.items()}
+    """One frame's icosahedra and shell -> the legs' shell points by the ``LEG_GROUPS`` entry
+    whose joint each lies nearest to (``shell_parts``' "legs", split); every entry, empty where
+    no point lies nearest to its joints."""
+    found = shell_parts(icosahedra, shell, layout.joint_names, LEG_GROUPS)
+    return {group: list(found.get(group, ())) for group in LEG_GROUPS}
 
 
 def leg_distances(acc: np.ndarray, real: np.ndarray, groups: dict[str, list[int]]
@@ -405,11 +402,14 @@ def leg_distances(acc: np.ndarray, real: np.ndarray, groups: dict[str, list[int]
 def leg_correlations(motion: np.ndarray, layout: MotionLayout) -> list[float]:
     """The correlation of the left and right joint's frame-to-frame accelerations along an axis,
     pooled over every window's frames, for each of ``LEG_PAIRS`` (NaN where either stands still)."""
+    joints = sorted({joint for joint, _ in LEG_PAIRS})
+    names = [f"{side}_{joint}" for joint in joints for side in ("left", "right")]
+    acc_all = np.diff(np.stack([layout.joint_positions(x.astype(np.float64), names)
+                                for x in motion]), 2, axis=1)  # (windows, T - 2, joints, 3)
     out = []
     for joint, axis in LEG_PAIRS:
-        both = np.stack([layout.joint_positions(x.astype(np.float64), [f"left_{joint}", f"right_{joint}"])
-                         for x in motion])[..., axis]
-        acc = np.diff(both, 2, axis=1).reshape(-1, 2)
+        k = 2 * joints.index(joint)
+        acc = acc_all[:, :, k:k + 2, axis].reshape(-1, 2)
         still = not np.all(acc.std(axis=0) > 0)
         out.append(np.nan if still else float(np.corrcoef(acc[:, 0], acc[:, 1])[0, 1]))
     return out
