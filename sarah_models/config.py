@@ -652,13 +652,18 @@ class RunConfig:
     def with_overrides(self, assignments: Sequence[str]) -> "RunConfig":
         """Apply ``section.field=value`` (or ``field=value`` when the name is unique) strings."""
         sections = {"vae": self.vae, "flow": self.flow, "train": self.train}
-        assigned: set[tuple[str, str]] = set()
+        changes: dict[str, dict[str, Any]] = {name: {} for name in sections}
         for text in assignments:
             section, name = self.target_of(text)
             current = sections[section]
-            value = _parse_value(getattr(current, name), text.partition("=")[2].strip(), text)
-            sections[section] = dataclasses.replace(current, **{name: value})
-            assigned.add((section, name))
+            changes[section][name] = _parse_value(getattr(current, name),
+                                                  text.partition("=")[2].strip(), text)
+        # One replace per section: its checks see every setting at once, so settings that only
+        # hold together (vae.root_hold=0 with vae.root_hold_turn=0) pass in either order.
+        for section, values in changes.items():
+            if values:
+                sections[section] = dataclasses.replace(sections[section], **values)
+        assigned = {(section, name) for section, values in changes.items() for name in values}
         # The position embedding spans one training window: a new window (or stride) moves it,
         # unless flow.position_tokens was set too.
         if ({("train", "window"), ("vae", "stride")} & assigned) and ("flow", "position_tokens") not in assigned:

@@ -398,6 +398,15 @@ def test_config_round_trip_and_overrides():
     for bad in (["hidden=3"], ["nope=1"], ["vae.nope=1"], ["train.lr=fast"], ["lr"]):
         with pytest.raises(ValueError):
             cfg.with_overrides(bad)
+    # Settings that only hold together are checked together, in either order; the last of two
+    # settings of one field wins.
+    turning = cfg.with_overrides(["vae.root_hold=0.7", "vae.root_hold_turn=1"])
+    for order in (["vae.root_hold=0", "vae.root_hold_turn=0"],
+                  ["vae.root_hold_turn=0", "vae.root_hold=0"]):
+        assert turning.with_overrides(order).vae == cfg.vae
+    assert cfg.with_overrides(["train.lr=1e-3", "train.lr=2e-3"]).train.lr == 2e-3
+    with pytest.raises(ValueError, match="root_hold"):
+        turning.with_overrides(["vae.root_hold=0"])
     with pytest.raises(ValueError, match="unknown field"):
         RunConfig.from_dict({**cfg.to_dict(), "vae": {"stride": 4, "bogus": 1}})
 
