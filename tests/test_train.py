@@ -734,7 +734,9 @@ def test_stage_model_takes_a_decoder_trained_on_the_frozen_encoder(tmp_path, cap
     run("vae", base, 3)
     run("flow", base, 3)
     config = tiny_config(3, freeze_encoder=True)
-    config = replace(config, vae=replace(config.vae, latent_noise=0.3, detail_dim=2))
+    # its own decoding turns a held body; the model's holds none, and the model's is what is kept
+    config = replace(config, vae=replace(config.vae, latent_noise=0.3, detail_dim=2,
+                                         root_hold=0.7, root_hold_turn=1.0))
     train("vae", config, None, tuned, init_from=base, device="cpu", dataset=SyntheticWindows(),
           stats=STATS, progress=False, echo=lambda _: None)
     out = tmp_path / "swapped"
@@ -749,6 +751,7 @@ def test_stage_model_takes_a_decoder_trained_on_the_frozen_encoder(tmp_path, cap
     assert not torch.equal(written["vae"]["frame_out.weight"], flow["vae"]["frame_out.weight"])
     assert written["config"]["vae"]["detail_dim"] == 2  # the decoder's sizes
     assert written["config"]["vae"]["boundary_inertia"] == 0.5  # the model's decoding, as --set
+    assert (written["config"]["vae"]["root_hold"], written["config"]["vae"]["root_hold_turn"]) == (0, 0)
     assert written["config"]["flow"] == flow["config"]["flow"]
     assert load_model_file(out / "model.safetensors", "cpu").vae.detail_in is not None
     # another encoder: refused by name, before anything is written

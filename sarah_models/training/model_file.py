@@ -118,9 +118,10 @@ def with_decoder_of(data: dict, decoder: str | Path) -> dict:
            for name in motion):
         raise ValueError(f"{path}: its motion statistics are not the model's (trained on other "
                          f"shards)")
-    vae_config = theirs.vae
-    for name in DECODING_FIELDS.get("vae", ()):
-        vae_config = replace(vae_config, **{name: getattr(own.vae, name)})
+    # in one replace: the config's checks see the model's decoding whole (vae.root_hold_turn
+    # needs vae.root_hold)
+    vae_config = replace(theirs.vae, **{name: getattr(own.vae, name)
+                                        for name in DECODING_FIELDS.get("vae", ())})
     config = replace(own, vae=vae_config).to_dict()
     return {**data, "config": config, "vae": dict(other["vae"])}
 
