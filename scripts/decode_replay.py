@@ -402,14 +402,13 @@ def leg_distances(acc: np.ndarray, real: np.ndarray, groups: dict[str, list[int]
 def leg_correlations(motion: np.ndarray, layout: MotionLayout) -> list[float]:
     """The correlation of the left and right joint's frame-to-frame accelerations along an axis,
     pooled over every window's frames, for each of ``LEG_PAIRS`` (NaN where either stands still)."""
-    joints = sorted({joint for joint, _ in LEG_PAIRS})
-    names = [f"{side}_{joint}" for joint in joints for side in ("left", "right")]
-    acc_all = np.diff(np.stack([layout.joint_positions(x.astype(np.float64), names)
-                                for x in motion]), 2, axis=1)  # (windows, T - 2, joints, 3)
+    names = sorted({f"{side}_{joint}" for joint, _ in LEG_PAIRS for side in ("left", "right")})
+    acc_all = np.stack([accelerations(layout.joint_positions(x.astype(np.float64), names))
+                        for x in motion])  # (windows, T - 2, joints, 3)
     out = []
     for joint, axis in LEG_PAIRS:
-        k = 2 * joints.index(joint)
-        acc = acc_all[:, :, k:k + 2, axis].reshape(-1, 2)
+        sides = [names.index(f"{side}_{joint}") for side in ("left", "right")]
+        acc = acc_all[:, :, sides, axis].reshape(-1, 2)
         still = not np.all(acc.std(axis=0) > 0)
         out.append(np.nan if still else float(np.corrcoef(acc[:, 0], acc[:, 1])[0, 1]))
     return out
