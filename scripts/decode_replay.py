@@ -22,7 +22,10 @@ decoder's own frames first: what each filter adds to and takes from each part, a
 their points lie nearest to (the hips, by axis too, and each knee and ankle), with what lies
 between the two legs (both together less each alone) beside the real floor's, and correlates the
 left and right knees' and ankles' accelerations: the data's legs move together, the lock's each
-on its own (eighty-first run):
+on its own (eighty-first run). ``--covariance`` splits each part's FGD_acc into what the
+accelerations' spread accounts for and what the directions of their principal axes add
+(``metrics.frechet_terms``): the model's distance is in the directions, not the energy
+(eighty-third run):
 
     python scripts/decode_replay.py --run MODEL --shards test_shards --split train --windows 96 \\
         --noise-scale 0.3 --cfg 4.5 --guide user_head --guidance-interval 0,0.75 \\
@@ -31,6 +34,7 @@ on its own (eighty-first run):
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --anatomy
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --stages-plot stages.png
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --legs
+    python scripts/decode_replay.py --run MODEL --replay decodes.npz --covariance
 """
 
 from __future__ import annotations
@@ -54,7 +58,7 @@ from sarah_models.evaluation.metrics.head_angle import head_angle
 from sarah_models.evaluation.metrics.look_away import looks_away
 from sarah_models.evaluation.metrics.clips import accelerations
 from sarah_models.evaluation.metrics.fgd_acc import METRIC as FGD_ACC
-from sarah_models.evaluation.metrics.frechet import frechet_distance
+from sarah_models.evaluation.metrics.frechet import FrechetTerms, frechet_distance, frechet_terms
 from sarah_models.evaluation.metrics.spec import MetricsConfig
 from sarah_models.evaluation.metrics.seam_share import points_seam_share
 from sarah_models.evaluation.metrics.table import bootstrap_interval, paired_comparison
@@ -228,6 +232,32 @@ def real_floor(real: np.ndarray, parts: dict) -> dict[str, np.ndarray] | None:
     """``part_distances`` of the data's ``real_halves``; None without them."""
     halves = real_halves(real)
     return None if halves is None else part_distances(*halves, parts)
+
+
+def covariance_terms(acc: np.ndarray, real: np.ndarray, parts: dict) -> dict[str, FrechetTerms]:
+    """FGD_acc of the whole shell and of every body part split into ``frechet_terms``' three
+    terms per batch of ``BATCH`` clips (clip i against real clip i): each term's mean over the
+    batches, ×10^5 (cm/s²)² as the distance (energy: the batches' mean ratio)."""
+    out = {}
+    for part, points in (("shell", range(acc.shape[2])), *parts.items()):
+        batches = [frechet_terms(features(acc, list(points), slice(s, s + BATCH)),
+                                 features(real, list(points), slice(s, s + BATCH)))
+                   for s in range(0, len(acc), BATCH)]
+        out[part] = FrechetTerms(**{
+            name: float(np.mean([getattr(b, name) for b in batches])) * (1.0 if name == "energy" else SCALE)
+            for name in FrechetTerms.__dataclass_fields__})
+    return out
+
+
+def covariance_row(label: str, decoding: str, found: dict[str, FrechetTerms]) -> str:
+    """Each part's FGD_acc as spectrum + orientation (+ mean, where it reaches 0.05), and its
+    acceleration energy ÷ the data's."""
+    cells = []
+    for terms in found.values():
+        mean = f" + {terms.mean:.1f}" if terms.mean >= 0.05 else ""
+        cells.append(f"{terms.total:.1f} = {terms.spectrum:.1f} + {terms.orientation:.1f}{mean}, "
+                     f"{terms.energy:.2f}x")
+    return f"| {label} | {decoding} | " + " | ".join(cells) + " |"
 
 
 def parts_row(label: str, decoding: str, found: dict, floor: dict | None) -> str:
@@ -522,6 +552,12 @@ def main(argv: list[str] | None = None) -> int:
                              f"each alone: what lies between the two legs) beside the real floor's "
                              f"(from {2 * BATCH} windows), and the correlation of the left and "
                              f"right knees' and ankles' accelerations")
+    parser.add_argument("--covariance", action="store_true",
+                        help=f"also print the shell's and each body part's FGD_acc split into "
+                             f"what the accelerations' spread accounts for with the data's "
+                             f"principal axes (spectrum) and what the axes' directions add "
+                             f"(orientation), with its energy ÷ the data's, beside the real "
+                             f"floor's (from {2 * BATCH} windows)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     add_sampling_arguments(parser, EvalConfig())
     parser.add_argument("--seed", type=int, default=EvalConfig().seed, help="sarah-eval's --seed")
@@ -579,6 +615,10 @@ def main(argv: list[str] | None = None) -> int:
     by_stage = []
     floor = real_floor(real, parts) if args.anatomy else None
     by_part = [] if floor is None else [("real floor", "-", floor)]
+    if args.covariance:
+        halves = real_halves(real)
+        covariances = [] if halves is None else [
+            covariance_row("real floor", "-", covariance_terms(*halves, parts))]
     if args.legs:
         groups, halves = leg_groups(ico, shell, layout), real_halves(real)
         legs = [legs_row("ground truth" if halves is None else "real floor", "-",
@@ -604,6 +644,8 @@ def main(argv: list[str] | None = None) -> int:
                        **({} if users is None else gaze(head_angles(motion, users, layout), truth_angles))}
             decoding = decoding_of(settings)
             print(row(label, decoding, figures), flush=True)
+            if args.covariance:
+                covariances.append(covariance_row(label, decoding, covariance_terms(acc, real, parts)))
             if args.legs:
                 legs.append(legs_row(label, decoding, leg_distances(acc, real, groups),
                                      leg_correlations(motion, layout)))
@@ -640,6 +682,18 @@ def main(argv: list[str] | None = None) -> int:
         print("| motion | decoding | " + " | ".join(LEG_COLUMNS) + f" | left / right: {pairs} |\n"
               + "|---|---|" + "---|" * (len(LEG_COLUMNS) + 1))
         print("\n".join(legs))
+    if args.covariance:
+        print(f"\nFGD_acc by body part, per batch of {BATCH} (each term's mean over batches), "
+              f"as spectrum + orientation: the distance the accelerations' covariances keep with "
+              f"their principal axes aligned (their spread: how much energy, in how many "
+              f"directions), and what the axes' directions add (which points accelerate "
+              f"together, and which way); then the energy ÷ the data's"
+              + ("" if real_halves(real) is not None else
+                 f"; no real floor: it needs {2 * BATCH} windows, the recording has {len(truth)}")
+              + "\n")
+        print("| motion | decoding | " + " | ".join(("shell", *parts))
+              + " |\n|---|---|" + "---|" * (len(parts) + 1))
+        print("\n".join(covariances))
     if args.stages:
         print(f"\nBy stage of the decoding chain: the decoder's frames, then the motion after each "
               f"filter in turn; the shell's FGD_acc per batch of {BATCH} (95 % bootstrap over "

@@ -318,3 +318,36 @@ def test_the_legs_table_splits_the_legs_and_what_lies_between(tiny, tmp_path, ca
     # these shards' shell has no leg points: every FGD_acc column reads "-", the correlations not
     assert all(r[2:-1] == ["-"] * len(replay.LEG_COLUMNS) for r in rows[2:])
     assert all(len(r[-1].split(" / ")) == len(replay.LEG_PAIRS) for r in rows[1:])
+
+
+def test_the_covariance_table_splits_each_part_into_spread_and_directions(tiny, tmp_path, capsys):
+    """--covariance: a part whose accelerations are the data's turned another way (the same
+    spread along other axes) scores orientation alone, a part whose accelerations are the data's
+    doubled scores spectrum alone, and the other parts nothing; each cell adds up."""
+    rng = np.random.default_rng(0)
+    parts = {"legs": (0, 1, 2), "arms": (3, 4)}
+    real = rng.normal(size=(32, 30, 5, 3)) * np.array([3.0, 1.0, 0.3])
+    made = real.copy()
+    made[:, :, [0, 1, 2]] = real[:, :, [0, 1, 2]][..., [2, 0, 1]]  # each leg point's axes swapped
+    made[:, :, [3, 4]] *= 2.0
+    found = replay.covariance_terms(made, real, parts)
+    assert list(found) == ["shell", "legs", "arms"]
+    legs, arms = found["legs"], found["arms"]
+    assert legs.orientation > 100 * max(legs.spectrum, 1e-12) and legs.energy == pytest.approx(1.0, abs=0.05)
+    assert arms.spectrum > 100 * max(arms.orientation, 1e-12) and arms.energy == pytest.approx(4.0, rel=0.05)
+    same = replay.covariance_terms(real, real, parts)
+    assert all(t.total < 1e-9 and t.energy == pytest.approx(1.0) for t in same.values())
+    line = replay.covariance_row("model", "x", found)
+    assert line.startswith("| model | x | ") and line.count(" | ") == 1 + len(found)
+    shell = found["shell"]
+    assert f"{shell.total:.1f} = {shell.spectrum:.1f} + {shell.orientation:.1f}" in line
+    # the command line: a row per motion and decoding, no floor from 3 windows
+    out = tmp_path / "decodes.npz"
+    assert replay.main(["--run", str(tiny["run"]), "--shards", str(tiny["shards"]), "--window",
+                        str(WINDOW), "--windows", "3", "--record", str(out), "--covariance"]) == 0
+    printed = capsys.readouterr().out
+    table = printed[printed.index("as spectrum + orientation"):]
+    assert "no real floor: it needs 32 windows, the recording has 3" in table
+    rows = [line.split(" | ") for line in table.splitlines() if line.startswith("| ") and "---" not in line]
+    assert [r[:2] for r in rows[1:]] == [["| model", "the model's"], ["| vae", "the model's"]]
+    assert all(len(r) == len(rows[0]) for r in rows) and all(" = " in r[2] for r in rows[1:])

@@ -11,7 +11,7 @@ from sarah_data import icosahedron
 from sarah_data.gaze import HEAD_HALF_DEPTH
 from sarah_data.constants import FPS, JOINT, NUM_JOINTS
 from sarah_models.evaluation import metrics
-from sarah_models.evaluation.metrics import (Clip, FrechetRidgeWarning, MetricsConfig, Moments, evaluate, foot_slide, frechet_distance, frechet_distance_from_moments, head_angle, wrist_speed)
+from sarah_models.evaluation.metrics import (Clip, FrechetRidgeWarning, MetricsConfig, Moments, evaluate, foot_slide, frechet_distance, frechet_distance_from_moments, frechet_terms, head_angle, wrist_speed)
 
 
 # ---------------------------------------------------------------- Fréchet distance
@@ -49,6 +49,29 @@ def test_frechet_distance_of_large_gaussian_samples_matches_closed_form():
     expected = np.sum((mu1 - mu2) ** 2) + np.sum(s1 + s2 - 2 * np.sqrt(s1 * s2))
     assert frechet_distance(a, b) == pytest.approx(expected, rel=0.01)
     assert frechet_distance(torch.from_numpy(a), torch.from_numpy(b)) == pytest.approx(frechet_distance(a, b))
+
+
+def test_frechet_terms_split_the_distance_into_mean_spread_and_directions():
+    """The three terms add up to the distance; a rotated copy differs by orientation alone, a
+    scaled copy by spectrum alone, a shifted copy by its mean alone; random sets of different
+    shapes have both, and orientation is never negative (von Neumann's trace inequality)."""
+    rng = np.random.default_rng(5)
+    x = rng.normal(size=(4000, 6)) @ rng.normal(size=(6, 6))
+    rotation, _ = np.linalg.qr(rng.normal(size=(6, 6)))
+    rotated, scaled, shifted = x @ rotation, 2.0 * x, x + np.arange(6.0)
+    for other in (rotated, scaled, shifted, rng.normal(size=(3000, 6)) @ rng.normal(size=(6, 6))):
+        terms = frechet_terms(other, x)
+        assert terms.total == pytest.approx(frechet_distance(other, x), rel=1e-12)
+        assert terms.mean + terms.spectrum + terms.orientation == pytest.approx(terms.total, rel=1e-9)
+        assert terms.orientation >= 0.0 and terms.spectrum >= 0.0
+    turned = frechet_terms(rotated - rotated.mean(0), x - x.mean(0))
+    assert turned.spectrum < 1e-9 * turned.total and turned.orientation > 1.0
+    assert turned.energy == pytest.approx(1.0)
+    grown = frechet_terms(scaled, x)
+    assert grown.orientation < 1e-6 * grown.total and grown.energy == pytest.approx(4.0)
+    assert grown.spectrum == pytest.approx(np.trace(np.cov(x, rowvar=False)), rel=1e-9)  # (2 - 1)^2 tr
+    moved = frechet_terms(shifted, x)
+    assert moved.mean == pytest.approx(np.sum(np.arange(6.0) ** 2)) and moved.total == pytest.approx(moved.mean)
 
 
 def test_frechet_distance_adds_a_ridge_for_singular_covariances():

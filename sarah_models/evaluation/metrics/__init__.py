@@ -11,8 +11,10 @@ from .clips import Clip, DecodedClip, accelerations
 from .foot_slide import foot_slide, foot_steps, step_paths, step_reaches
 from .frechet import (
                       FrechetRidgeWarning,
+                      FrechetTerms,
                       frechet_distance,
                       frechet_distance_from_moments,
+                      frechet_terms,
                       moments_distance,
 )
 from .head_angle import head_angle
@@ -30,8 +32,9 @@ from .wrist_speed import wrist_speed
 
 METRICS = tuple(m.name for m in registered())
 
-__all__ = ["METRICS", "CategoryValues", "Clip", "DecodedClip", "FrechetRidgeWarning", "Metric",
-           "MetricsConfig", "MetricsTable", "Moments", "accelerations", "category_means", "clip_values",
-           "evaluate", "foot_slide", "foot_steps", "frechet_distance", "frechet_distance_from_moments",
-           "head_angle", "metric_units", "moments_distance", "reference_table", "registered",
-           "step_paths", "step_reaches", "wrist_speed"]
+__all__ = ["METRICS", "CategoryValues", "Clip", "DecodedClip", "FrechetRidgeWarning", "FrechetTerms",
+           "Metric", "MetricsConfig", "MetricsTable", "Moments", "accelerations", "category_means",
+           "clip_values", "evaluate", "foot_slide", "foot_steps", "frechet_distance",
+           "frechet_distance_from_moments", "frechet_terms", "head_angle", "metric_units",
+           "moments_distance", "reference_table", "registered", "step_paths", "step_reaches",
+           "wrist_speed"]
