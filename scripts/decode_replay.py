@@ -24,8 +24,8 @@ between the two legs (both together less each alone) beside the real floor's, an
 left and right knees' and ankles' accelerations: the data's legs move together, the lock's each
 on its own (eighty-first run). ``--covariance`` splits each part's FGD_acc into what the
 accelerations' spread accounts for and what the directions of their principal axes add
-(``metrics.frechet_terms``): the model's distance is in the directions, not the energy
-(eighty-third run):
+(``metrics.frechet_terms``): the model's excess over the real floor is in the directions far
+more than in the energy (eighty-third run):
 
     python scripts/decode_replay.py --run MODEL --shards test_shards --split train --windows 96 \\
         --noise-scale 0.3 --cfg 4.5 --guide user_head --guidance-interval 0,0.75 \\
