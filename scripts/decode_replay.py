@@ -42,7 +42,7 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -244,8 +244,8 @@ def covariance_terms(acc: np.ndarray, real: np.ndarray, parts: dict) -> dict[str
                                  features(real, list(points), slice(s, s + BATCH)))
                    for s in range(0, len(acc), BATCH)]
         out[part] = FrechetTerms(**{
-            name: float(np.mean([getattr(b, name) for b in batches])) * (1.0 if name == "energy" else SCALE)
-            for name in FrechetTerms.__dataclass_fields__})
+            f.name: float(np.mean([getattr(b, f.name) for b in batches]))
+            * (1.0 if f.name == "energy" else SCALE) for f in fields(FrechetTerms)})
     return out
 
 
