@@ -187,12 +187,18 @@ def features(acc: np.ndarray, points, clips=slice(None), axes=(0, 1, 2)) -> np.n
     return acc[clips][:, :, points][..., list(axes)].reshape(-1, len(axes) * len(points))
 
 
+def batches(acc: np.ndarray, real: np.ndarray, points, axes=(0, 1, 2)):
+    """FGD_acc's samples of ``points`` (of their ``axes``) batch by batch of ``BATCH`` clips:
+    (generated, real) pairs, clip i against real clip i."""
+    for s in range(0, len(acc), BATCH):
+        yield (features(acc, points, slice(s, s + BATCH), axes),
+               features(real, points, slice(s, s + BATCH), axes))
+
+
 def batch_distances(acc: np.ndarray, real: np.ndarray, points, axes=(0, 1, 2)) -> list[float]:
     """FGD_acc of ``points`` per batch of ``BATCH`` clips (clip i against real clip i), ×10^5;
     of their ``axes`` alone where given."""
-    return [frechet_distance(features(acc, points, slice(s, s + BATCH), axes),
-                             features(real, points, slice(s, s + BATCH), axes)) * SCALE
-            for s in range(0, len(acc), BATCH)]
+    return [frechet_distance(a, b) * SCALE for a, b in batches(acc, real, points, axes)]
 
 
 def distances(acc: np.ndarray, real: np.ndarray, parts: dict,
@@ -240,11 +246,9 @@ def covariance_terms(acc: np.ndarray, real: np.ndarray, parts: dict) -> dict[str
     batches, ×10^5 (cm/s²)² as the distance (energy: the batches' mean ratio)."""
     out = {}
     for part, points in (("shell", range(acc.shape[2])), *parts.items()):
-        batches = [frechet_terms(features(acc, list(points), slice(s, s + BATCH)),
-                                 features(real, list(points), slice(s, s + BATCH)))
-                   for s in range(0, len(acc), BATCH)]
+        terms = [frechet_terms(a, b) for a, b in batches(acc, real, list(points))]
         out[part] = FrechetTerms(**{
-            f.name: float(np.mean([getattr(b, f.name) for b in batches]))
+            f.name: float(np.mean([getattr(t, f.name) for t in terms]))
             * (1.0 if f.name == "energy" else SCALE) for f in fields(FrechetTerms)})
     return out
 
@@ -615,12 +619,12 @@ def main(argv: list[str] | None = None) -> int:
     by_stage = []
     floor = real_floor(real, parts) if args.anatomy else None
     by_part = [] if floor is None else [("real floor", "-", floor)]
+    halves = real_halves(real)
     if args.covariance:
-        halves = real_halves(real)
         covariances = [] if halves is None else [
             covariance_row("real floor", "-", covariance_terms(*halves, parts))]
     if args.legs:
-        groups, halves = leg_groups(ico, shell, layout), real_halves(real)
+        groups = leg_groups(ico, shell, layout)
         legs = [legs_row("ground truth" if halves is None else "real floor", "-",
                          None if halves is None else leg_distances(*halves, groups),
                          leg_correlations(truth, layout))]
@@ -688,7 +692,7 @@ def main(argv: list[str] | None = None) -> int:
               f"their principal axes aligned (their spread: how much energy, in how many "
               f"directions), and what the axes' directions add (which points accelerate "
               f"together, and which way); then the energy ÷ the data's"
-              + ("" if real_halves(real) is not None else
+              + ("" if halves is not None else
                  f"; no real floor: it needs {2 * BATCH} windows, the recording has {len(truth)}")
               + "\n")
         print("| motion | decoding | " + " | ".join(("shell", *parts))

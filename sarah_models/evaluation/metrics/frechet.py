@@ -80,13 +80,18 @@ def frechet_distance_from_moments(mean_a, cov_a, mean_b, cov_b, ridge: float = 1
     return max(value, 0.0)
 
 
-def frechet_distance(feats_a, feats_b, ridge: float = 1e-6) -> float:
-    """Fréchet distance between Gaussians fitted to samples (N,D) and (M,D) (float64 moments)."""
+def _sample_moments(feats_a, feats_b) -> tuple[np.ndarray, ...]:
+    """(mean_a, cov_a, mean_b, cov_b) in float64 of two (N>=2, D) sample arrays."""
     a, b = (np.asarray(as_numpy(f), dtype=np.float64) for f in (feats_a, feats_b))
     if a.ndim != 2 or b.ndim != 2 or a.shape[1] != b.shape[1] or len(a) < 2 or len(b) < 2:
         raise ValueError(f"Fréchet distance needs two (N>=2, D) sample arrays; got {a.shape}, {b.shape}")
-    return frechet_distance_from_moments(a.mean(0), np.atleast_2d(np.cov(a, rowvar=False)),
-                                         b.mean(0), np.atleast_2d(np.cov(b, rowvar=False)), ridge=ridge)
+    return (a.mean(0), np.atleast_2d(np.cov(a, rowvar=False)),
+            b.mean(0), np.atleast_2d(np.cov(b, rowvar=False)))
+
+
+def frechet_distance(feats_a, feats_b, ridge: float = 1e-6) -> float:
+    """Fréchet distance between Gaussians fitted to samples (N,D) and (M,D) (float64 moments)."""
+    return frechet_distance_from_moments(*_sample_moments(feats_a, feats_b), ridge=ridge)
 
 
 @dataclass(frozen=True)
@@ -109,12 +114,11 @@ class FrechetTerms:
 
 def frechet_terms(feats_a, feats_b, ridge: float = 1e-6) -> FrechetTerms:
     """``frechet_distance`` of samples (N, D) and (M, D) with its three terms (``FrechetTerms``)."""
-    a, b = (np.asarray(as_numpy(f), dtype=np.float64) for f in (feats_a, feats_b))
-    total = frechet_distance(a, b, ridge=ridge)
-    cov_a, cov_b = (np.atleast_2d(np.cov(x, rowvar=False)) for x in (a, b))
+    mean_a, cov_a, mean_b, cov_b = _sample_moments(feats_a, feats_b)
+    total = frechet_distance_from_moments(mean_a, cov_a, mean_b, cov_b, ridge=ridge)
     # eigvalsh sorts ascending, alike for both; rounding can leave a zero eigenvalue below 0
     roots = [np.sqrt(np.clip(np.linalg.eigvalsh(c), 0.0, None)) for c in (cov_a, cov_b)]
-    diff = a.mean(0) - b.mean(0)
+    diff = mean_a - mean_b
     mean, spectrum = float(diff @ diff), float(np.sum((roots[0] - roots[1]) ** 2))
     trace_b = float(np.trace(cov_b))
     return FrechetTerms(total=total, mean=mean, spectrum=spectrum,
