@@ -25,7 +25,11 @@ left and right knees' and ankles' accelerations: the data's legs move together, 
 on its own (eighty-first run). ``--covariance`` splits each part's FGD_acc into what the
 accelerations' spread accounts for and what the directions of their principal axes add
 (``metrics.frechet_terms``): the model's excess over the real floor is in the directions far
-more than in the energy (eighty-third run):
+more than in the energy (eighty-third run). ``--gait`` says how the body walks: the pelvis's
+moves on the floor (how many a window, how long, how far, how fast), the frames in which both
+feet step, and where the pelvis's acceleration falls against the feet's steps: the data's
+people stand still and step in moves of a fraction of a second, the model's pelvis creeps
+(eighty-fourth run):
 
     python scripts/decode_replay.py --run MODEL --shards test_shards --split train --windows 96 \\
         --noise-scale 0.3 --cfg 4.5 --guide user_head --guidance-interval 0,0.75 \\
@@ -35,6 +39,7 @@ more than in the energy (eighty-third run):
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --stages-plot stages.png
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --legs
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --covariance
+    python scripts/decode_replay.py --run MODEL --replay decodes.npz --gait
 """
 
 from __future__ import annotations
@@ -50,7 +55,7 @@ import numpy as np
 from sarah_cli.arguments import add_sampling_arguments, sampling_of
 from sarah_data.atomic import atomic_path
 from sarah_data.constants import FPS
-from sarah_data.skeleton import FEET, MotionLayout, shell_parts
+from sarah_data.skeleton import FEET, ROOT, MotionLayout, shell_parts
 from sarah_models.config import HISTORY_WINDOW, RunConfig
 from sarah_models.training import model_file
 from sarah_models.evaluation.metrics import foot_steps
@@ -460,6 +465,58 @@ def legs_row(label: str, decoding: str, found: dict[str, np.ndarray] | None,
             + " / ".join(f"{c:.2f}" if np.isfinite(c) else "-" for c in correlations) + " |")
 
 
+# m/s on the floor: faster, the pelvis moves. The data's people stand still between steps (0)
+# and step at up to 1.7 m/s; the model's pelvis creeps at a few cm/s (eighty-fourth run).
+PELVIS_MOVE_SPEED = 0.1
+GAIT_COLUMNS = ("moves a window (95 %)", "frames a move", "metres a move", "peak m/s",
+                "share of frames moving", "share of frames both feet step",
+                "share of its floor acceleration where no foot steps")
+
+
+def gait(motion: np.ndarray, layout: MotionLayout) -> dict[str, np.ndarray]:
+    """How the body walks: the pelvis's moves on the floor (runs of frame steps in which it moves
+    faster than ``PELVIS_MOVE_SPEED``: a window's count, each move's frames, metres and peak
+    speed), the share of frames it moves, the share of frame steps in which both feet step
+    (``foot_steps``, the steps column's), and the share of the pelvis's floor acceleration
+    energy at frames where neither foot steps. Per window, except the moves' own figures."""
+    out: dict[str, list] = {key: [] for key in ("moves", "frames", "metres", "peak", "moving",
+                                                 "both", "still", "energy")}
+    for x in motion:
+        joints = layout.joint_positions(np.asarray(x, dtype=np.float64), [ROOT, *FEET])
+        floor = joints[:, :1] * np.array([1.0, 0.0, 1.0])
+        speed = np.linalg.norm(np.diff(floor[:, 0], axis=0), axis=-1) * FPS
+        runs = foot_steps(floor, min_speed=PELVIS_MOVE_SPEED)[0]
+        out["moves"].append(len(runs))
+        for start, end in runs:
+            out["frames"].append(end - start)
+            out["metres"].append(speed[start:end].sum() / FPS)
+            out["peak"].append(speed[start:end].max())
+        out["moving"].append(np.mean(speed > PELVIS_MOVE_SPEED))
+        stepping = np.zeros((len(x) - 1, len(FEET)), dtype=bool)
+        for foot, steps_of_foot in enumerate(foot_steps(joints[:, 1:])):
+            for start, end in steps_of_foot:
+                stepping[start:end, foot] = True
+        out["both"].append(np.mean(stepping.all(axis=1)))
+        energy = (accelerations(floor[:, 0]) ** 2).sum(axis=-1)  # at frames 1 .. T - 2
+        still = ~(stepping[:-1].any(axis=1) | stepping[1:].any(axis=1))
+        out["still"].append(energy[still].sum())
+        out["energy"].append(energy.sum())
+    return {key: np.asarray(value, dtype=np.float64) for key, value in out.items()}
+
+
+def gait_row(label: str, decoding: str, found: dict[str, np.ndarray]) -> str:
+    """A row of the gait table (``GAIT_COLUMNS``): the moves a window with their 95 % bootstrap
+    interval over windows, each move's medians, and the windows' pooled shares."""
+    moves = found["moves"]
+    medians = [np.median(found[key]) if len(found[key]) else np.nan for key in ("frames", "metres", "peak")]
+    still = found["still"].sum() / found["energy"].sum() if found["energy"].sum() > 0 else np.nan
+    cells = ["{:.1f} ({:.1f}-{:.1f})".format(moves.mean(), *bootstrap_interval(moves)),
+             *("-" if not np.isfinite(m) else f"{m:{f}}" for m, f in zip(medians, ("g", ".2f", ".2f"))),
+             f"{found['moving'].mean():.2f}", f"{found['both'].mean():.3f}",
+             "-" if not np.isfinite(still) else f"{still:.2f}"]
+    return f"| {label} | {decoding} | " + " | ".join(cells) + " |"
+
+
 def steps(motion: np.ndarray, layout: MotionLayout, stance: np.ndarray | None) -> dict[str, float]:
     """The feet's steps a window, the share lasting the data's step, and the stance's lifts a
     window (when the decoding steps by a stance)."""
@@ -562,6 +619,11 @@ def main(argv: list[str] | None = None) -> int:
                              f"principal axes (spectrum) and what the axes' directions add "
                              f"(orientation), with its energy ÷ the data's, beside the real "
                              f"floor's (from {2 * BATCH} windows)")
+    parser.add_argument("--gait", action="store_true",
+                        help=f"also print how the body walks: the pelvis's moves on the floor "
+                             f"(faster than {PELVIS_MOVE_SPEED:g} m/s: how many a window, how long, "
+                             f"how far, how fast), the share of frames both feet step, and the "
+                             f"share of the pelvis's acceleration where no foot steps")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     add_sampling_arguments(parser, EvalConfig())
     parser.add_argument("--seed", type=int, default=EvalConfig().seed, help="sarah-eval's --seed")
@@ -623,6 +685,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.covariance:
         covariances = [] if halves is None else [
             covariance_row("real floor", "-", covariance_terms(*halves, parts))]
+    if args.gait:
+        gaits = [gait_row("ground truth", "-", gait(truth, layout))]
     if args.legs:
         groups = leg_groups(ico, shell, layout)
         legs = [legs_row("ground truth" if halves is None else "real floor", "-",
@@ -650,6 +714,8 @@ def main(argv: list[str] | None = None) -> int:
             print(row(label, decoding, figures), flush=True)
             if args.covariance:
                 covariances.append(covariance_row(label, decoding, covariance_terms(acc, real, parts)))
+            if args.gait:
+                gaits.append(gait_row(label, decoding, gait(motion, layout)))
             if args.legs:
                 legs.append(legs_row(label, decoding, leg_distances(acc, real, groups),
                                      leg_correlations(motion, layout)))
@@ -686,6 +752,13 @@ def main(argv: list[str] | None = None) -> int:
         print("| motion | decoding | " + " | ".join(LEG_COLUMNS) + f" | left / right: {pairs} |\n"
               + "|---|---|" + "---|" * (len(LEG_COLUMNS) + 1))
         print("\n".join(legs))
+    if args.gait:
+        print(f"\nHow the body walks: the pelvis's moves on the floor (runs of frames it moves "
+              f"faster than {PELVIS_MOVE_SPEED:g} m/s; a move's figures are medians over moves), "
+              f"and its acceleration against the feet's steps (the steps column's)\n")
+        print("| motion | decoding | " + " | ".join(GAIT_COLUMNS) + " |\n|---|---|"
+              + "---|" * len(GAIT_COLUMNS))
+        print("\n".join(gaits))
     if args.covariance:
         print(f"\nFGD_acc by body part, per batch of {BATCH} (each term's mean over batches), "
               f"as spectrum + orientation: the distance the accelerations' covariances keep with "

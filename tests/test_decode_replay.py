@@ -351,3 +351,52 @@ def test_the_covariance_table_splits_each_part_into_spread_and_directions(tiny, 
     rows = [line.split(" | ") for line in table.splitlines() if line.startswith("| ") and "---" not in line]
     assert [r[:2] for r in rows[1:]] == [["| model", "the model's"], ["| vae", "the model's"]]
     assert all(len(r) == len(rows[0]) for r in rows) and all(" = " in r[2] for r in rows[1:])
+
+
+def test_the_gait_table_tells_a_body_that_steps_from_one_that_creeps(tiny, tmp_path, capsys):
+    """--gait: a body moved whole in two moves of 0.4 m reads two moves a window of about that
+    length, its feet stepping with it and its pelvis accelerating only while they step; a pelvis
+    that creeps under feet that stand reads many short, slow moves, its acceleration all where no
+    foot steps."""
+    from sarah_data.constants import FPS
+    from sarah_data.dataset import WindowDataset
+    from sarah_data.fixtures.legs import min_jerk
+    from sarah_data.skeleton import MotionLayout
+
+    dataset = WindowDataset.sliding(tiny["shards"], "test", extractor="logmel", window=WINDOW)
+    frame = dataset[0]["motion"].numpy().astype(np.float64)[0]
+    layout = MotionLayout.from_width(len(frame))
+    frames, move = 90, 15
+    way = np.zeros(frames)
+    way[10:10 + move] = 0.4 * min_jerk(np.linspace(0.0, 1.0, move))
+    way[10 + move:] = 0.4
+    way[50:50 + move] += 0.4 * min_jerk(np.linspace(0.0, 1.0, move))
+    way[50 + move:] = 0.8
+    stepping = np.tile(frame, (3, frames, 1)).reshape(3, frames, -1, 3)
+    stepping[..., 0] += way[:, None]  # every point along x
+    found = replay.gait(stepping.reshape(3, frames, -1), layout)
+    assert found["moves"].tolist() == [2, 2, 2]
+    assert np.all((found["frames"] > 8) & (found["frames"] < move))
+    assert np.allclose(found["metres"], 0.4, atol=0.03)
+    assert np.allclose(found["peak"], 1.875 * 0.4 / ((move - 1) / FPS), rtol=0.05)  # min-jerk's peak
+    assert np.all(found["both"] > 0.2) and found["still"].sum() < 1e-3 * found["energy"].sum()
+    creeping = np.tile(frame, (3, frames, 1))
+    pelvis = layout.joint_slice("pelvis")
+    drift = np.cumsum(np.random.default_rng(0).normal(scale=0.006, size=(3, frames)), axis=1)
+    creeping[:, :, pelvis] += np.tile(drift[..., None] * np.array([1.0, 0.0, 0.0]), 12)  # its 12 points
+    crept = replay.gait(creeping, layout)
+    assert crept["moves"].mean() > 5 and np.median(crept["metres"]) < 0.05
+    assert np.all(crept["both"] == 0.0) and crept["still"].sum() == pytest.approx(crept["energy"].sum())
+    line = replay.gait_row("model", "x", found)
+    assert line.startswith("| model | x | 2.0 (2.0-2.0) | ") and line.count(" | ") == 1 + len(replay.GAIT_COLUMNS)
+    # the command line: the data's row, then a row per motion and decoding
+    out = tmp_path / "decodes.npz"
+    assert replay.main(["--run", str(tiny["run"]), "--shards", str(tiny["shards"]), "--window",
+                        str(WINDOW), "--windows", "3", "--record", str(out), "--gait"]) == 0
+    printed = capsys.readouterr().out
+    table = printed[printed.index("How the body walks"):]
+    rows = [line.split(" | ") for line in table.splitlines() if line.startswith("| ") and "---" not in line]
+    assert len(rows[0]) == len(replay.GAIT_COLUMNS) + 2
+    assert [r[:2] for r in rows[1:]] == [["| ground truth", "-"], ["| model", "the model's"],
+                                         ["| vae", "the model's"]]
+    assert all(len(r) == len(rows[0]) for r in rows)
