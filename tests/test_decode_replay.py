@@ -19,6 +19,18 @@ def tiny(tmp_path_factory):
     return {"shards": shards, "run": save_run(root / "run")}
 
 
+def printed_table(tiny, tmp_path, capsys, flag: str, heading: str) -> tuple[str, list[list[str]]]:
+    """Record 3 windows with ``flag`` and return what is printed from ``heading`` on, and the
+    rows of its table (the header first), each split into cells."""
+    out = tmp_path / "decodes.npz"
+    assert replay.main(["--run", str(tiny["run"]), "--shards", str(tiny["shards"]), "--window",
+                        str(WINDOW), "--windows", "3", "--record", str(out), flag]) == 0
+    printed = capsys.readouterr().out
+    table = printed[printed.index(heading):]
+    return table, [line.split(" | ") for line in table.splitlines()
+                   if line.startswith("| ") and "---" not in line]
+
+
 def test_records_the_model_row_and_replays_other_decodings(tiny, tmp_path, capsys):
     import torch
 
@@ -304,12 +316,7 @@ def test_the_legs_table_splits_the_legs_and_what_lies_between(tiny, tmp_path, ca
     other = replay.leg_correlations(knees(path, rng.normal(scale=0.01, size=path.shape)), layout)
     assert abs(other[0]) < 0.2 and abs(other[1]) < 0.2
     # the command line: the data's row (no floor from 3 windows), then a row per motion and decoding
-    out = tmp_path / "decodes.npz"
-    assert replay.main(["--run", str(tiny["run"]), "--shards", str(tiny["shards"]), "--window",
-                        str(WINDOW), "--windows", "3", "--record", str(out), "--legs"]) == 0
-    printed = capsys.readouterr().out
-    table = printed[printed.index("The legs' FGD_acc"):]
-    rows = [line.split(" | ") for line in table.splitlines() if line.startswith("| ") and "---" not in line]
+    _, rows = printed_table(tiny, tmp_path, capsys, "--legs", "The legs' FGD_acc")
     assert len(rows[0]) == len(replay.LEG_COLUMNS) + 3
     assert [r[:2] for r in rows[1:]] == [["| ground truth", "-"], ["| model", "the model's"],
                                          ["| vae", "the model's"]]
@@ -342,13 +349,8 @@ def test_the_covariance_table_splits_each_part_into_spread_and_directions(tiny, 
     shell = found["shell"]
     assert f"{shell.total:.1f} = {shell.spectrum:.1f} + {shell.orientation:.1f}" in line
     # the command line: a row per motion and decoding, no floor from 3 windows
-    out = tmp_path / "decodes.npz"
-    assert replay.main(["--run", str(tiny["run"]), "--shards", str(tiny["shards"]), "--window",
-                        str(WINDOW), "--windows", "3", "--record", str(out), "--covariance"]) == 0
-    printed = capsys.readouterr().out
-    table = printed[printed.index("as spectrum + orientation"):]
+    table, rows = printed_table(tiny, tmp_path, capsys, "--covariance", "as spectrum + orientation")
     assert "no real floor: it needs 32 windows, the recording has 3" in table
-    rows = [line.split(" | ") for line in table.splitlines() if line.startswith("| ") and "---" not in line]
     assert [r[:2] for r in rows[1:]] == [["| model", "the model's"], ["| vae", "the model's"]]
     assert all(len(r) == len(rows[0]) for r in rows) and all(" = " in r[2] for r in rows[1:])
 
@@ -390,12 +392,7 @@ def test_the_gait_table_tells_a_body_that_steps_from_one_that_creeps(tiny, tmp_p
     line = replay.gait_row("model", "x", found)
     assert line.startswith("| model | x | 2.0 (2.0-2.0) | ") and line.count(" | ") == 1 + len(replay.GAIT_COLUMNS)
     # the command line: the data's row, then a row per motion and decoding
-    out = tmp_path / "decodes.npz"
-    assert replay.main(["--run", str(tiny["run"]), "--shards", str(tiny["shards"]), "--window",
-                        str(WINDOW), "--windows", "3", "--record", str(out), "--gait"]) == 0
-    printed = capsys.readouterr().out
-    table = printed[printed.index("How the body walks"):]
-    rows = [line.split(" | ") for line in table.splitlines() if line.startswith("| ") and "---" not in line]
+    _, rows = printed_table(tiny, tmp_path, capsys, "--gait", "How the body walks")
     assert len(rows[0]) == len(replay.GAIT_COLUMNS) + 2
     assert [r[:2] for r in rows[1:]] == [["| ground truth", "-"], ["| model", "the model's"],
                                          ["| vae", "the model's"]]
