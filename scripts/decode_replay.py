@@ -466,7 +466,7 @@ def legs_row(label: str, decoding: str, found: dict[str, np.ndarray] | None,
 
 
 # m/s on the floor: faster, the pelvis moves. The data's people stand still between steps (0)
-# and step at up to 1.7 m/s; the model's pelvis creeps at a few cm/s (eighty-fourth run).
+# and step at about 1.5 m/s at a move's peak; the model's pelvis creeps at a few cm/s (eighty-fourth run).
 PELVIS_MOVE_SPEED = 0.1
 GAIT_COLUMNS = ("moves a window (95 %)", "frames a move", "metres a move", "peak m/s",
                 "share of frames moving", "share of frames both feet step",
