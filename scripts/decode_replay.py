@@ -28,8 +28,8 @@ accelerations' spread accounts for and what the directions of their principal ax
 more than in the energy (eighty-third run). ``--gait`` says how the body walks: the pelvis's
 moves on the floor (how many a window, how long, how far, how fast), the frames in which both
 feet step, and where the pelvis's acceleration falls against the feet's steps: the data's
-people stand still and step in moves of a fraction of a second, the model's pelvis creeps
-(eighty-fourth run):
+people stand still and step in moves of a fraction of a second, the model's pelvis creeps, and
+``--gait-plot`` draws the pelvis's speed frame by frame in three windows (eighty-fourth run):
 
     python scripts/decode_replay.py --run MODEL --shards test_shards --split train --windows 96 \\
         --noise-scale 0.3 --cfg 4.5 --guide user_head --guidance-interval 0,0.75 \\
@@ -39,7 +39,7 @@ people stand still and step in moves of a fraction of a second, the model's pelv
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --stages-plot stages.png
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --legs
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --covariance
-    python scripts/decode_replay.py --run MODEL --replay decodes.npz --gait
+    python scripts/decode_replay.py --run MODEL --replay decodes.npz --gait-plot gait.png
 """
 
 from __future__ import annotations
@@ -473,6 +473,11 @@ GAIT_COLUMNS = ("moves a window (95 %)", "frames a move", "metres a move", "peak
                 "share of its floor acceleration where no foot steps")
 
 
+def floor_speed(points: np.ndarray) -> np.ndarray:
+    """(T, 3) positions -> (T - 1,) speed on the floor (x, z) over each frame step, m/s."""
+    return np.linalg.norm(np.diff(points[:, [0, 2]], axis=0), axis=-1) * FPS
+
+
 def gait(motion: np.ndarray, layout: MotionLayout) -> dict[str, np.ndarray]:
     """How the body walks: the pelvis's moves on the floor (runs of frame steps in which it moves
     faster than ``PELVIS_MOVE_SPEED``: a window's count, each move's frames, metres and peak
@@ -484,7 +489,7 @@ def gait(motion: np.ndarray, layout: MotionLayout) -> dict[str, np.ndarray]:
     for x in motion:
         joints = layout.joint_positions(np.asarray(x, dtype=np.float64), [ROOT, *FEET])
         floor = joints[:, :1] * np.array([1.0, 0.0, 1.0])
-        speed = np.linalg.norm(np.diff(floor[:, 0], axis=0), axis=-1) * FPS
+        speed = floor_speed(floor[:, 0])
         runs = foot_steps(floor, min_speed=PELVIS_MOVE_SPEED)[0]
         out["moves"].append(len(runs))
         for start, end in runs:
@@ -515,6 +520,45 @@ def gait_row(label: str, decoding: str, found: dict[str, np.ndarray]) -> str:
              f"{found['moving'].mean():.2f}", f"{found['both'].mean():.3f}",
              "-" if not np.isfinite(still) else f"{still:.2f}"]
     return f"| {label} | {decoding} | " + " | ".join(cells) + " |"
+
+
+GAIT_PLOT_WINDOWS = 3  # windows --gait-plot draws, evenly spaced: the first, the middle, the last
+
+
+def plot_gait(path: Path, traces: list[tuple[str, str, np.ndarray]], windows: list[int]) -> Path:
+    """The pelvis's speed on the floor, frame by frame, in ``windows`` (a panel each, named by
+    the window's index): a line per motion and decoding (``traces``: label, decoding and the
+    pelvis's (len(windows), T, 3) positions there, ``pelvis_paths``), the ground truth's first
+    and black, the move speed dashed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sarah_models.generation.plots import save_figure
+
+    fig, axes = plt.subplots(len(windows), 1, figsize=(11, 2.6 * len(windows)), squeeze=False,
+                             sharex=True)
+    for row, (ax, window) in enumerate(zip(axes[:, 0], windows)):
+        for k, (label, decoding, pelvis) in enumerate(traces):
+            speed = floor_speed(pelvis[row])
+            name = label if decoding in ("-", "the model's") else f"{label}, {decoding}"
+            ax.plot(np.arange(1, len(speed) + 1) / FPS, speed, label=name, linewidth=1.6 if k == 0 else 1.0,
+                    color="black" if k == 0 else None, zorder=3 if k == 0 else 2)
+        ax.axhline(PELVIS_MOVE_SPEED, color="grey", linestyle="--", linewidth=1)
+        ax.set_ylabel(f"window {window}: m/s")
+    axes[-1, 0].set_xlabel("seconds")
+    axes[0, 0].legend(fontsize=8, loc="upper right")
+    fig.suptitle(f"The pelvis's speed on the floor (dashed: {PELVIS_MOVE_SPEED:g} m/s, a move)",
+                 fontsize=10)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def pelvis_paths(motion: np.ndarray, layout: MotionLayout, windows: list[int]) -> np.ndarray:
+    """(len(windows), T, 3) the pelvis's positions in ``windows`` of ``motion``."""
+    return np.stack([layout.joint_positions(np.asarray(motion[w], dtype=np.float64), [ROOT])[:, 0]
+                     for w in windows])
 
 
 def steps(motion: np.ndarray, layout: MotionLayout, stance: np.ndarray | None) -> dict[str, float]:
@@ -624,6 +668,9 @@ def main(argv: list[str] | None = None) -> int:
                              f"(faster than {PELVIS_MOVE_SPEED:g} m/s: how many a window, how long, "
                              f"how far, how fast), the share of frames both feet step, and the "
                              f"share of the pelvis's acceleration where no foot steps")
+    parser.add_argument("--gait-plot", type=Path, metavar="PNG",
+                        help=f"also draw the pelvis's speed on the floor, frame by frame, in "
+                             f"{GAIT_PLOT_WINDOWS} windows, to this PNG (implies --gait)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     add_sampling_arguments(parser, EvalConfig())
     parser.add_argument("--seed", type=int, default=EvalConfig().seed, help="sarah-eval's --seed")
@@ -639,13 +686,13 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(exc))
     tries = [[s.strip() for s in t.split(",") if s.strip()] for t in args.tries]
     check_tries(parser, tries, models.config)
-    if args.stages_plot is not None:
-        if args.stages_plot.suffix.lower() != ".png":
-            parser.error(f"--stages-plot {args.stages_plot}: the figure is a PNG (name it .png)")
-        if not args.stages_plot.parent.is_dir():
-            parser.error(f"--stages-plot {args.stages_plot}: no such folder "
-                         f"{args.stages_plot.parent}")
-        args.stages = True
+    for flag, picture in (("--stages-plot", args.stages_plot), ("--gait-plot", args.gait_plot)):
+        if picture is not None and picture.suffix.lower() != ".png":
+            parser.error(f"{flag} {picture}: the figure is a PNG (name it .png)")
+        if picture is not None and not picture.parent.is_dir():
+            parser.error(f"{flag} {picture}: no such folder {picture.parent}")
+    args.stages |= args.stages_plot is not None
+    args.gait |= args.gait_plot is not None
     if args.record is not None and args.shards is None:
         parser.error("--record needs --shards")
     if args.replay is not None and not args.replay.is_file():
@@ -687,6 +734,8 @@ def main(argv: list[str] | None = None) -> int:
             covariance_row("real floor", "-", covariance_terms(*halves, parts))]
     if args.gait:
         gaits = [gait_row("ground truth", "-", gait(truth, layout))]
+        drawn = sorted({int(w) for w in np.linspace(0, len(truth) - 1, GAIT_PLOT_WINDOWS).round()})
+        traces = [("ground truth", "-", pelvis_paths(truth, layout, drawn))]
     if args.legs:
         groups = leg_groups(ico, shell, layout)
         legs = [legs_row("ground truth" if halves is None else "real floor", "-",
@@ -716,6 +765,7 @@ def main(argv: list[str] | None = None) -> int:
                 covariances.append(covariance_row(label, decoding, covariance_terms(acc, real, parts)))
             if args.gait:
                 gaits.append(gait_row(label, decoding, gait(motion, layout)))
+                traces.append((label, decoding, pelvis_paths(motion, layout, drawn)))
             if args.legs:
                 legs.append(legs_row(label, decoding, leg_distances(acc, real, groups),
                                      leg_correlations(motion, layout)))
@@ -759,6 +809,8 @@ def main(argv: list[str] | None = None) -> int:
         print("| motion | decoding | " + " | ".join(GAIT_COLUMNS) + " |\n|---|---|"
               + "---|" * len(GAIT_COLUMNS))
         print("\n".join(gaits))
+        if args.gait_plot is not None:
+            print(f"\nwrote {plot_gait(args.gait_plot, traces, drawn)}")
     if args.covariance:
         print(f"\nFGD_acc by body part, per batch of {BATCH} (each term's mean over batches), "
               f"as spectrum + orientation: the distance the accelerations' covariances keep with "

@@ -98,6 +98,8 @@ def test_records_the_model_row_and_replays_other_decodings(tiny, tmp_path, capsy
     (["--replay", "missing.npz"], "no such file"),
     (["--stages-plot", "no-such-folder/stages.png"], "no such folder"),
     (["--stages-plot", "stages.svg"], "name it .png"),
+    (["--gait-plot", "no-such-folder/gait.png"], "no such folder"),
+    (["--gait-plot", "gait.svg"], "--gait-plot gait.svg: the figure is a PNG"),
 ])
 def test_bad_arguments_stop_before_any_work(tiny, tmp_path, capsys, argv, words):
     argv = ["--run", str(tiny["run"]), *argv]
@@ -397,3 +399,18 @@ def test_the_gait_table_tells_a_body_that_steps_from_one_that_creeps(tiny, tmp_p
     assert [r[:2] for r in rows[1:]] == [["| ground truth", "-"], ["| model", "the model's"],
                                          ["| vae", "the model's"]]
     assert all(len(r) == len(rows[0]) for r in rows)
+    # --gait-plot: the same table, and the pelvis's speed drawn
+    import matplotlib.image
+
+    picture = tmp_path / "gait.png"
+    assert replay.main(["--run", str(tiny["run"]), "--replay", str(tmp_path / "decodes.npz"),
+                        "--gait-plot", str(picture)]) == 0
+    again = capsys.readouterr().out
+    assert "How the body walks" in again and f"wrote {picture}" in again
+    assert matplotlib.image.imread(picture).ndim == 3
+    pelvis = replay.pelvis_paths(stepping.reshape(3, frames, -1), layout, [0, 2])
+    assert pelvis.shape == (2, frames, 3)
+    np.testing.assert_allclose(replay.floor_speed(pelvis[0]).sum() / FPS, 0.8, atol=1e-6)
+    drawn = tmp_path / "two.png"  # windows 0 and 40 of a recording, drawn from their two paths
+    assert replay.plot_gait(drawn, [("ground truth", "-", pelvis), ("model", "x", pelvis)], [0, 40]) == drawn
+    assert matplotlib.image.imread(drawn).ndim == 3
