@@ -61,7 +61,7 @@ from sarah_models.training import model_file
 from sarah_models.evaluation.metrics import foot_steps
 from sarah_models.evaluation.metrics.head_angle import head_angle
 from sarah_models.evaluation.metrics.look_away import looks_away
-from sarah_models.evaluation.metrics.clips import accelerations
+from sarah_models.evaluation.metrics.clips import accelerations, step_lengths
 from sarah_models.evaluation.metrics.fgd_acc import METRIC as FGD_ACC
 from sarah_models.evaluation.metrics.frechet import FrechetTerms, frechet_distance, frechet_terms
 from sarah_models.evaluation.metrics.spec import MetricsConfig
@@ -473,24 +473,21 @@ GAIT_COLUMNS = ("moves a window (95 %)", "frames a move", "metres a move", "peak
                 "share of its floor acceleration where no foot steps")
 
 
-def floor_speed(points: np.ndarray) -> np.ndarray:
-    """(T, 3) positions -> (T - 1,) speed on the floor (x, z) over each frame step, m/s."""
-    return np.linalg.norm(np.diff(points[:, [0, 2]], axis=0), axis=-1) * FPS
-
-
 def gait(motion: np.ndarray, layout: MotionLayout) -> dict[str, np.ndarray]:
     """How the body walks: the pelvis's moves on the floor (runs of frame steps in which it moves
     faster than ``PELVIS_MOVE_SPEED``: a window's count, each move's frames, metres and peak
     speed), the share of frames it moves, the share of frame steps in which both feet step
     (``foot_steps``, the steps column's), and the share of the pelvis's floor acceleration
-    energy at frames where neither foot steps. Per window, except the moves' own figures."""
+    energy at frames where neither foot steps. Per window, except the moves' own figures; and
+    ``paths``, every window's (T, 2) floor path of the pelvis (x, z), which --gait-plot draws."""
     out: dict[str, list] = {key: [] for key in ("moves", "frames", "metres", "peak", "moving",
-                                                 "both", "still", "energy")}
+                                                 "both", "still", "energy", "paths")}
     for x in motion:
         joints = layout.joint_positions(np.asarray(x, dtype=np.float64), [ROOT, *FEET])
-        floor = joints[:, :1] * np.array([1.0, 0.0, 1.0])
-        speed = floor_speed(floor[:, 0])
-        runs = foot_steps(floor, min_speed=PELVIS_MOVE_SPEED)[0]
+        path = joints[:, 0, [0, 2]]
+        speed = step_lengths(path) * FPS
+        runs = foot_steps(joints[:, :1], min_speed=PELVIS_MOVE_SPEED)[0]
+        out["paths"].append(path)
         out["moves"].append(len(runs))
         for start, end in runs:
             out["frames"].append(end - start)
@@ -502,7 +499,7 @@ def gait(motion: np.ndarray, layout: MotionLayout) -> dict[str, np.ndarray]:
             for start, end in steps_of_foot:
                 stepping[start:end, foot] = True
         out["both"].append(np.mean(stepping.all(axis=1)))
-        energy = (accelerations(floor[:, 0]) ** 2).sum(axis=-1)  # at frames 1 .. T - 2
+        energy = (accelerations(path) ** 2).sum(axis=-1)  # at frames 1 .. T - 2
         still = ~(stepping[:-1].any(axis=1) | stepping[1:].any(axis=1))
         out["still"].append(energy[still].sum())
         out["energy"].append(energy.sum())
@@ -528,8 +525,8 @@ GAIT_PLOT_WINDOWS = 3  # windows --gait-plot draws, evenly spaced: the first, th
 def plot_gait(path: Path, traces: list[tuple[str, str, np.ndarray]], windows: list[int]) -> Path:
     """The pelvis's speed on the floor, frame by frame, in ``windows`` (a panel each, named by
     the window's index): a line per motion and decoding (``traces``: label, decoding and the
-    pelvis's (len(windows), T, 3) positions there, ``pelvis_paths``), the ground truth's first
-    and black, the move speed dashed."""
+    pelvis's (len(windows), T, 2) floor paths there, ``gait``'s), the ground truth's first and
+    black, the move speed dashed."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -540,8 +537,8 @@ def plot_gait(path: Path, traces: list[tuple[str, str, np.ndarray]], windows: li
     fig, axes = plt.subplots(len(windows), 1, figsize=(11, 2.6 * len(windows)), squeeze=False,
                              sharex=True)
     for row, (ax, window) in enumerate(zip(axes[:, 0], windows)):
-        for k, (label, decoding, pelvis) in enumerate(traces):
-            speed = floor_speed(pelvis[row])
+        for k, (label, decoding, paths) in enumerate(traces):
+            speed = step_lengths(paths[row]) * FPS
             name = label if decoding in ("-", "the model's") else f"{label}, {decoding}"
             ax.plot(np.arange(1, len(speed) + 1) / FPS, speed, label=name, linewidth=1.6 if k == 0 else 1.0,
                     color="black" if k == 0 else None, zorder=3 if k == 0 else 2)
@@ -553,12 +550,6 @@ def plot_gait(path: Path, traces: list[tuple[str, str, np.ndarray]], windows: li
                  fontsize=10)
     fig.tight_layout()
     return save_figure(fig, path)
-
-
-def pelvis_paths(motion: np.ndarray, layout: MotionLayout, windows: list[int]) -> np.ndarray:
-    """(len(windows), T, 3) the pelvis's positions in ``windows`` of ``motion``."""
-    return np.stack([layout.joint_positions(np.asarray(motion[w], dtype=np.float64), [ROOT])[:, 0]
-                     for w in windows])
 
 
 def steps(motion: np.ndarray, layout: MotionLayout, stance: np.ndarray | None) -> dict[str, float]:
@@ -733,9 +724,9 @@ def main(argv: list[str] | None = None) -> int:
         covariances = [] if halves is None else [
             covariance_row("real floor", "-", covariance_terms(*halves, parts))]
     if args.gait:
-        gaits = [gait_row("ground truth", "-", gait(truth, layout))]
         drawn = sorted({int(w) for w in np.linspace(0, len(truth) - 1, GAIT_PLOT_WINDOWS).round()})
-        traces = [("ground truth", "-", pelvis_paths(truth, layout, drawn))]
+        walked = gait(truth, layout)
+        gaits, traces = [gait_row("ground truth", "-", walked)], [("ground truth", "-", walked["paths"][drawn])]
     if args.legs:
         groups = leg_groups(ico, shell, layout)
         legs = [legs_row("ground truth" if halves is None else "real floor", "-",
@@ -764,8 +755,9 @@ def main(argv: list[str] | None = None) -> int:
             if args.covariance:
                 covariances.append(covariance_row(label, decoding, covariance_terms(acc, real, parts)))
             if args.gait:
-                gaits.append(gait_row(label, decoding, gait(motion, layout)))
-                traces.append((label, decoding, pelvis_paths(motion, layout, drawn)))
+                walked = gait(motion, layout)
+                gaits.append(gait_row(label, decoding, walked))
+                traces.append((label, decoding, walked["paths"][drawn]))
             if args.legs:
                 legs.append(legs_row(label, decoding, leg_distances(acc, real, groups),
                                      leg_correlations(motion, layout)))
