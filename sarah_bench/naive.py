@@ -46,6 +46,7 @@ class NaiveStreamer:
         self._details: list[torch.Tensor] = []
         self._places: list[np.ndarray] = [np.zeros(2)]  # where the agent stands as each block begins
         self._decoding = stream_decoding(self.vae, self.normalizer)
+        self._decoded = None  # the decoder's last frame in metres (root steps)
 
     def _window(self, items: list) -> list:
         keep = kept_history(self.flow, self.config)
@@ -90,8 +91,10 @@ class NaiveStreamer:
         if detail is not None:
             self._details.append(detail[0, 0])
             detail = torch.stack(self._details[-len(context):])[None]
-        motion = self.vae.decode(latents, detail)[0, -self.stride:]
-        out = self._decoding(nz.denormalize("motion", motion).double().numpy(),
+        motion = nz.denormalize("motion", self.vae.decode(latents, detail)[0, -self.stride:],
+                                self._decoded)
+        self._decoded = motion[-1]
+        out = self._decoding(motion.double().numpy(),
                              decoded_stance(self.vae, latents, last=True),
                              np.asarray(user_head, np.float64)).astype(np.float32)
         if flow.config.user_relative:

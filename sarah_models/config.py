@@ -195,6 +195,14 @@ class VAEConfig:
     # fixture benchmark's VAE reconstructed FGD_acc 646 against 862, its arms halved
     # (docs/results.md, forty-sixth run). 1 in both presets (neither is root-relative).
     root_weight: float = 1.0
+    # Not in the paper (False = the paper): with root_relative, the root's own points carry how
+    # far they moved on the floor since the frame before (x and z; the window's origin before its
+    # first frame) instead of where they are, and decoding sums them (``nn.normalizer``). Where
+    # they are is metres from the origin after a walk, and the fixture benchmark's VAE placed the
+    # pelvis 23 cm off and smoothed its steps into a drift (peak 0.28 m/s where the data's step at
+    # 1.56); the steps' own displacements it reconstructs as the data takes them (docs/results.md,
+    # eighty-fifth run). Their channels' std is ~1 cm a frame, so ``root_weight`` weighs them up.
+    root_steps: bool = False
     # Not in the paper (False = the paper): a linear code of each latent block beside the
     # transformers, fitted to the training data's principal components before the VAE trains
     # (``nn.block_code``): the untrained VAE then reconstructs what a linear code can, and
@@ -336,6 +344,9 @@ class VAEConfig:
         if not self.root_weight > 0:
             raise ValueError(f"VAEConfig.root_weight must be > 0 (the root's place is trained), "
                              f"got {self.root_weight}")
+        if self.root_steps and not self.root_relative:
+            raise ValueError("VAEConfig.root_steps makes the root's points steps of root-relative "
+                             "motion: set vae.root_relative too")
         if self.recon_units not in RECON_UNITS:
             raise ValueError(f"VAEConfig.recon_units must be one of {RECON_UNITS}, got "
                              f"{self.recon_units!r}")

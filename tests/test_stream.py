@@ -405,6 +405,36 @@ def test_recorded_latents_are_the_ones_decoded(models):
         np.testing.assert_allclose(decoded.astype(np.float32), result.motion, atol=1e-4)
 
 
+def test_a_stream_sums_the_root_steps_as_its_latents_decoded_at_once_do(models):
+    """vae.root_steps: a stream sums the root's floor steps block by block from the frame it
+    decoded last (``Normalizer.denormalize``'s ``before``); its latents decoded at once, the
+    steps summed from the origin, give the same motion, and a root summed from the origin at
+    every block would not."""
+    from sarah_models.generation.inputs import Inputs
+    from sarah_models.generation.run import generate
+    from sarah_models.nn.normalizer import Normalizer
+    from sarah_models.sampling.stream import IDENTITY
+    from sarah_models.training.checkpoint import LoadedModels
+
+    vae, flow, normalizer = models
+    steps = Normalizer.from_state_dict(normalizer.state_dict())
+    steps.set_root_relative([0, 1], steps=True)
+    head, a, b = make_inputs(24)
+    loaded = LoadedModels(vae, flow, steps, RunConfig.preset("tiny"), {}, "logmel", 0, "flow")
+    inputs = Inputs(user_head=head, agent_speaking=np.zeros(24, bool),
+                    user_speaking=np.zeros(24, bool), anchor=IDENTITY, source={},
+                    agent_audio=a, user_audio=b)
+    streamed = generate(loaded, inputs, StreamConfig(history_tokens=None), offline=False)
+    z = steps.denormalize("latent", torch.from_numpy(streamed.latents))
+    with torch.inference_mode():
+        decoded = vae.decode(z[None])[0]
+    at_once = stream_decoding(vae, steps)(steps.denormalize("motion", decoded).double().numpy())
+    np.testing.assert_allclose(at_once.astype(np.float32), streamed.motion, atol=1e-4)
+    by_block = torch.cat([steps.denormalize("motion", decoded[i:i + S]) for i in range(0, 24, S)])
+    restarted = stream_decoding(vae, steps)(by_block.double().numpy())
+    assert np.abs(restarted.astype(np.float32) - streamed.motion).max() > 1e-3
+
+
 @pytest.mark.parametrize("solver, order", [("midpoint", 2), ("euler", 1)])
 def test_solver_converges_at_its_order(solver, order):
     """On dz/dtau = (cos 3 tau - 1.5) z (exact: z0 exp(sin(3)/3 - 1.5)), halving the step

@@ -1288,6 +1288,81 @@ def test_root_relative_standardization_is_exact_both_ways_and_travels_with_the_n
         norm.set_root_relative([])
 
 
+def test_root_steps_are_exact_both_ways_and_a_stream_sums_them_as_the_whole_window_does():
+    """vae.root_steps: the root's points standardized as their floor steps since the frame
+    before (the origin before the first), so a body walking at a constant speed has constant
+    step channels; denormalize sums them back exactly, and blocks decoded one after another
+    from the frame before give the window decoded at once; the form survives a state dict."""
+    from sarah_models.nn.normalizer import Normalizer
+
+    points, frames = 9, 12
+    rng = np.random.default_rng(1)
+    stats = {"motion": (rng.normal(0, 0.01, 3 * points), rng.uniform(0.01, 2, 3 * points))}
+    norm = Normalizer(stats)
+    norm.set_root_relative([2, 3], steps=True)
+    assert norm.root_steps and norm.root_relative
+    x = torch.from_numpy(rng.normal(0, 1, (2, frames, 3 * points)))
+    walk = x.clone().unflatten(-1, (points, 3))
+    walk[..., [0, 2]] += 0.05 * torch.arange(frames, dtype=x.dtype)[:, None, None]  # 5 cm a frame
+    walk = walk.flatten(-2)
+    assert torch.allclose(norm.denormalize("motion", norm.normalize("motion", x)), x, atol=1e-9)
+    moved = (norm.normalize("motion", walk) - norm.normalize("motion", x)).unflatten(-1, (points, 3))
+    std = norm.motion_std.unflatten(-1, (points, 3))
+    steps = moved[..., 1:, [2, 3], 0] * std[[2, 3], 0]  # the walk's own part of the root's steps
+    assert torch.allclose(steps, torch.full_like(steps, 0.05), atol=1e-9)
+    assert moved[..., [0, 1, 4], :].abs().max() < 1e-9  # relative points do not see the walk
+    standardized = norm.normalize("motion", walk)
+    blocks, before = [], None
+    for start in range(0, frames, 4):
+        block = norm.denormalize("motion", standardized[:, start:start + 4], before)
+        blocks.append(block)
+        before = block[:, -1]
+    assert torch.allclose(torch.cat(blocks, dim=1), walk, atol=1e-9)
+    copy = Normalizer.from_state_dict(norm.state_dict())
+    assert copy.root_steps and torch.allclose(copy.denormalize("motion", standardized), walk, atol=1e-9)
+    plain = Normalizer(stats)
+    plain.set_root_relative([2, 3])
+    assert not plain.root_steps and not Normalizer.from_state_dict(plain.state_dict()).root_steps
+    with pytest.raises(ValueError, match="root_relative"):
+        VAEConfig(root_steps=True)
+
+
+def test_root_step_training_fits_step_statistics_and_the_model_file_keeps_the_form(prepared_shards,
+                                                                                   tmp_path):
+    """A vae.root_steps stage fits the root's x and z as a frame's floor steps (centimetres,
+    where their places spread over the window), and its flow's model file standardizes and
+    decodes in the same form; a fine-tune cannot change the form."""
+    from sarah_data.dataset import WindowDataset
+    from sarah_data.skeleton import ICOSAHEDRON_POINTS, ROOT, MotionLayout
+    from sarah_models.training.model_file import load_model_file, write_model_file
+
+    config = tiny_config(2).with_overrides(["train.window=16", "vae.root_relative=true",
+                                            "vae.root_steps=true", "vae.recon_units=metres",
+                                            "train.latent_stats_batches=4"])
+    out = tmp_path / "run"
+    common = dict(device="cpu", progress=False, echo=lambda _: None)
+    train("vae", config, prepared_shards, out, **common)
+    train("flow", config, prepared_shards, out, **common)
+    norm = load_models(out / "flow.pt", device="cpu").normalizer
+    assert norm.root_steps
+    layout = MotionLayout.from_width(norm.motion_mean.numel())
+    root_x = layout.joint(ROOT) * ICOSAHEDRON_POINTS * 3  # the root's first point's x
+    windows = WindowDataset.sliding(prepared_shards, "train", extractor=None, window=16)
+    motion = torch.stack([windows[i]["motion"] for i in range(len(windows))])
+    places = motion[..., root_x]
+    steps = torch.cat([places[:, :1], places.diff(dim=1)], dim=1)
+    assert norm.motion_std[root_x] < 0.5 * places.std()
+    assert 0.5 < norm.motion_std[root_x] / steps.std() < 2
+    loaded = load_model_file(write_model_file(out / "flow.pt", tmp_path / "m.safetensors"),
+                             device="cpu").normalizer
+    assert loaded.root_steps
+    assert torch.allclose(loaded.denormalize("motion", loaded.normalize("motion", motion)), motion,
+                          atol=1e-4)
+    other = config.with_overrides(["vae.root_steps=false"])
+    with pytest.raises(ValueError, match="root_steps"):
+        train("vae", other, prepared_shards, tmp_path / "mixed", init_from=out, **common)
+
+
 def test_root_weighted_counts_the_root_once_per_point_of_the_body():
     from sarah_models.training.objectives import root_weighted
 

@@ -16,6 +16,13 @@ an absolute x/z channel's std is ~1 m and a head turn's 10 cm offsets are a tent
 among channels that move together; relative to the root they are most of their channel's range.
 The motion's statistics are then the root-relative channels' (fitted on the first training
 batches by ``training.stages``).
+
+Root steps (``set_root_relative(..., steps=True)``; ``vae.root_steps``). The root's own points
+then carry their floor displacement (x, z) since the frame before instead of their place: time
+is the motion's second-to-last axis, and before a window's first frame is the window frame's
+origin, where the agent starts. ``denormalize`` sums the steps back into places, from the origin
+or from ``before``, the frame a stream decoded last, so a stream decoded a block at a time and
+the same frames decoded at once are the same motion.
 """
 
 from __future__ import annotations
@@ -77,10 +84,14 @@ class Normalizer(nn.Module):
             x = self.relative_motion(x)
         return (x - mean) / std
 
-    def denormalize(self, key: str, x: Tensor) -> Tensor:
+    def denormalize(self, key: str, x: Tensor, before: Tensor | None = None) -> Tensor:
+        """Statistics' units back to the data's. For root-step motion (module docstring),
+        ``before`` (..., 3P) is the frame before ``x``'s first, in metres; None: the origin."""
         mean, std = self._stats(key, x)
         x = x * std + mean
         if key == "motion" and self.root_relative:
+            if self.root_steps:
+                x = self.root_places(x, before)
             x = x + self.root_offset(x)  # the root's own points are absolute in both forms
         return x
 
@@ -88,20 +99,50 @@ class Normalizer(nn.Module):
     def root_relative(self) -> bool:
         return hasattr(self, "motion_root")
 
-    def set_root_relative(self, root_points: Tensor | np.ndarray | list[int]) -> None:
+    @property
+    def root_steps(self) -> bool:
+        return hasattr(self, "motion_root_steps")
+
+    def set_root_relative(self, root_points: Tensor | np.ndarray | list[int],
+                          steps: bool = False) -> None:
         """Standardize ``motion`` root-relative from now on, the root being the mean of these
-        points (indices of 3-channel points in the motion vector). The motion statistics must
-        then be the root-relative channels'."""
+        points (indices of 3-channel points in the motion vector), with ``steps`` the root's
+        points as their floor steps (module docstring). The motion statistics must then be the
+        root-relative channels'."""
         points = torch.as_tensor(np.asarray(root_points, dtype=np.int64)).reshape(-1)
         if points.numel() == 0 or bool((points < 0).any()):
             raise ValueError(f"root points must be non-negative point indices, got {points.tolist()}")
         device = next(self.buffers(), points).device
         self.register_buffer("motion_root", points.to(device))
+        if steps:  # a buffer, so that the form travels in checkpoints with the statistics
+            self.register_buffer("motion_root_steps", torch.ones(1, dtype=torch.bool, device=device))
 
     def relative_motion(self, x: Tensor) -> Tensor:
         """Motion (..., 3P) as this normalizer standardizes it: root-relative where it is so, else
-        as given (what its statistics describe)."""
-        return x - self.root_offset(x) if self.root_relative else x
+        as given (what its statistics describe); with root steps, (..., T, 3P)."""
+        if not self.root_relative:
+            return x
+        relative = x - self.root_offset(x)
+        if not self.root_steps:
+            return relative
+        before = torch.cat([torch.zeros_like(x[..., :1, :]), x[..., :-1, :]], dim=-2)
+        return torch.where(self.root_floor(x), x - before, relative)
+
+    def root_places(self, steps: Tensor, before: Tensor | None = None) -> Tensor:
+        """Motion (..., T, 3P) whose root points hold their floor steps -> the same with their
+        places: the steps summed over time from ``before``'s (..., 3P) places, or the origin."""
+        floor = self.root_floor(steps)
+        places = torch.cumsum(torch.where(floor, steps, 0.0), dim=-2)
+        if before is not None:
+            places = places + torch.where(floor, before.to(steps.dtype), 0.0).unsqueeze(-2)
+        return torch.where(floor, places, steps)
+
+    def root_floor(self, x: Tensor) -> Tensor:
+        """(3P,) bool: the root's points' x and z channels of a motion like ``x``."""
+        channels = torch.zeros(x.shape[-1] // 3, 3, dtype=torch.bool, device=x.device)
+        channels[self.motion_root, 0] = True
+        channels[self.motion_root, 2] = True
+        return channels.flatten()
 
     def root_offset(self, x: Tensor) -> Tensor:
         """(..., 3P) -> the (..., 3P) offset that is the root's (x, 0, z) on every point but the
@@ -142,5 +183,5 @@ class Normalizer(nn.Module):
             norm.register_buffer(f"{key}_mean", state[f"{key}_mean"].clone())
             norm.register_buffer(f"{key}_std", state[f"{key}_std"].clone())
         if "motion_root" in state:
-            norm.set_root_relative(state["motion_root"].clone())
+            norm.set_root_relative(state["motion_root"].clone(), steps="motion_root_steps" in state)
         return norm

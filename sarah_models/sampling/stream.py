@@ -192,12 +192,11 @@ class _Models:
 
     def decode(self, motion: Tensor, decoding: StreamDecoding, stance: np.ndarray | None,
                user: np.ndarray) -> np.ndarray:
-        """Standardized decoder output, the stream's next T frames (T, Dx) -> motion in the
-        generation frame (T, Dx) float64, through the stream's ``decoding``; ``stance`` (T,
-        feet): the frames' decoded stance (``decoding.decoded_stance``), for the foot lock;
-        ``user`` (T, 2): the user's floor path in the generation frame (``user_floor``)."""
-        return decoding(self.normalizer.denormalize("motion", motion).double().cpu().numpy(),
-                        stance, user)
+        """The decoder's next T frames in metres (T, Dx) -> motion in the generation frame
+        (T, Dx) float64, through the stream's ``decoding``; ``stance`` (T, feet): the frames'
+        decoded stance (``decoding.decoded_stance``), for the foot lock; ``user`` (T, 2): the
+        user's floor path in the generation frame (``user_floor``)."""
+        return decoding(motion.double().cpu().numpy(), stance, user)
 
     def to_world(self, x: np.ndarray) -> np.ndarray:
         """Generation-frame motion (T, Dx) -> world-frame motion vector (T, Dx) float32."""
@@ -253,6 +252,7 @@ class StreamingGenerator:
         self._carried: TravelState | None = None  # what the flow carries across blocks
         self._place = torch.zeros(2)  # the decoded pelvis's floor (x, z) in the generation frame
         self._decoder = self._m.vae.new_decoder_cache(cfg.decoder_blocks(self._m.vae.stride))
+        self._decoded: Tensor | None = None  # the decoder's last frame in metres (root steps)
         self._decoding = self._m.decoding()
         # the decoder's latest latent tokens, all the stance head reads (vae.foot_lock_reads);
         # None for a decoding that does not step by it
@@ -317,9 +317,12 @@ class StreamingGenerator:
         if self._stance_tokens is not None:
             self._stance_tokens.append(token)
             stance = decoded_stance(m.vae, torch.stack(list(self._stance_tokens), dim=1), last=True)
-        frames = m.decode(m.vae.decoder_step(token, self._decoder,
-                                             None if detail is None else detail[:, 0])[0],
-                          self._decoding, stance, block.user)
+        decoded = m.normalizer.denormalize(
+            "motion", m.vae.decoder_step(token, self._decoder,
+                                         None if detail is None else detail[:, 0])[0],
+            self._decoded)
+        self._decoded = decoded[-1]
+        frames = m.decode(decoded, self._decoding, stance, block.user)
         if m.flow.config.user_relative:  # where the next block's offset is taken from
             self._place = pelvis_floor(torch.from_numpy(frames[-1:]))[0].float()
         self.frames_generated += m.stride

@@ -319,7 +319,8 @@ def train(stage: str, config: RunConfig, shards_dir: str | Path | None, out_dir:
         else:
             normalizer = Normalizer(stats)
             if config.vae.root_relative:
-                _fit_root_relative_stats(normalizer, dataset, tcfg, dims["motion"])
+                _fit_root_relative_stats(normalizer, dataset, tcfg, dims["motion"],
+                                         config.vae.root_steps)
         vae, _ = build_models(config, dims)
         if previous is not None:
             vae.load_state_dict(trained_weights(previous, "vae"))
@@ -494,13 +495,14 @@ def _short_windows(config: TrainConfig, total: int, shards_dir: str | Path | Non
 
 @torch.no_grad()
 def _fit_root_relative_stats(normalizer: Normalizer, dataset: Dataset, config: TrainConfig,
-                             motion_width: int) -> None:
+                             motion_width: int, steps: bool = False) -> None:
     """Make ``normalizer`` standardize motion root-relative (``vae.root_relative``): the root
-    joint's icosahedron points, then per-channel mean/std of the root-relative motion over the
-    first ``latent_stats_batches`` batches of a fixed order (every rank reads the same ones)."""
+    joint's icosahedron points (their floor steps with ``steps``, ``vae.root_steps``), then
+    per-channel mean/std of the root-relative motion over the first ``latent_stats_batches``
+    batches of a fixed order (every rank reads the same ones)."""
     layout = MotionLayout.from_width(motion_width)
     start = layout.joint(ROOT) * ICOSAHEDRON_POINTS
-    normalizer.set_root_relative(torch.arange(start, start + ICOSAHEDRON_POINTS))
+    normalizer.set_root_relative(torch.arange(start, start + ICOSAHEDRON_POINTS), steps)
     mean, std = _channel_stats(normalizer.relative_motion(batch["motion"].double())
                                for _, batch in _first_batches(dataset, config, seed_offset=2))
     normalizer.set("motion", mean, std)
