@@ -458,7 +458,9 @@ class FlowConfig:
     # decoded agent stands. On the fixtures the
     # training loss fell by a quarter, but the agent walks away from its user (User Dist. +118
     # (110-126) cm at the benchmark's pick, 296 test windows): reading its own place closes a
-    # loop training never showed it (docs/results.md, fiftieth run); no preset uses it.
+    # loop training never showed it (docs/results.md, fiftieth run). On root-step latents
+    # (``vae.root_steps``), which hold no place, it walked to and from its user at 5.7x the
+    # data's radial speed (eighty-sixth run); no preset uses it.
     user_relative: bool = False
     # With user_relative: the std in metres of the noise training adds to where the data's agent
     # stands before each block but the first (0 = none). A stream reads its own decoded pelvis,
