@@ -226,6 +226,9 @@ def test_end_to_end_tables_plots_and_determinism(tiny, tmp_path, capsys):
         assert band["spread_low"] <= band["spread"] <= band["spread_high"]
     r2 = latents["per_direction"]["placement_r2"]  # where each direction puts the pelvis
     assert len(r2) == latents["channels"] and all(0 <= v <= 1 + 1e-9 for v in r2)
+    steps = latents["steps"]  # the plane that carries each token's floor step
+    assert 0 <= steps["r2"] <= 1 and steps["spread_low"] <= steps["spread"] <= steps["spread_high"]
+    assert "steps (a plane)" in (out / "latents.md").read_text()
     assert "Latent directions:" in printed and "Latent directions" in (out / "latents.md").read_text()
     listing = json.loads((out / "windows.json").read_text())["windows"]
     assert len(listing) == 6 and {w["start"] for w in listing} <= {0, 16}

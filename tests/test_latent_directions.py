@@ -11,7 +11,7 @@ from PIL import Image
 
 from sarah_models.evaluation.latent_directions import (
     PLACEMENT_R2, LatentRecorder, band_edges, directions_markdown, directions_summary,
-    participation, pelvis_floor, placement_r2, plot_directions, principal_axes)
+    participation, pelvis_floor, placement_r2, plot_directions, principal_axes, step_plane)
 
 
 def smooth_latents(rng, windows=60, tokens=50, channels=8):
@@ -137,6 +137,31 @@ def test_the_directions_that_carry_where_the_body_stands_are_found():
     assert np.allclose(placement_r2(np.zeros((3, 4, 2)), np.zeros((3, 4, 2))), 0.0)
     with pytest.raises(ValueError, match="placement"):
         placement_r2(np.zeros((3, 4, 2)), np.zeros((3, 5, 2)))
+
+
+def test_the_plane_that_carries_the_steps_is_found_and_read_against_the_data():
+    rng = np.random.default_rng(5)
+    axes, _ = np.linalg.qr(rng.standard_normal((10, 10)))
+    # Eight directions of unit variance; each token's floor step is read from two weak ones
+    # (together: x and z each from both), a sliver of the variance
+    step_part = 0.3 * rng.standard_normal((60, 50, 2))
+    data = (rng.standard_normal((60, 50, 8)) @ axes[:, :8].T + step_part @ axes[:, 8:].T
+            + 0.02 * rng.standard_normal((60, 50, 10)))
+    floor = np.cumsum(step_part @ np.array([[1.0, 1.0], [1.0, -1.0]]), axis=1)  # x, z per token
+    samples = data - 0.5 * step_part @ axes[:, 8:].T  # half the steps' amplitude, the rest as is
+    summary = directions_summary(data, samples, placement=floor)
+    steps = summary["steps"]
+    assert steps["r2"] > 0.95 and steps["share"] < 0.03
+    assert steps["spread"] == pytest.approx(0.25, rel=0.1)
+    assert steps["spread_low"] <= steps["spread"] <= steps["spread_high"]
+    # the band of 90 % of the variance does not hold them and reads the samples as the data
+    assert summary["bands"][0]["spread"] == pytest.approx(1.0, abs=1e-3)
+    assert "| steps (a plane) | " in directions_markdown(summary, "caption")
+    # the same samples as the data fill the plane as the data does
+    assert directions_summary(data, data.copy(), placement=floor)["steps"]["spread"] == pytest.approx(1.0)
+    plane, fit = step_plane(np.zeros((3, 4, 5)), np.zeros((3, 4, 2)))  # a floor that never moves
+    assert plane is None and fit == 0.0
+    assert "steps" not in directions_summary(data, samples, placement=np.zeros(data.shape[:2] + (2,)))
 
 
 def test_pelvis_floor_is_the_mean_of_each_token_s_frames():

@@ -31,6 +31,16 @@ position on it alone, and the directions whose R² reaches ``PLACEMENT_R2`` make
 the body stands, but more than the pelvis: on the fixture benchmark this row did not follow it
 from model to model, docs/results.md, fifty-ninth run).
 
+How the body steps is in other directions still, and spread over many: no one direction explains
+much of a token's step (the pelvis's floor position less the token's before it), but together
+they do. So the "steps" row is a plane, not a set of principal directions: the two directions of
+a ridge fit of each token's step on its latents (fitted on the data's, ``step_plane``), with
+the fit's R² beside it and the samples' spread there against the data's. On the fixture
+benchmark's root-step VAE (``vae.root_steps``) the plane holds 0.4 % of the latents' variance and
+explains 0.72 of the steps, and that run's flow filled it at 0.75 of the data's spread
+(docs/results.md, eighty-seventh run): a direction the flow's loss, weighing every channel alike,
+barely sees.
+
 ``scripts/motion_anatomy.py`` reads the same latents along the other axis, by frequency band of
 the token rate, channel by channel.
 """
@@ -50,6 +60,8 @@ from .tables import with_interval
 
 BANDS = (0.90, 0.99)  # cumulative data variance at which a band ends; the last band takes the rest
 PLACEMENT_R2 = 0.05  # a direction carries placement when it alone explains this much of it
+STEP_RIDGE = 1e-2  # the step plane's ridge, a share of the latents' mean variance per direction:
+# enough to keep directions the data barely uses out of the fit
 
 
 def principal_axes(latents: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -87,7 +99,8 @@ def directions_summary(data: np.ndarray, samples: np.ndarray, bands: tuple[float
                        placement: np.ndarray | None = None) -> dict:
     """How ``samples`` fill the principal directions of ``data``, both (N windows, K tokens, D),
     window i of each from the same test window; ``placement`` (N, K, 2), the pelvis's floor
-    position per token, adds each direction's R² of it and the "placement" row. See the module
+    position per token, adds each direction's R² of it, the "placement" row and the "steps" row
+    (the plane that carries each token's floor step, ``step_plane``). See the module
     docstring. Raises ValueError for shapes that do not pair up or windows of fewer than 2
     tokens."""
     data, samples = np.asarray(data, np.float64), np.asarray(samples, np.float64)
@@ -115,13 +128,9 @@ def directions_summary(data: np.ndarray, samples: np.ndarray, bands: tuple[float
         }
 
     def row(chosen) -> dict:
-        a, b = energy["data"][:, chosen].sum(1), energy["samples"][:, chosen].sum(1)
-        c, d = step["data"][:, chosen].sum(1), step["samples"][:, chosen].sum(1)
-        figures = {"spread": paired_comparison(b, a), "data_change": paired_comparison(c / 2, a),
-                   "change_ratio": paired_comparison(d, c)}
-        return {"share": float(shares[chosen].sum()),
-                **{f"{name}{k[5:]}": v for name, out in figures.items()
-                   for k, v in out.items() if k.startswith("ratio")}}
+        return subspace_row(energy["data"][:, chosen].sum(1), energy["samples"][:, chosen].sum(1),
+                            step["data"][:, chosen].sum(1), step["samples"][:, chosen].sum(1),
+                            float(shares[chosen].sum()))
 
     summary = {"windows": int(data.shape[0]), "tokens": int(data.shape[1]),
                "channels": int(data.shape[2]),
@@ -131,12 +140,33 @@ def directions_summary(data: np.ndarray, samples: np.ndarray, bands: tuple[float
                          for start, end in band_edges(shares, bands)],
                "per_direction": per_direction}
     if placement is not None:
-        r2 = placement_r2(p_data, np.asarray(placement, np.float64))
+        placement = np.asarray(placement, np.float64)
+        r2 = placement_r2(p_data, placement)
         per_direction["placement_r2"] = r2.tolist()
         carriers = np.flatnonzero(r2 >= PLACEMENT_R2)
         if len(carriers):
             summary["placement"] = {"directions": carriers.tolist(), **row(carriers)}
+        plane, fit = step_plane(p_data, placement)
+        if plane is not None:
+            on = {k: p @ plane for k, p in (("data", p_data), ("samples", p_samples))}
+            summary["steps"] = {"r2": fit, **subspace_row(
+                (on["data"] ** 2).mean(1).sum(1), (on["samples"] ** 2).mean(1).sum(1),
+                (np.diff(on["data"], axis=1) ** 2).mean(1).sum(1),
+                (np.diff(on["samples"], axis=1) ** 2).mean(1).sum(1),
+                float((on["data"] ** 2).mean(1).sum(1).mean() / data_energy.sum()))}
     return summary
+
+
+def subspace_row(data_energy: np.ndarray, sample_energy: np.ndarray, data_step: np.ndarray,
+                 sample_step: np.ndarray, share: float) -> dict:
+    """A table row from per-window figures along some directions: mean p² and mean squared
+    token step, the data's and the samples' (each (N,)), and the directions' share of the data's
+    variance; the ratios with their paired 95 % intervals over windows."""
+    a, b, c, d = data_energy, sample_energy, data_step, sample_step
+    figures = {"spread": paired_comparison(b, a), "data_change": paired_comparison(c / 2, a),
+               "change_ratio": paired_comparison(d, c)}
+    return {"share": share, **{f"{name}{k[5:]}": v for name, out in figures.items()
+                               for k, v in out.items() if k.startswith("ratio")}}
 
 
 def _finite(values: np.ndarray) -> list[float | None]:
@@ -159,6 +189,24 @@ def placement_r2(projections: np.ndarray, placement: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         explained = ((x.T @ y) ** 2).sum(1) / (x ** 2).sum(0)  # per direction, both coordinates
     return np.nan_to_num(explained / total)
+
+
+def step_plane(projections: np.ndarray, placement: np.ndarray) -> tuple[np.ndarray | None, float]:
+    """(N, K, D) projections and (N, K, 2) floor positions -> the (D, 2) orthonormal directions
+    of a ridge fit (``STEP_RIDGE``) of each token's floor step on its projections, and the fit's
+    R²; (None, 0.0) where the floor never moves."""
+    x = projections[:, 1:].reshape(-1, projections.shape[-1])
+    y = np.diff(placement, axis=1).reshape(-1, 2)
+    x, y = x - x.mean(0), y - y.mean(0)
+    total = float((y ** 2).sum())
+    if not total > 0:
+        return None, 0.0
+    gram = x.T @ x
+    ridge = STEP_RIDGE * np.trace(gram) / gram.shape[0]
+    weights = np.linalg.solve(gram + ridge * np.eye(gram.shape[0]), x.T @ y)
+    fit = 1.0 - float(((y - x @ weights) ** 2).sum()) / total
+    plane, _ = np.linalg.qr(weights)
+    return plane, fit
 
 
 def pelvis_floor(layout, stride: int) -> Callable[[dict], np.ndarray]:
@@ -234,6 +282,11 @@ def directions_markdown(summary: dict, caption: str) -> str:
         lines += ["", "Placement: the directions each of which alone explains at least "
                   f"{PLACEMENT_R2:.0%} of the pelvis's floor position (R²: "
                   + ", ".join(f"{k + 1}: {r2[k]:.2f}" for k in chosen) + ")."]
+    if "steps" in summary:
+        lines.insert(lines.index("|---|---|---|---|---|") + 1 + len(summary["bands"]),
+                     line("steps (a plane)", summary["steps"]))
+        lines += ["", f"Steps: the plane of a ridge fit of each token's pelvis floor step on its "
+                  f"latents, which explains {summary['steps']['r2']:.2f} of the data's steps."]
     return "\n".join(lines) + "\n"
 
 
