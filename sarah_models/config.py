@@ -446,7 +446,9 @@ class FlowConfig:
     # and which turns in place holds for a sequence; a flow whose attention reaches a few
     # seconds cannot tell, and walks where the user walks (the forty-first and forty-seventh
     # runs). A running mean carries it at a constant cost, streamed exactly as offline. On the
-    # fixtures it tells the roles apart but the agent walks as much; no preset uses it.
+    # fixtures it tells the roles apart but the agent walks as much; on root-step latents
+    # (``vae.root_steps``) the walking agent walks the data's path and FGD_acc rises from 353 to
+    # 391-898 (docs/results.md, eighty-seventh run); no preset uses it.
     head_travel_seconds: float | None = None
     # Not in the paper (False = the paper): the user's head as seen from where the agent stands,
     # its floor (x, z) less the agent's pelvis at the end of the previous block, in metres
