@@ -37,7 +37,7 @@ they do. So the "steps" row is a plane, not a set of principal directions: the t
 a ridge fit of each token's step on its latents (fitted on the data's, ``step_plane``), with
 the fit's R² beside it and the samples' spread there against the data's. On the fixture
 benchmark's root-step VAE (``vae.root_steps``) the plane holds 0.4 % of the latents' variance and
-explains 0.72 of the steps, and that run's flow filled it at 0.75 of the data's spread
+explains 0.72 of the steps, and that run's flow filled it at 0.76 of the data's spread
 (docs/results.md, eighty-seventh run): a direction the flow's loss, weighing every channel alike,
 barely sees.
 
