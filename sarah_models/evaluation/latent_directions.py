@@ -111,10 +111,9 @@ def directions_summary(data: np.ndarray, samples: np.ndarray, bands: tuple[float
         raise ValueError(f"latent directions: needs at least 2 windows of 2 tokens, got {data.shape}")
     mean, values, directions = principal_axes(data)
     p_data, p_samples = (data - mean) @ directions, (samples - mean) @ directions  # (N, K, D)
-    # Per window and direction: mean p² and mean squared token step.
-    energy = {"data": (p_data ** 2).mean(1), "samples": (p_samples ** 2).mean(1)}
-    step = {"data": (np.diff(p_data, axis=1) ** 2).mean(1),
-            "samples": (np.diff(p_samples, axis=1) ** 2).mean(1)}
+    moments = {"data": window_moments(p_data), "samples": window_moments(p_samples)}
+    energy = {k: m[0] for k, m in moments.items()}
+    step = {k: m[1] for k, m in moments.items()}
     data_energy = energy["data"].mean(0)
     if not data_energy.sum() > 0:
         raise ValueError("latent directions: the encoder's latents do not vary over these windows")
@@ -148,13 +147,18 @@ def directions_summary(data: np.ndarray, samples: np.ndarray, bands: tuple[float
             summary["placement"] = {"directions": carriers.tolist(), **row(carriers)}
         plane, fit = step_plane(p_data, placement)
         if plane is not None:
-            on = {k: p @ plane for k, p in (("data", p_data), ("samples", p_samples))}
+            data_on, step_on = (m.sum(1) for m in window_moments(p_data @ plane))
+            samples_on, samples_step_on = (m.sum(1) for m in window_moments(p_samples @ plane))
             summary["steps"] = {"r2": fit, **subspace_row(
-                (on["data"] ** 2).mean(1).sum(1), (on["samples"] ** 2).mean(1).sum(1),
-                (np.diff(on["data"], axis=1) ** 2).mean(1).sum(1),
-                (np.diff(on["samples"], axis=1) ** 2).mean(1).sum(1),
-                float((on["data"] ** 2).mean(1).sum(1).mean() / data_energy.sum()))}
+                data_on, samples_on, step_on, samples_step_on,
+                float(data_on.mean() / data_energy.sum()))}
     return summary
+
+
+def window_moments(projections: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, K, D) projections -> per window and direction (N, D): the mean p² and the mean
+    squared token-to-token step."""
+    return (projections ** 2).mean(1), (np.diff(projections, axis=1) ** 2).mean(1)
 
 
 def subspace_row(data_energy: np.ndarray, sample_energy: np.ndarray, data_step: np.ndarray,
@@ -274,20 +278,20 @@ def directions_markdown(summary: dict, caption: str) -> str:
 
     lines += [line(f"{row['directions'][0] + 1}-{row['directions'][1]}", row)
               for row in summary["bands"]]
+    notes = []
+    if "steps" in summary:
+        lines.append(line("steps (a plane)", summary["steps"]))
+        notes += ["", f"Steps: the plane of a ridge fit of each token's pelvis floor step on its "
+                  f"latents, which explains {summary['steps']['r2']:.2f} of the data's steps."]
     if "placement" in summary:
         chosen = summary["placement"]["directions"]
         r2 = summary["per_direction"]["placement_r2"]
         lines.append(line("placement: " + ", ".join(str(k + 1) for k in chosen),
                           summary["placement"]))
-        lines += ["", "Placement: the directions each of which alone explains at least "
-                  f"{PLACEMENT_R2:.0%} of the pelvis's floor position (R²: "
-                  + ", ".join(f"{k + 1}: {r2[k]:.2f}" for k in chosen) + ")."]
-    if "steps" in summary:
-        lines.insert(lines.index("|---|---|---|---|---|") + 1 + len(summary["bands"]),
-                     line("steps (a plane)", summary["steps"]))
-        lines += ["", f"Steps: the plane of a ridge fit of each token's pelvis floor step on its "
-                  f"latents, which explains {summary['steps']['r2']:.2f} of the data's steps."]
-    return "\n".join(lines) + "\n"
+        notes = ["", "Placement: the directions each of which alone explains at least "
+                 f"{PLACEMENT_R2:.0%} of the pelvis's floor position (R²: "
+                 + ", ".join(f"{k + 1}: {r2[k]:.2f}" for k in chosen) + ")."] + notes
+    return "\n".join(lines + notes) + "\n"
 
 
 def plot_directions(path: Path, summary: dict) -> Path:
