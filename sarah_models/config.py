@@ -370,6 +370,8 @@ class VAEConfig:
 
     @classmethod
     def tiny(cls) -> "VAEConfig":
+        # A latent of 128 reconstructs the fixture benchmark's arms and hands no nearer (their
+        # gestures smoothed alike; docs/results.md, eighty-eighth run), so 64 stays.
         return cls(latent_dim=64, hidden=128, heads=4, encoder_layers=2, decoder_layers=2,
                    velocity_weight=VELOCITY_WEIGHT_TINY)
 
