@@ -39,6 +39,9 @@
 # streamed tuning evaluations of the paper's imputation and ~25 min for its ten test ones.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# The whole body is one block, which bash reads before running any of it: a run of hours
+# is not changed (or broken mid-line) by editing this file while it runs.
+{
 
 BENCH=${1:-bench}
 PYTHON=${PYTHON:-python}
@@ -245,3 +248,4 @@ for suffix in "" _tuned _trajectory; do
   done
 done
 exit $missing
+}
