@@ -86,12 +86,10 @@ VAE_LONG_STEPS=${VAE_LONG_STEPS:-150}     # then on 400-frame windows
 DECODER_STEPS=${DECODER_STEPS:-150}
 FLOW_STEPS=${FLOW_STEPS:-14000}
 STRIDE=${STRIDE:-}                   # frames per latent token (vae.stride), if not the preset's
-# sarah-train --set for the flow. The weight average (train.ema_decay; its trained weights are the
-# last iterate's, to the bit) since the ninetieth run: three seeds' last iterates placed the body
-# at 0.8x, 6.3x and 7.6x Random's pooled FGD on the test windows and turned the head up to 0.08
-# from GT's, their averages at 0.41-0.86x and within 0.015 (docs/results.md, eighty-ninth run).
-# The recipe before it, sampling the last weights (its model file sha256 4368ac6a... on the
-# AVX-512 EPYC): FLOW_SETTINGS="--set flow.attention_window=17 --set flow.head_velocity=true".
+# sarah-train --set for the flow. The weight average (train.ema_decay) since the ninetieth run: it
+# takes the flow's draw out of where the body stands and where the head turns (docs/results.md,
+# eighty-ninth and ninetieth runs). The recipe before it, sampling the last weights (sha256
+# 4368ac6a... on the AVX-512 EPYC): FLOW_SETTINGS="--set flow.attention_window=17 --set flow.head_velocity=true".
 FLOW_SETTINGS=${FLOW_SETTINGS-"--set flow.attention_window=17 --set flow.head_velocity=true --set train.ema_decay=0.999"}
 # ... for the model file's decoding. Since the seventy-seventh run the body is held until it has
 # glided 0.7 m, a planted foot steps by drift past 0.3 m, and the held body turns to face its user
