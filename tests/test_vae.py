@@ -153,3 +153,82 @@ def test_tiny_vae_overfits_a_small_batch():
         opt.step()
         losses.append(out["recon"].item())
     assert losses[-1] < losses[0] / 20, (losses[0], losses[-1])
+
+
+def test_quintic_hermite_meets_its_end_conditions():
+    """Each basis function is 1 in its own end value (position, velocity or acceleration at
+    t = 0 or 1) and 0 in the five others, and the position weights sum to 1 everywhere."""
+    from sarah_models.nn.vae import quintic_hermite
+
+    t = torch.tensor([0.0, 1.0], dtype=torch.float64, requires_grad=True)
+    basis = quintic_hermite(t)  # (2, 6)
+    values, slopes, bends = [], [], []
+    for j in range(6):
+        (d1,) = torch.autograd.grad(basis[:, j].sum(), t, create_graph=True)
+        (d2,) = torch.autograd.grad(d1.sum(), t)
+        values.append(basis[:, j].detach()), slopes.append(d1.detach()), bends.append(d2)
+    ends = torch.stack([torch.stack((v[0], s[0], b[0], v[1], s[1], b[1]))
+                        for v, s, b in zip(values, slopes, bends)])
+    torch.testing.assert_close(ends, torch.eye(6, dtype=torch.float64))
+    inside = quintic_hermite(torch.linspace(0, 1, 11, dtype=torch.float64))
+    torch.testing.assert_close(inside[:, 0] + inside[:, 3], torch.ones(11, dtype=torch.float64))
+
+
+@pytest.fixture(scope="module")
+def curve_vae():
+    torch.manual_seed(0)
+    vae = CausalVAE(replace(CFG, frame_curve="quintic"), DX).eval()
+    with torch.no_grad():  # trained weights: derivatives that are not zero
+        vae.frame_out.weight.normal_(0, 0.05)
+    return vae
+
+
+def test_quintic_frames_are_smooth_across_seams(curve_vae):
+    """Decoded with frame_curve="quintic", block k's frames are the quintic Hermite curve from
+    block k-1's end state to its own (so, by the basis's end conditions, consecutive blocks
+    meet in position, velocity and acceleration), and its last frame is its end position."""
+    from sarah_models.nn.layers import causal_mask
+    from sarah_models.nn.vae import quintic_hermite
+
+    s, k = CFG.stride, 5
+    z = torch.randn(2, 12, CFG.latent_dim, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        curve = curve_vae.decode(z)
+        tokens = curve_vae._decoder_tokens(z)
+        n = tokens.shape[1]
+        for block in curve_vae.decoder:
+            tokens = block(tokens, causal_mask(n), torch.arange(n))
+        states = curve_vae.frame_out(curve_vae.decoder_norm(tokens).view(2, 12, s + 1, -1)[:, :, 1:])
+    ends = states.unflatten(-1, (3, DX))[:, :, -1]  # (B, K, position/velocity/acceleration, Dx)
+    basis = quintic_hermite(torch.arange(1, s + 1, dtype=torch.float32) / s)
+    expected = torch.einsum("sc,bcd->bsd", basis, torch.cat((ends[:, k - 1], ends[:, k]), dim=1))
+    torch.testing.assert_close(curve[:, k * s:(k + 1) * s], expected, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(curve[:, (k + 1) * s - 1], ends[:, k, 0], atol=1e-5, rtol=1e-5)
+    # the derivatives are the network's (not zero), so the curve between ends is not a plain ease
+    eased = torch.einsum("sc,bcd->bsd", basis, torch.cat(
+        (ends[:, k - 1] * torch.tensor([1.0, 0, 0])[:, None],
+         ends[:, k] * torch.tensor([1.0, 0, 0])[:, None]), dim=1))
+    assert (curve[:, k * s:(k + 1) * s - 1] - eased[:, :-1]).abs().max() > 1e-3
+
+
+def test_quintic_decoder_streams_and_stays_causal(curve_vae):
+    """One block at a time (the stream's decoder) gives the full decode, and a later latent
+    changes no earlier frame."""
+    z = torch.randn(2, 9, CFG.latent_dim, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        full = curve_vae.decode(z)
+        cache = curve_vae.new_decoder_cache()
+        steps = [curve_vae.decoder_step(z[:, k], cache) for k in range(9)]
+        later = z.clone()
+        later[:, 6:] += 1.0
+        changed = curve_vae.decode(later)
+    torch.testing.assert_close(torch.cat(steps, 1), full, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(changed[:, :6 * CFG.stride], full[:, :6 * CFG.stride])
+    assert not torch.allclose(changed[:, 6 * CFG.stride:], full[:, 6 * CFG.stride:])
+
+
+def test_quintic_curve_rejects_a_block_code():
+    with pytest.raises(ValueError, match="block_code"):
+        replace(CFG, frame_curve="quintic", block_code=True)
+    with pytest.raises(ValueError, match="frame_curve"):
+        replace(CFG, frame_curve="spline")
