@@ -92,7 +92,6 @@ HOLD_READS = ("pelvis", "feet")  # VAEConfig.root_hold_reads: where the hold see
 NEEDS_STANCE_HEAD = ("reads the VAE's stance head, which only a VAE trained with "
                      "vae.stance_weight > 0 has")
 LOCK_READS = ("drift", "stance")  # VAEConfig.foot_lock_reads: what makes a locked foot step
-FRAME_CURVES = ("frames", "quintic")  # VAEConfig.frame_curve: what the decoder's queries say
 FOOT_STEPS = ("data", "arc")  # VAEConfig.foot_step: how a locked foot steps where it drifts
 
 
@@ -211,15 +210,6 @@ class VAEConfig:
     # benchmark's VAE, but a flow trained at that budget on its detailed latents generated far
     # worse motion (docs/results.md, fifty-second run): no preset uses it.
     block_code: bool = False
-    # Not in the paper ("frames" = the paper): what the decoder's query tokens say. "frames": each
-    # query's output is its frame. "quintic": a block's last query says the motion's position,
-    # velocity and acceleration at the block's end, and the block's frames lie on the quintic
-    # Hermite curve from the end of the block before to it (``nn.vae.QUINTIC_HERMITE``; the first
-    # block starts from a state its first query says). Decoded motion then cannot jump in
-    # position, velocity or acceleration at a block's seam, where the benchmark's decoders put
-    # three quarters of their acceleration (docs/results.md, seventy-eighth run), and the curve
-    # is still free enough for a block's frames: 3 values a channel for s = 4 frames.
-    frame_curve: str = "frames"
     # Not in the paper (0 = the paper's deterministic decoder): a stochastic decoder. Each latent
     # token comes with this many standard normal draws that the decoder reads beside it; training
     # decodes the same latents twice with independent draws and adds to the two samples' MSE
@@ -360,13 +350,6 @@ class VAEConfig:
         if self.recon_units not in RECON_UNITS:
             raise ValueError(f"VAEConfig.recon_units must be one of {RECON_UNITS}, got "
                              f"{self.recon_units!r}")
-        if self.frame_curve not in FRAME_CURVES:
-            raise ValueError(f"VAEConfig.frame_curve must be one of {FRAME_CURVES}, got "
-                             f"{self.frame_curve!r}")
-        if self.frame_curve != "frames" and self.block_code:
-            raise ValueError("VAEConfig.block_code adds frames to the decoder's; with "
-                             f"frame_curve={self.frame_curve!r} its frames are a curve's: "
-                             "set one of them")
         if self.detail_dim < 0:
             raise ValueError(f"VAEConfig.detail_dim must be >= 0 (0: a deterministic decoder), "
                              f"got {self.detail_dim}")

@@ -46,9 +46,6 @@ not in the paper).
 passes ``channel_weight``), so the loss counts a millimetre the same on every axis.
 The planted-foot term (``contact_weight``) and the head-facing term (``head_weight``) need the
 motion layout and metres, so the training objective adds them (``training.objectives.VAEObjective``).
-``frame_curve="quintic"`` makes each block's frames a curve through the motion's state at the block
-seams (``QUINTIC_HERMITE``, not in the paper): the block's last query says the position, velocity and
-acceleration at its end, and the frames follow the quintic Hermite curve from the block before's end.
 ``stance_weight`` > 0 gives the VAE a stance head (``nn.stance``, not in the paper): which foot is
 planted, per frame, read from the latent tokens the decoder reads; the objective adds its
 cross-entropy against the data's stance, and the foot lock steps by it.
@@ -69,18 +66,6 @@ from .stance import StanceHead
 BLOCK_CODE_LOGVAR = -5.0  # the posterior's initial log-variance with ``vae.block_code``
 DETAIL_INIT_STD = 0.01  # the detail input's initial weights (vae.detail_dim)
 DETAIL_SEED_OFFSET = 0x5EED_DE7A  # detail draws' seed = the generation seed + this
-CURVE_STATE = 3  # position, velocity, acceleration: what a block's end says (vae.frame_curve)
-
-
-def quintic_hermite(t: Tensor) -> Tensor:
-    """The quintic Hermite basis at times t in [0, 1] -> (..., 6): the weights of a curve's
-    position, velocity and acceleration at t = 0, then the same at t = 1 (derivatives per unit
-    of t). The one curve of degree 5 with those six values; its weights of the positions sum
-    to 1, so it commutes with the normalizer's per-channel affine map."""
-    t2, t3, t4, t5 = t**2, t**3, t**4, t**5
-    return torch.stack((1 - 10 * t3 + 15 * t4 - 6 * t5, t - 6 * t3 + 8 * t4 - 3 * t5,
-                        (t2 - 3 * t3 + 3 * t4 - t5) / 2, 10 * t3 - 15 * t4 + 6 * t5,
-                        -4 * t3 + 7 * t4 - 3 * t5, (t3 - 2 * t4 + t5) / 2), dim=-1)
 
 
 def encoder_layout(num_blocks: int, stride: int) -> list[tuple[str, int, int]]:
@@ -108,7 +93,6 @@ class DecoderCache:
     layers: list[KVCache]
     position: int = 0
     blocks: int = field(default=0)
-    curve_end: Tensor | None = None  # vae.frame_curve: the last block's end state (B, 3, Dx)
 
 
 class CausalVAE(nn.Module):
@@ -140,17 +124,7 @@ class CausalVAE(nn.Module):
         self.queries = nn.Parameter(torch.randn(s, h) * 0.02)
         self.decoder = blocks(config.decoder_layers)
         self.decoder_norm = nn.LayerNorm(h)
-        # vae.frame_curve="quintic": the state at each query's time (position, velocity and
-        # acceleration) rather than its frame; the derivatives start at zero, so the untrained
-        # curve eases from one block's end to the next
-        curve = config.frame_curve == "quintic"
-        self.frame_out = nn.Linear(h, motion_dim * (CURVE_STATE if curve else 1))
-        if curve:
-            with torch.no_grad():
-                self.frame_out.weight[motion_dim:].zero_()
-                self.frame_out.bias[motion_dim:].zero_()
-            times = torch.arange(1, s + 1, dtype=torch.float32) / s
-            self.register_buffer("curve_basis", quintic_hermite(times), persistent=False)
+        self.frame_out = nn.Linear(h, motion_dim)
         # Not in the paper (``vae.block_code``): a linear code of each block beside the
         # transformers, fitted before training (``BlockCode.fit``); their outputs start at zero,
         # so the untrained VAE is that code and training learns what it misses.
@@ -231,34 +205,13 @@ class CausalVAE(nn.Module):
         queries = self.queries.to(latent.dtype).expand(b, k, s, h)
         return torch.cat((latent, queries), dim=2).reshape(b, k * (s + 1), h)
 
-    def _decoder_frames(self, tokens: Tensor, z: Tensor, cache: DecoderCache | None = None
-                        ) -> Tensor:
+    def _decoder_frames(self, tokens: Tensor, z: Tensor) -> Tensor:
         b, n, h = tokens.shape
         s = self.stride
-        queries = self.decoder_norm(tokens).view(b, n // (s + 1), s + 1, h)[:, :, 1:]
-        if self.config.frame_curve == "quintic":
-            out = self._curve_frames(queries, cache)
-        else:
-            out = self.frame_out(queries)
+        out = self.frame_out(self.decoder_norm(tokens).view(b, n // (s + 1), s + 1, h)[:, :, 1:])
         if self.block_code is not None:
             out = out + self.block_code.decode(z).to(out.dtype)
         return out.reshape(b, -1, self.motion_dim)
-
-    def _curve_frames(self, queries: Tensor, cache: DecoderCache | None) -> Tensor:
-        """queries (B, K, s, hidden), the decoder's query outputs -> the blocks' frames
-        (B, K, s, Dx) on the quintic Hermite curves from each block's start (the block before's
-        end; the first block's first query's state) to its end (its last query's state)."""
-        def state(hidden: Tensor) -> Tensor:  # (..., hidden) -> (..., 3, Dx)
-            return self.frame_out(hidden).unflatten(-1, (CURVE_STATE, self.motion_dim))
-
-        # Only the states the curves read: the output layer is the decoder's widest
-        ends = state(queries[:, :, -1])
-        first = (state(queries[:, :1, 0]) if cache is None or cache.curve_end is None
-                 else cache.curve_end[:, None])
-        if cache is not None:
-            cache.curve_end = ends[:, -1]
-        coefficients = torch.cat((torch.cat((first, ends[:, :-1]), dim=1), ends), dim=2)
-        return torch.einsum("sc,bkcd->bksd", self.curve_basis.to(ends.dtype), coefficients)
 
     def decode(self, z: Tensor, detail: Tensor | None = None) -> Tensor:
         """z (B, K, Dz) -> x_hat (B, K*s, Dx); ``detail`` (B, K, detail_dim): the stochastic
@@ -290,7 +243,7 @@ class CausalVAE(nn.Module):
             tokens = block(tokens, mask, positions, layer_cache)
         cache.position += n
         cache.blocks += 1
-        return self._decoder_frames(tokens, z_k[:, None], cache)
+        return self._decoder_frames(tokens, z_k[:, None])
 
     @staticmethod
     def kl(mu: Tensor, logvar: Tensor) -> Tensor:
