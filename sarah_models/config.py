@@ -674,7 +674,8 @@ class RunConfig:
             section, name = self.target_of(text)
             current = sections[section]
             changes[section][name] = _parse_value(getattr(current, name),
-                                                  text.partition("=")[2].strip(), text)
+                                                  text.partition("=")[2].strip(), text,
+                                                  scalar_type(type(current), name))
         # One replace per section: its checks see every setting at once, so settings that only
         # hold together (vae.root_hold=0 with vae.root_hold_turn=0) pass in either order.
         for section, values in changes.items():
@@ -716,30 +717,41 @@ def set_text(value: Any) -> str:
     return str(value)
 
 
-def _parse_value(current: Any, raw: str, text: str) -> Any:
+def scalar_type(cls: type, name: str) -> type | None:
+    """The one scalar type field ``name`` of dataclass ``cls`` holds besides None (``float |
+    None`` -> float), else None. ``--set`` parses by it rather than by the value the field holds:
+    an optional float left at None and set to 0 was read as the int 0, which then refused 0.9
+    (a model file written with ``--set vae.root_inertia=0`` refused ``--decoding-from``)."""
+    hint = typing.get_type_hints(cls)[name]
+    kinds = [kind for kind in (typing.get_args(hint) or (hint,)) if kind is not type(None)]
+    return kinds[0] if len(kinds) == 1 and kinds[0] in (bool, int, float, str) else None
+
+
+def _parse_value(current: Any, raw: str, text: str, declared: type | None = None) -> Any:
+    kind = declared or (None if current is None else type(current))
     try:
         if raw.lower() == "none":
             return None
-        if current is None:  # an optional field left at None: a number if it reads as one
-            for kind in (int, float):
-                try:
-                    return kind(raw)
-                except ValueError:
-                    pass
-            return raw
-        if isinstance(current, bool):
+        if kind is bool:
             if raw.lower() not in ("true", "false", "1", "0"):
                 raise ValueError(raw)
             return raw.lower() in ("true", "1")
-        if isinstance(current, int):
+        if kind is int:
             return int(raw)
-        if isinstance(current, float):
+        if kind is float:
             return float(raw)
         if isinstance(current, tuple):
             return tuple(type(current[0])(p) for p in raw.strip("()").split(","))
+        if kind is None:  # a field of no one scalar type, left at None: a number if it reads as one
+            for number in (int, float):
+                try:
+                    return number(raw)
+                except ValueError:
+                    pass
         return raw
     except ValueError as exc:
-        raise ValueError(f"--set {text!r}: cannot parse {raw!r} as {type(current).__name__}") from exc
+        raise ValueError(f"--set {text!r}: cannot parse {raw!r} as "
+                         f"{(kind or type(current)).__name__}") from exc
 
 
 @dataclass(frozen=True)

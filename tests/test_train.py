@@ -411,6 +411,27 @@ def test_config_round_trip_and_overrides():
         RunConfig.from_dict({**cfg.to_dict(), "vae": {"stride": 4, "bogus": 1}})
 
 
+def test_overrides_parse_by_the_fields_declared_type():
+    """An optional float set to 0 is the float 0.0, so a later --set of 0.9 reads; a file that
+    already holds the int 0 there (model files written before this was fixed) reads 0.9 too.
+    Optional fields of no one scalar type still read a number where they hold None."""
+    tiny = RunConfig.preset("tiny")
+    assert tiny.vae.root_inertia is None
+    zero = tiny.with_overrides(["vae.root_inertia=0"])
+    assert type(zero.vae.root_inertia) is float and zero.vae.root_inertia == 0.0
+    written = RunConfig.from_dict(json.loads(json.dumps(zero.to_dict())))
+    assert written.with_overrides(["vae.root_inertia=0.9"]).vae.root_inertia == 0.9
+    old = tiny.to_dict()
+    old["vae"]["root_inertia"] = 0  # as such files hold it
+    assert RunConfig.from_dict(old).with_overrides(["vae.root_inertia=0.9"]).vae.root_inertia == 0.9
+    assert tiny.with_overrides(["vae.root_inertia=none"]).vae.root_inertia is None
+    with pytest.raises(ValueError, match="as float"):
+        tiny.with_overrides(["vae.root_inertia=stiff"])
+    assert tiny.with_overrides(["flow.layers=3"]).flow.layers == 3
+    with pytest.raises(ValueError, match="as int"):
+        tiny.with_overrides(["flow.layers=2.5"])
+
+
 def test_epoch_batches_resume_and_split_across_ranks():
     data = SyntheticWindows(length=10)
     cfg = replace(TrainConfig.tiny(), batch_size=3)
