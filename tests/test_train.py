@@ -413,8 +413,7 @@ def test_config_round_trip_and_overrides():
 
 def test_overrides_parse_by_the_fields_declared_type():
     """An optional float set to 0 is the float 0.0, so a later --set of 0.9 reads; a file that
-    already holds the int 0 there (model files written before this was fixed) reads 0.9 too.
-    Optional fields of no one scalar type still read a number where they hold None."""
+    already holds the int 0 there (model files written before this was fixed) reads 0.9 too."""
     tiny = RunConfig.preset("tiny")
     assert tiny.vae.root_inertia is None
     zero = tiny.with_overrides(["vae.root_inertia=0"])
