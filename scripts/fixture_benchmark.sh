@@ -30,7 +30,8 @@
 # stopped in (that stage starts over). Every step is seeded (train.seed 0): the same code on the
 # same thread count and the same kind of CPU gives the same model file, whose sha256 is printed
 # (another instruction set rounds differently; the file carries the whole config, so a config
-# field added since changes the bytes and not the weights; docs/results.md lists each run's; the
+# field added since, or a value now written as 0.0 where it was 0 (--set vae.root_inertia=0
+# before the ninety-first run), changes the bytes and not the weights; docs/results.md lists each run's; the
 # flow's initial weights are drawn right after seeding since 2026-12-03, the sixty-fourth run,
 # so earlier runs' flows started elsewhere).
 # Settings can be overridden through the environment, e.g. FLOW_STEPS=7000 (the forty-eighth
@@ -88,8 +89,9 @@ FLOW_STEPS=${FLOW_STEPS:-14000}
 STRIDE=${STRIDE:-}                   # frames per latent token (vae.stride), if not the preset's
 # sarah-train --set for the flow. The weight average (train.ema_decay) since the ninetieth run: it
 # takes the flow's draw out of where the body stands and where the head turns (docs/results.md,
-# eighty-ninth and ninetieth runs). The recipe before it, sampling the last weights (sha256
-# 4368ac6a... on the AVX-512 EPYC): FLOW_SETTINGS="--set flow.attention_window=17 --set flow.head_velocity=true".
+# eighty-ninth and ninetieth runs). The recipe before it, sampling the last weights (its file
+# sha256 4368ac6a... on the AVX-512 EPYC as written before the ninety-first run, the weights the
+# same since): FLOW_SETTINGS="--set flow.attention_window=17 --set flow.head_velocity=true".
 FLOW_SETTINGS=${FLOW_SETTINGS-"--set flow.attention_window=17 --set flow.head_velocity=true --set train.ema_decay=0.999"}
 # ... for the model file's decoding. Since the seventy-seventh run the body is held until it has
 # glided 0.7 m, a planted foot steps by drift past 0.3 m, and the held body turns to face its user
