@@ -161,8 +161,8 @@ class VAEConfig:
     moment_weight: float = 0.0
     moment_parts: tuple[str, ...] = ("arms", "hands")
     # Not in the paper (0 = the paper): weight of the standing-shake term, the squared log ratio
-    # of the decoded trunk's acceleration energy above 6 Hz, relative to its feet while the
-    # data's feet stand, to the data's (``training.objectives.StandingShake``).
+    # of the decoded trunk's and feet's acceleration energy above 6 Hz while the data's feet
+    # stand to the data's (``training.objectives.StandingShake``).
     shake_weight: float = 0.0
     # Not in the paper (0 = the paper, no head): weight of the stance term, the binary
     # cross-entropy of a small head that reads the latent tokens and says, per frame and per

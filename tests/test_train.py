@@ -337,18 +337,16 @@ def _standing_body(frames: int = 90, beat: float = 0.002, step: tuple[int, int] 
     return torch.tensor(motion[None], dtype=torch.float32)
 
 
-def test_standing_shake_counts_the_trunks_fast_band_over_standing_feet():
-    """The trunk's 10 Hz beat four times the data's costs (log 16)^2 less the floor; the same
-    beat on the whole body (feet too), a slower sway twice the data's, the arms shaking, or a
-    shake only while a foot steps cost (all but) nothing."""
+def test_standing_shake_counts_the_standing_bodys_fast_band():
+    """The trunk's 10 Hz beat four times the data's costs (log 16)^2 less the floor, and the
+    feet's counts too; a slower sway twice the data's, the arms shaking, or a shake only while a
+    foot steps cost (all but) nothing."""
     true = _standing_body()
     term = StandingShake(true.shape[-1], true[0, 0])  # frame 0: the joints a metre apart
     assert float(term(true, true)) == 0.0
     shaking = float(term(_standing_body(beat=0.008), true))
     assert shaking == pytest.approx(float(np.log(16.0)) ** 2, rel=0.05)
-    body = tuple(JOINT_GROUPS)
-    whole = float(term(_standing_body(beat=0.008, shake=body), _standing_body(shake=body)))
-    assert whole < 0.01 * shaking
+    assert float(term(_standing_body(shake=("root", "spine and head", "feet")), true)) > 0.01
     assert float(term(_standing_body(sway=0.06), true)) < 0.01 * shaking
     assert float(term(_standing_body(shake=("root", "spine and head", "arms")), true)) == 0.0
     stepping = _standing_body(step=(40, 60))

@@ -295,21 +295,23 @@ class AccelerationSpectrum(nn.Module):
 
 
 class StandingShake(nn.Module):
-    """Squared log ratio of the decoded trunk's fast acceleration energy to the data's, window
-    by window, while the data's feet stand.
+    """Squared log ratio of the decoded trunk's and feet's fast acceleration energy to the
+    data's, window by window, while the data's feet stand.
 
-    The trunk: the body joints and shell points of the joint groups ``PARTS``. Its acceleration
-    is taken relative to the feet's (their joints' mean): the decoding's root hold moves the
-    whole body by what its planted feet glide, so what the trunk does over its feet is what
-    is left of it after the chain. Fast: the acceleration less its ``BAND_FRAMES`` moving
-    average, whose first zero is at FPS / BAND_FRAMES = 6 Hz. Energy: the mean square over the
-    trunk's points and the frames where both of the data's feet are planted (``nn.stance``), so
-    a step's own acceleration does not count. The recipe's decoder shakes the trunk at 15x the
-    data's energy above 6 Hz, from the data's own latents (docs/results.md, ninety-first run); a
-    spectrum of the whole body slowed every part to take it out, this term reads only the trunk's
-    fast band, and asks for the data's energy there, not for none. Inputs: motion in metres."""
+    The points: the body joints and shell points of the joint groups ``PARTS``, the trunk and
+    the feet, as they are. Relative to the feet (this term's first form, 2ad0665) the decoder
+    met the term by shaking its feet with its trunk, and the foot lock, which pins the feet,
+    left the trunk shaking at 66x the data's (docs/results.md, ninety-second run); the feet
+    counted as points themselves ask for a body that stands still where the data's does. Fast:
+    the acceleration less its ``BAND_FRAMES`` moving average, whose first zero is at FPS /
+    BAND_FRAMES = 6 Hz. Energy: the mean square over the points and the frames where both of the
+    data's feet are planted (``nn.stance``), so a step's own acceleration does not count. The
+    recipe's decoder shakes the trunk at 15x the data's energy above 6 Hz, from the data's own
+    latents (ninety-first run); a spectrum of the whole body slowed every part to take it out,
+    this term reads only the standing body's fast band, and asks for the data's energy there,
+    not for none. Inputs: motion in metres."""
 
-    PARTS = ("root", "spine and head")
+    PARTS = ("root", "spine and head", "feet")
     BAND_FRAMES = 5
     floor = 1e-2  # times the batch's true mean energy, so a still window's log stays finite
 
@@ -317,15 +319,14 @@ class StandingShake(nn.Module):
         super().__init__()
         self.layout = term_layout(motion_dim, "vae.shake_weight")
         self.register_buffer("points", part_points(self.layout, mean_pose, self.PARTS), persistent=False)
-        self.feet = [self.layout.joint(name) for name in FEET]
 
     def energy(self, motion: Tensor, standing: Tensor) -> Tensor:
         """(B, T, D) motion, (B, T - 2 - 2 * (BAND_FRAMES // 2)) 0/1 frames -> (B,) energies."""
         acc = point_accelerations(self.layout, motion).unflatten(-1, (-1, 3))
-        trunk = (acc[..., self.points, :] - acc[..., self.feet, :].mean(-2, keepdim=True)).flatten(2)
-        slow = F.avg_pool1d(trunk.transpose(1, 2), self.BAND_FRAMES, stride=1).transpose(1, 2)
+        points = acc[..., self.points, :].flatten(2)
+        slow = F.avg_pool1d(points.transpose(1, 2), self.BAND_FRAMES, stride=1).transpose(1, 2)
         half = self.BAND_FRAMES // 2
-        fast = trunk[:, half:trunk.shape[1] - half] - slow
+        fast = points[:, half:points.shape[1] - half] - slow
         per_frame = fast.square().mean(-1)
         return (per_frame * standing).sum(1) / standing.sum(1).clamp_min(1.0)
 
