@@ -160,10 +160,6 @@ class VAEConfig:
     # term put their energy in the spine and arms (docs/results.md, seventy-fourth run).
     moment_weight: float = 0.0
     moment_parts: tuple[str, ...] = ("arms", "hands")
-    # Not in the paper (0 = the paper): weight of the standing-shake term, the squared log ratio
-    # of the decoded trunk's and feet's acceleration energy above 6 Hz while the data's feet
-    # stand to the data's (``training.objectives.StandingShake``).
-    shake_weight: float = 0.0
     # Not in the paper (0 = the paper, no head): weight of the stance term, the binary
     # cross-entropy of a small head that reads the latent tokens and says, per frame and per
     # foot, whether the foot is planted (``nn.stance``; the data's stance: the foot slower than
@@ -357,7 +353,7 @@ class VAEConfig:
         if self.detail_dim < 0:
             raise ValueError(f"VAEConfig.detail_dim must be >= 0 (0: a deterministic decoder), "
                              f"got {self.detail_dim}")
-        for name in ("energy_weight", "spectral_weight", "moment_weight", "shake_weight"):
+        for name in ("energy_weight", "spectral_weight", "moment_weight"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"VAEConfig.{name} must be >= 0, got {getattr(self, name)}")
         unknown = [part for part in self.moment_parts if part not in JOINT_GROUPS]

@@ -20,7 +20,7 @@ from sarah_models.training.batches import EpochBatches
 from sarah_models.training.distributed import DistInfo
 from sarah_models.training.loop import lr_at
 from sarah_models.training.objectives import (AccelerationMoments, AccelerationSpectrum, FootLift,
-                                              HeadFacing, PlantedFeet, StandingShake, VAEObjective)
+                                              HeadFacing, PlantedFeet, VAEObjective)
 from sarah_models.training.stages import model_stats, train
 
 WINDOW, DX, DA = 16, 21, 6
@@ -306,61 +306,6 @@ def test_acceleration_moments_read_only_their_parts():
         replace(tiny_config(1).vae, moment_parts=("fingers",))
 
 
-def _standing_body(frames: int = 90, beat: float = 0.002, step: tuple[int, int] | None = None,
-                   shake=("root", "spine and head"), shake_frames=slice(None), sway: float = 0.03
-                   ) -> torch.Tensor:
-    """(1, T, Dx) motion in ``_moment_term``'s layout: each joint's icosahedron at its mean
-    pose's place; the root, spine and head sway along x at 1 Hz (``sway`` metres) and the joint
-    groups ``shake`` beat at 10 Hz (``beat`` metres, on ``shake_frames``); ``step``: the left
-    foot travels 0.3 m along z over those frames."""
-    from sarah_data.constants import JOINT, NUM_JOINTS
-
-    centres = np.zeros((frames, NUM_JOINTS + 4, 3))
-    centres[:, :NUM_JOINTS, 0] = np.arange(NUM_JOINTS)
-    shell_at = [JOINT["left_wrist"], JOINT["left_index1"], JOINT["left_knee"], JOINT["head"]]
-    centres[:, NUM_JOINTS:] = centres[:, shell_at] + 0.01
-    t = np.arange(frames) / 30.0
-    trunk = [JOINT[n] for part in ("root", "spine and head") for n in JOINT_GROUPS[part]]
-    centres[:, trunk + [NUM_JOINTS + 3], 0] += sway * np.sin(2 * np.pi * t)[:, None]
-    beating = [JOINT[n] for part in shake for n in JOINT_GROUPS[part]]
-    beating += [NUM_JOINTS + 3] * ("spine and head" in shake) + [NUM_JOINTS] * ("arms" in shake)
-    beat_wave = beat * np.sin(2 * np.pi * 10.0 * t)
-    mask = np.zeros(frames)
-    mask[shake_frames] = 1.0
-    centres[:, beating, 0] += (beat_wave * mask)[:, None]
-    if step is not None:
-        start, end = step
-        travel = np.clip((np.arange(frames) - start) / (end - start), 0, 1)
-        centres[:, JOINT["left_foot"], 2] += 0.3 * travel
-    icosahedra = np.repeat(centres[:, :NUM_JOINTS, None], 12, axis=2).reshape(frames, -1)
-    motion = np.concatenate([icosahedra, centres[:, NUM_JOINTS:].reshape(frames, -1)], axis=1)
-    return torch.tensor(motion[None], dtype=torch.float32)
-
-
-def test_standing_shake_counts_the_standing_bodys_fast_band():
-    """The trunk's 10 Hz beat four times the data's costs (log 16)^2 less the floor, and the
-    feet's counts too; a slower sway twice the data's, the arms shaking, or a shake only while a
-    foot steps cost (all but) nothing."""
-    true = _standing_body()
-    term = StandingShake(true.shape[-1], true[0, 0])  # frame 0: the joints a metre apart
-    assert float(term(true, true)) == 0.0
-    shaking = float(term(_standing_body(beat=0.008), true))
-    assert shaking == pytest.approx(float(np.log(16.0)) ** 2, rel=0.05)
-    assert float(term(_standing_body(shake=("root", "spine and head", "feet")), true)) > 0.01
-    assert float(term(_standing_body(sway=0.06), true)) < 0.01 * shaking
-    assert float(term(_standing_body(shake=("root", "spine and head", "arms")), true)) == 0.0
-    stepping = _standing_body(step=(40, 60))
-    assert float(term(_standing_body(step=(40, 60), beat=0.0), stepping)) > 0.1 * shaking
-    only_in_step = _standing_body(step=(40, 60), shake_frames=slice(47, 54))
-    assert float(term(only_in_step, _standing_body(step=(40, 60), shake_frames=slice(0, 0))))\
-        == pytest.approx(0.0, abs=1e-6)
-    decoded = (1.5 * true).requires_grad_()
-    term(decoded, true).backward()
-    assert decoded.grad.abs().sum() > 0
-    with pytest.raises(ValueError, match="vae.shake_weight needs the icosahedron motion layout"):
-        StandingShake(7, torch.zeros(7))
-
-
 def test_acceleration_spectrum_matches_torch_stft():
     acceleration = torch.randn(2, 70, 5, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     term = AccelerationSpectrum(_beating_motion(20, 1.0, 0.0).shape[-1])
@@ -395,8 +340,7 @@ def test_vae_objective_adds_the_weighted_contact_and_head_terms():
 
 @pytest.mark.parametrize("setting, term, motion", [
     ("spectral_weight", "spectrum", lambda: _beating_motion(24, 4.5, 0.0)),
-    ("moment_weight", "moments", lambda: _posed_beats(24, 4.5, 0.0)),
-    ("shake_weight", "shake", lambda: _standing_body(24))])
+    ("moment_weight", "moments", lambda: _posed_beats(24, 4.5, 0.0))])
 def test_vae_objective_adds_the_weighted_term(setting, term, motion):
     from sarah_models.nn.normalizer import Normalizer
     from sarah_models.nn.vae import CausalVAE

@@ -5,8 +5,7 @@
   head-facing term (``HeadFacing``) when ``vae.head_weight`` > 0, the foot-lift term
   (``FootLift``) when ``vae.lift_weight`` > 0 and the acceleration-spectrum term
   (``AccelerationSpectrum``) when ``vae.spectral_weight`` > 0, the acceleration-moment term
-  (``AccelerationMoments``) when ``vae.moment_weight`` > 0, the standing trunk's shake
-  (``StandingShake``) when ``vae.shake_weight`` > 0, and the stance head's
+  (``AccelerationMoments``) when ``vae.moment_weight`` > 0, and the stance head's
   cross-entropy against the data's stance (``nn.stance``) when ``vae.stance_weight`` > 0.
 * ``FlowObjective``: encode with the frozen VAE, standardize the latents, then
   ``flow_matching_loss`` (eq. 4-5: x1-prediction on the straight path with CFG dropout).
@@ -48,14 +47,11 @@ class VAEObjective(nn.Module):
         self.head = HeadFacing(vae.motion_dim) if vae.config.head_weight > 0 else None
         self.lift = FootLift(vae.motion_dim) if vae.config.lift_weight > 0 else None
         self.spectrum = AccelerationSpectrum(vae.motion_dim) if vae.config.spectral_weight > 0 else None
-        self.moments = self.shake = None
-        if vae.config.moment_weight > 0 or vae.config.shake_weight > 0:
+        self.moments = None
+        if vae.config.moment_weight > 0:
             zeros = torch.zeros(1, vae.motion_dim, device=normalizer.motion_mean.device)
             mean_pose = normalizer.denormalize("motion", zeros)[0]  # the data's mean pose
-            if vae.config.moment_weight > 0:
-                self.moments = AccelerationMoments(vae.motion_dim, vae.config.moment_parts, mean_pose)
-            if vae.config.shake_weight > 0:
-                self.shake = StandingShake(vae.motion_dim, mean_pose)
+            self.moments = AccelerationMoments(vae.motion_dim, vae.config.moment_parts, mean_pose)
         self.stance_layout = (term_layout(vae.motion_dim, "vae.stance_weight")
                               if vae.stance is not None else None)
         weight = None
@@ -80,7 +76,7 @@ class VAEObjective(nn.Module):
             out["stance"] = F.binary_cross_entropy_with_logits(self.vae.stance(out["z"].float()), stance)
             out["loss"] = out["loss"] + self.vae.config.stance_weight * out["stance"]
         if all(term is None for term in (self.contact, self.head, self.lift, self.spectrum,
-                                         self.moments, self.shake)):
+                                         self.moments)):
             return out
         decoded = self.normalizer.denormalize("motion", out["x_hat"].float())
         true = self.normalizer.denormalize("motion", motion.float())
@@ -89,8 +85,7 @@ class VAEObjective(nn.Module):
                                    ("head", self.head, self.vae.config.head_weight),
                                    ("lift", self.lift, self.vae.config.lift_weight),
                                    ("spectrum", self.spectrum, self.vae.config.spectral_weight),
-                                   ("moments", self.moments, self.vae.config.moment_weight),
-                                   ("shake", self.shake, self.vae.config.shake_weight)):
+                                   ("moments", self.moments, self.vae.config.moment_weight)):
             if term is not None:
                 terms[name] = term(decoded, true)
                 loss = loss + weight * terms[name]
@@ -196,18 +191,6 @@ def point_accelerations(layout: MotionLayout, motion: Tensor) -> Tensor:
     return (points[:, 2:] - 2 * points[:, 1:-1] + points[:, :-2]).float() * FPS ** 2
 
 
-def part_points(layout: MotionLayout, mean_pose: Tensor, parts: Sequence[str]) -> Tensor:
-    """The indices, among ``point_accelerations``' points, of the joint groups ``parts``
-    (``skeleton.JOINT_GROUPS``): their body joints, then the shell points that lie nearest to one
-    of their joints in ``mean_pose`` (motion in metres, (D,))."""
-    icosahedra, shell = (a.detach().double().cpu().numpy() for a in layout.split(mean_pose))
-    shell_groups = shell_parts(icosahedra, shell, layout.joint_names)
-    joints = [j for j, name in enumerate(layout.joint_names[:BODY_JOINTS])
-              if any(name in JOINT_GROUPS[part] for part in parts)]
-    shell_points = sorted(BODY_JOINTS + p for part in parts for p in shell_groups.get(part, ()))
-    return torch.tensor(joints + shell_points)
-
-
 class AccelerationMoments(nn.Module):
     """Relative Frobenius distance ``||M_hat - M|| / ||M||`` between the second-moment matrices
     of the decoded and the true accelerations of some parts of the pose: the body joints and
@@ -226,7 +209,12 @@ class AccelerationMoments(nn.Module):
     def __init__(self, motion_dim: int, parts: Sequence[str], mean_pose: Tensor) -> None:
         super().__init__()
         self.layout = term_layout(motion_dim, "vae.moment_weight")
-        self.register_buffer("points", part_points(self.layout, mean_pose, parts), persistent=False)
+        icosahedra, shell = (a.detach().double().cpu().numpy() for a in self.layout.split(mean_pose))
+        shell_groups = shell_parts(icosahedra, shell, self.layout.joint_names)
+        joints = [j for j, name in enumerate(self.layout.joint_names[:BODY_JOINTS])
+                  if any(name in JOINT_GROUPS[part] for part in parts)]
+        shell_points = sorted(BODY_JOINTS + p for part in parts for p in shell_groups.get(part, ()))
+        self.register_buffer("points", torch.tensor(joints + shell_points), persistent=False)
         self.root = self.layout.joint(ROOT)  # a body joint: its index is its point's
 
     def forward(self, decoded: Tensor, true: Tensor) -> Tensor:
@@ -292,56 +280,6 @@ class AccelerationSpectrum(nn.Module):
             raise ValueError(f"vae.spectral_weight needs windows of at least {min(self.windows) + 2} "
                              f"frames, got {true.shape[1]}")
         return torch.stack(terms).mean()
-
-
-class StandingShake(nn.Module):
-    """Squared log ratio of the decoded trunk's and feet's fast acceleration energy to the
-    data's, window by window, while the data's feet stand.
-
-    The points: the body joints and shell points of the joint groups ``PARTS``, the trunk and
-    the feet, as they are. Relative to the feet (this term's first form, 2ad0665) the decoder
-    met the term by shaking its feet with its trunk, and the foot lock, which pins the feet,
-    left the trunk shaking at 66x the data's (docs/results.md, ninety-second run); the feet
-    counted as points themselves ask for a body that stands still where the data's does. Fast:
-    the acceleration less its ``BAND_FRAMES`` moving average, whose first zero is at FPS /
-    BAND_FRAMES = 6 Hz. Energy: the mean square over the points and the frames where both of the
-    data's feet are planted (``nn.stance``), so a step's own acceleration does not count. The
-    recipe's decoder shakes the trunk at 15x the data's energy above 6 Hz, from the data's own
-    latents (ninety-first run); a spectrum of the whole body slowed every part to take it out,
-    this term reads only the standing body's fast band, and asks for the data's energy there,
-    not for none. Inputs: motion in metres."""
-
-    PARTS = ("root", "spine and head", "feet")
-    BAND_FRAMES = 5
-    floor = 1e-2  # times the batch's true mean energy, so a still window's log stays finite
-
-    def __init__(self, motion_dim: int, mean_pose: Tensor) -> None:
-        super().__init__()
-        self.layout = term_layout(motion_dim, "vae.shake_weight")
-        self.register_buffer("points", part_points(self.layout, mean_pose, self.PARTS), persistent=False)
-
-    def energy(self, motion: Tensor, standing: Tensor) -> Tensor:
-        """(B, T, D) motion, (B, T - 2 - 2 * (BAND_FRAMES // 2)) 0/1 frames -> (B,) energies."""
-        acc = point_accelerations(self.layout, motion).unflatten(-1, (-1, 3))
-        points = acc[..., self.points, :].flatten(2)
-        slow = F.avg_pool1d(points.transpose(1, 2), self.BAND_FRAMES, stride=1).transpose(1, 2)
-        half = self.BAND_FRAMES // 2
-        fast = points[:, half:points.shape[1] - half] - slow
-        per_frame = fast.square().mean(-1)
-        return (per_frame * standing).sum(1) / standing.sum(1).clamp_min(1.0)
-
-    def forward(self, decoded: Tensor, true: Tensor) -> Tensor:
-        planted = stance_of(true, self.layout).amin(-1)  # (B, T): both feet planted
-        half = self.BAND_FRAMES // 2
-        # an acceleration's frame t + 1 spans frames t..t + 2; the band's frames lose half a
-        # window at each end
-        standing = planted[:, 1 + half:planted.shape[1] - 1 - half]
-        gt = self.energy(true, standing)
-        pred = self.energy(decoded, standing)
-        eps = self.floor * gt.mean().detach()
-        counted = (standing.sum(1) > 0).float()
-        ratio = ((pred + eps).log() - (gt + eps).log()).square()
-        return (ratio * counted).sum() / counted.sum().clamp_min(1.0)
 
 
 class FlowObjective(nn.Module):

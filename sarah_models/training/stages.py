@@ -168,7 +168,6 @@ def _check_same(name: str, wanted: Any, stored: Any, path: Path) -> None:
 FINE_TUNE_FIELDS = {
     "vae": ("beta", "velocity_weight", "acceleration_weight", "contact_weight", "head_weight",
             "root_weight", "lift_weight", "spectral_weight", "moment_weight", "moment_parts",
-            "shake_weight",
             "latent_noise", "recon_units", "energy_weight", "energy_frames", "energy_per_point",
             *DECODING_FIELDS["vae"]),
     "flow": ("drop_prob", "gaze_drop_prob", "min_denominator", "difference_weight", "attention_window",
