@@ -727,7 +727,9 @@ def scalar_type(cls: type, name: str) -> type | None:
     return kinds[0] if len(kinds) == 1 and kinds[0] in (bool, int, float, str) else None
 
 
-def _parse_value(current: Any, raw: str, text: str, declared: type | None = None) -> Any:
+def _parse_value(current: Any, raw: str, text: str, declared: type | None) -> Any:
+    """``raw`` as the field holding ``current`` takes it: by ``declared`` (``scalar_type``), else
+    by the value held (a tuple: its items' type)."""
     kind = declared or (None if current is None else type(current))
     try:
         if raw.lower() == "none":

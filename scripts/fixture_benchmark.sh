@@ -31,9 +31,9 @@
 # same thread count and the same kind of CPU gives the same model file, whose sha256 is printed
 # (another instruction set rounds differently; the file carries the whole config, so a config
 # field added since, or a value now written as 0.0 where it was 0 (--set vae.root_inertia=0
-# before the ninety-first run), changes the bytes and not the weights; docs/results.md lists each run's; the
-# flow's initial weights are drawn right after seeding since 2026-12-03, the sixty-fourth run,
-# so earlier runs' flows started elsewhere).
+# before the ninety-first run), changes the bytes and not the weights; docs/results.md lists
+# each run's; the flow's initial weights are drawn right after seeding since 2026-12-03, the
+# sixty-fourth run, so earlier runs' flows started elsewhere).
 # Settings can be overridden through the environment, e.g. FLOW_STEPS=7000 (the forty-eighth
 # run's recipe). Wall-clock times of every stage go to BENCH_DIR/timings.txt; run it on an
 # otherwise idle machine for the training time, then ~75 min for the 29 offline tuning
