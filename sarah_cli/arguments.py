@@ -153,15 +153,18 @@ def add_model_arguments(parser: argparse.ArgumentParser, required: bool, run_hel
 
 
 def add_sampling_arguments(parser: argparse.ArgumentParser, defaults,
-                           steps_help: str = "midpoint solver steps",
+                           steps_help: str = "solver steps",
                            imputation_help: str = IMPUTATION_HELP) -> None:
     """The sampling flags of sarah-eval, sarah-generate and the scripts that sample as an
-    evaluation does: --steps, --cfg, --noise-scale, --guide, --guidance-interval and
-    --imputation, defaults from ``defaults`` (an ``EvalConfig`` or ``StreamConfig``);
+    evaluation does: --steps, --solver, --cfg, --noise-scale, --guide, --guidance-interval
+    and --imputation, defaults from ``defaults`` (an ``EvalConfig`` or ``StreamConfig``);
     ``sampling_of`` reads them back."""
-    from sarah_models.config import IMPUTATIONS
+    from sarah_models.config import IMPUTATIONS, SOLVERS
 
     parser.add_argument("--steps", type=int, default=defaults.steps, help=steps_help)
+    parser.add_argument("--solver", choices=SOLVERS, default=defaults.solver,
+                        help="ODE solver (midpoint, the paper's: 2 network evaluations per step; "
+                             "euler: 1)")
     parser.add_argument("--cfg", type=float, default=defaults.cfg_scale, help="guidance scale w")
     parser.add_argument("--noise-scale", type=noise_scale, default=defaults.noise_scale,
                         help=NOISE_SCALE_HELP)
@@ -177,6 +180,6 @@ def sampling_of(args: argparse.Namespace, config):
     ``add_sampling_arguments`` set; ValueError as the config's own checks raise it."""
     from dataclasses import replace
 
-    return replace(config, steps=args.steps, cfg_scale=args.cfg, noise_scale=args.noise_scale,
-                   guide=args.guide, guidance_interval=args.guidance_interval,
+    return replace(config, steps=args.steps, solver=args.solver, cfg_scale=args.cfg,
+                   noise_scale=args.noise_scale, guide=args.guide, guidance_interval=args.guidance_interval,
                    imputation=args.imputation)

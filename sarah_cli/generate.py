@@ -68,8 +68,6 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--gaze", default=str(d.gaze),
                         help="target gaze score in [-1, 1], or 'none' to drop it")
     add_sampling_arguments(parser, d, steps_help="solver steps per chunk")
-    parser.add_argument("--solver", choices=("midpoint", "euler"), default=d.solver,
-                        help="ODE solver (midpoint: 2 network evaluations per step)")
     parser.add_argument("--history", type=history_tokens, default=d.history_tokens,
                         help=HISTORY_HELP)
     parser.add_argument("--seed", type=int, default=d.seed,
@@ -121,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     from sarah_models.config import StreamConfig
 
     try:
-        config = sampling_of(args, StreamConfig(history_tokens=args.history, solver=args.solver,
+        config = sampling_of(args, StreamConfig(history_tokens=args.history,
                                                 gaze=_gaze(args.gaze), seed=args.seed))
     except (ValueError, argparse.ArgumentTypeError) as exc:
         print(f"sarah-generate: error: {exc}", file=sys.stderr)

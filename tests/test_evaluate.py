@@ -338,6 +338,26 @@ def test_noise_scale_reaches_the_model_and_the_caption(tiny, tmp_path):
     assert rows["0.5"]["wrist_speed/avg"] != rows["1"]["wrist_speed/avg"]
 
 
+def test_solver_reaches_the_model_and_the_caption(tiny, tmp_path, capsys):
+    """--solver: the model row integrates with that method (Euler at twice the steps makes as
+    many network evaluations as the paper's midpoint, and other motion), which the caption and
+    the settings name; an unknown solver is refused before any work."""
+    rows, captions = {}, {}
+    for name, flags in (("midpoint", ()), ("euler", ("--solver", "euler", "--steps", "8"))):
+        out = tmp_path / name
+        assert main(eval_args(tiny, out, "--methods", "gt,model", "--gaze", "none", *flags)) == 0
+        t1 = json.loads((out / "table1.json").read_text())
+        rows[name], captions[name] = t1["rows"][1]["shown"], t1["caption"]
+        assert t1["settings"]["solver"] == name
+    assert "4 midpoint steps" in captions["midpoint"] and "8 euler steps" in captions["euler"]
+    assert rows["euler"]["fgd_local/avg"] != rows["midpoint"]["fgd_local/avg"]
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_:
+        main(eval_args(tiny, tmp_path / "bad", "--solver", "rk4"))
+    assert exit_.value.code == 2 and "invalid choice: 'rk4'" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
+
+
 def test_baselines_can_draw_from_another_corpus(tiny, tmp_path, capsys):
     """--library-shards: Random and NN retrieve from a training corpus other than the evaluated
     one (for test fixtures the model never saw); the evaluated windows stay the same."""

@@ -59,8 +59,8 @@ from sarah_data.constants import FPS
 from sarah_data.skeleton import MotionLayout, shell_parts
 
 from ..config import (CFG_SCALE, HISTORY_TOKENS, HISTORY_WINDOW, IMPUTATIONS, NOISE_SCALE,
-                      SOLVER_STEPS, STRIDE, WINDOW, StreamConfig, check_gaze, check_history,
-                      check_noise_scale)
+                      SOLVER_STEPS, SOLVERS, STRIDE, WINDOW, StreamConfig, check_gaze,
+                      check_history, check_noise_scale)
 from .metrics import (
     FrechetRidgeWarning,
     MetricsConfig,
@@ -110,7 +110,8 @@ class EvalConfig:
     methods: tuple[str, ...] = PAPER_METHODS
     batch_clips: int = 16  # clips per FGD batch of the Avg column
     seed: int = 0
-    steps: int = SOLVER_STEPS  # solver steps (midpoint)
+    steps: int = SOLVER_STEPS  # solver steps
+    solver: str = StreamConfig.solver  # the paper's midpoint method, or euler (StreamConfig)
     cfg_scale: float = CFG_SCALE
     noise_scale: float = NOISE_SCALE  # temperature of the model's starting noise (StreamConfig)
     # Streamed latents kept as history (None: all). The offline protocol has none to drop.
@@ -142,6 +143,8 @@ class EvalConfig:
             StreamConfig(guide=tuple(self.guide))
         except ValueError as error:
             raise EvalError(f"--guide: {error}") from None
+        if self.solver not in SOLVERS:
+            raise EvalError(f"unknown solver {self.solver!r}; choose from {', '.join(SOLVERS)}")
         if self.imputation not in IMPUTATIONS:
             raise EvalError(f"unknown imputation {self.imputation!r}; choose from "
                             f"{', '.join(IMPUTATIONS)}")
@@ -250,7 +253,8 @@ def window_generator(models, config: EvalConfig, gaze: float | None):
                         anchor=IDENTITY, source={},
                         agent_audio=item["agent_audio"].numpy(),
                         user_audio=item["user_audio"].numpy())
-        stream = StreamConfig(steps=config.steps, cfg_scale=config.cfg_scale, gaze=gaze,
+        stream = StreamConfig(steps=config.steps, solver=config.solver,
+                              cfg_scale=config.cfg_scale, gaze=gaze,
                               noise_scale=config.noise_scale,
                               history_tokens=config.history_tokens,
                               imputation=config.imputation, guide=config.guide,
@@ -540,7 +544,7 @@ def _caption1(ev: Evaluation, config: EvalConfig, shards: Path) -> str:
             f"({ev.num_windows - ev.num_speaking} seq.). FGD in cm² shown ÷{scale['fgd']:g}, "
             f"FGD_acc in (cm/s²)² shown ÷{scale['fgd_acc']:g}, Wrist Var = mean wrist speed in "
             f"cm/s. FGD Avg = mean over batches of {config.batch_clips} clips; NS/S pooled. "
-            f"Model: {config.protocol} protocol{_history_note(config)}, {config.steps} midpoint "
+            f"Model: {config.protocol} protocol{_history_note(config)}, {config.steps} {config.solver} "
             f"steps, cfg {config.cfg_scale:g}{_guide_note(config)}{_noise_note(config)}, seed "
             f"{config.seed}.")
 
