@@ -181,5 +181,5 @@ def sampling_of(args: argparse.Namespace, config):
     from dataclasses import replace
 
     return replace(config, steps=args.steps, solver=args.solver, cfg_scale=args.cfg,
-                   noise_scale=args.noise_scale, guide=args.guide, guidance_interval=args.guidance_interval,
-                   imputation=args.imputation)
+                   noise_scale=args.noise_scale, guide=args.guide,
+                   guidance_interval=args.guidance_interval, imputation=args.imputation)

@@ -15,7 +15,7 @@ from sarah_cli.eval import main
 from helpers import load_script, write_split_shards
 from sarah_models.training.checkpoint import load_checkpoint, save_checkpoint
 from sarah_models.evaluation.degradations import blurred, jittered
-from sarah_models.evaluation.runner import select_windows
+from sarah_models.evaluation.runner import EvalConfig, EvalError, select_windows
 from sarah_models.evaluation.tables import MethodResult, table1_markdown, table2_markdown
 from sarah_models.evaluation.metrics import METRICS, CategoryValues, MetricsConfig, MetricsTable
 from test_generate import save_run
@@ -356,6 +356,8 @@ def test_solver_reaches_the_model_and_the_caption(tiny, tmp_path, capsys):
         main(eval_args(tiny, tmp_path / "bad", "--solver", "rk4"))
     assert exit_.value.code == 2 and "invalid choice: 'rk4'" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
+    with pytest.raises(EvalError, match="unknown solver 'rk4'; choose from midpoint, euler"):
+        EvalConfig(solver="rk4")  # the library's callers get the same line
 
 
 def test_baselines_can_draw_from_another_corpus(tiny, tmp_path, capsys):

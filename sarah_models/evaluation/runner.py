@@ -544,8 +544,8 @@ def _caption1(ev: Evaluation, config: EvalConfig, shards: Path) -> str:
             f"({ev.num_windows - ev.num_speaking} seq.). FGD in cm² shown ÷{scale['fgd']:g}, "
             f"FGD_acc in (cm/s²)² shown ÷{scale['fgd_acc']:g}, Wrist Var = mean wrist speed in "
             f"cm/s. FGD Avg = mean over batches of {config.batch_clips} clips; NS/S pooled. "
-            f"Model: {config.protocol} protocol{_history_note(config)}, {config.steps} {config.solver} "
-            f"steps, cfg {config.cfg_scale:g}{_guide_note(config)}{_noise_note(config)}, seed "
+            f"Model: {config.protocol} protocol{_history_note(config)}, {config.steps} "
+            f"{config.solver} steps, cfg {config.cfg_scale:g}{_guide_note(config)}{_noise_note(config)}, seed "
             f"{config.seed}.")
 
 
