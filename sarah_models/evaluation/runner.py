@@ -545,8 +545,8 @@ def _caption1(ev: Evaluation, config: EvalConfig, shards: Path) -> str:
             f"FGD_acc in (cm/s²)² shown ÷{scale['fgd_acc']:g}, Wrist Var = mean wrist speed in "
             f"cm/s. FGD Avg = mean over batches of {config.batch_clips} clips; NS/S pooled. "
             f"Model: {config.protocol} protocol{_history_note(config)}, {config.steps} "
-            f"{config.solver} steps, cfg {config.cfg_scale:g}{_guide_note(config)}{_noise_note(config)}, seed "
-            f"{config.seed}.")
+            f"{config.solver} steps, cfg {config.cfg_scale:g}{_guide_note(config)}"
+            f"{_noise_note(config)}, seed {config.seed}.")
 
 
 def _guide_note(config: EvalConfig) -> str:
