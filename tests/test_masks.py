@@ -171,3 +171,20 @@ def test_attention_rejects_bad_masks():
         attn(x, causal_mask(4).float(), torch.arange(4))
     with pytest.raises(ValueError):
         attn(x, causal_mask(3), torch.arange(4))
+
+
+@pytest.mark.parametrize("tokens", [1, 9, 37])
+def test_no_mask_is_the_lower_triangle_to_the_bit(tokens):
+    """``mask=None`` over a square window runs SDPA's causal flag, which skips the masked half of
+    the scores; outputs and every gradient are the explicit triangle's, bit for bit."""
+    attn = _randomize(Attention(32, 4), 4)
+    x = torch.randn(3, tokens, 32)
+    results = []
+    for mask in (causal_mask(tokens), None):
+        attn.zero_grad()
+        inputs = x.clone().requires_grad_()
+        out = attn(inputs, mask, torch.arange(tokens))
+        out.mul(torch.linspace(-1, 1, 32)).sum().backward()
+        results.append([out.detach(), inputs.grad, attn.qkv.weight.grad.clone()])
+    for flag, explicit in zip(results[1], results[0]):
+        assert torch.equal(flag, explicit)

@@ -158,9 +158,9 @@ class CausalVAE(nn.Module):
         latent = torch.stack((self.mu_token, self.sigma_token)).to(frames.dtype)
         tokens = torch.cat((frames, latent.expand(b, k, 2, h)), dim=2).reshape(b, k * (s + 2), h)
         n = tokens.shape[1]
-        mask, positions = causal_mask(n, device=x.device), torch.arange(n, device=x.device)
+        positions = torch.arange(n, device=x.device)
         for block in self.encoder:
-            tokens = block(tokens, mask, positions)
+            tokens = block(tokens, None, positions)  # None: the lower triangle, as SDPA's flag
         out = self.encoder_norm(tokens).view(b, k, s + 2, h)
         logvar = self.logvar_out(out[:, :, s + 1]).clamp(-30.0, 20.0)
         mu = self.mu_out(out[:, :, s])
@@ -218,9 +218,9 @@ class CausalVAE(nn.Module):
         decoder's draws (``detail_noise``; None: zero draws)."""
         tokens = self._decoder_tokens(z, detail)
         n = tokens.shape[1]
-        mask, positions = causal_mask(n, device=z.device), torch.arange(n, device=z.device)
+        positions = torch.arange(n, device=z.device)
         for block in self.decoder:
-            tokens = block(tokens, mask, positions)
+            tokens = block(tokens, None, positions)  # None: the lower triangle, as SDPA's flag
         return self._decoder_frames(tokens, z)
 
     def new_decoder_cache(self, max_blocks: int | None = None) -> DecoderCache:
