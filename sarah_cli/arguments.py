@@ -99,6 +99,7 @@ def noise_scale(text: str) -> float:
 
 NOISE_SCALE_HELP = ("temperature of each token's starting noise: 1 is the paper's N(0, I); "
                     "below 1 samples nearer the flow's mode (calmer, less varied motion)")
+SOLVER_HELP = "ODE solver (midpoint, the paper's: 2 network evaluations per step; euler: 1)"
 IMPUTATION_HELP = ("a stream's history tokens while the new one is solved: final = re-noised "
                    "from their final latents (eq. 4, the paper); trajectory = the states each "
                    "passed through when it was solved, so the stream equals the offline solve "
@@ -162,9 +163,7 @@ def add_sampling_arguments(parser: argparse.ArgumentParser, defaults,
     from sarah_models.config import IMPUTATIONS, SOLVERS
 
     parser.add_argument("--steps", type=int, default=defaults.steps, help=steps_help)
-    parser.add_argument("--solver", choices=SOLVERS, default=defaults.solver,
-                        help="ODE solver (midpoint, the paper's: 2 network evaluations per step; "
-                             "euler: 1)")
+    parser.add_argument("--solver", choices=SOLVERS, default=defaults.solver, help=SOLVER_HELP)
     parser.add_argument("--cfg", type=float, default=defaults.cfg_scale, help="guidance scale w")
     parser.add_argument("--noise-scale", type=noise_scale, default=defaults.noise_scale,
                         help=NOISE_SCALE_HELP)

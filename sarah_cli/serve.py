@@ -10,14 +10,14 @@ from pathlib import Path
 
 from sarah_models.accel import MODE_HELP, MODES
 from sarah_cli.arguments import (GUIDANCE_INTERVAL_HELP, IMPUTATION_HELP, NOISE_SCALE_HELP,
-                                 HelpFormatter, add_model_arguments, guide_help, guidance_interval,
-                                 guided_modalities, noise_scale, positive_int)
+                                 SOLVER_HELP, HelpFormatter, add_model_arguments, guide_help,
+                                 guidance_interval, guided_modalities, noise_scale, positive_int)
 
 EXIT_ERROR = 2
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from sarah_models.config import IMPUTATIONS, StreamConfig
+    from sarah_models.config import IMPUTATIONS, SOLVERS, StreamConfig
     from sarah_models.serving.server import ServeConfig
 
     d, s = StreamConfig(), ServeConfig()
@@ -61,6 +61,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help=guide_help() + " (every session's)")
     parser.add_argument("--guidance-interval", type=guidance_interval, default="0,1",
                         help=GUIDANCE_INTERVAL_HELP + " (every session's)")
+    parser.add_argument("--solver", choices=SOLVERS, default=d.solver,
+                        help=SOLVER_HELP + " (every session's)")
     parser.add_argument("--steps", type=int, default=d.steps, help="default solver steps per chunk")
     parser.add_argument("--cfg", type=float, default=d.cfg_scale, help="default guidance scale w")
     parser.add_argument("--noise-scale", type=noise_scale, default=d.noise_scale,
@@ -76,6 +78,19 @@ def build_parser() -> argparse.ArgumentParser:
     client.add_argument("--chunk-frames", type=int, default=4, help="frames per chunk (a multiple of 4)")
     client.add_argument("--out", type=Path, help="output folder for motion.npz")
     return parser
+
+
+def session_defaults(args: argparse.Namespace):
+    """The ``StreamConfig`` every session starts from: the server-wide sampling flags, and the
+    defaults of what a session's open message may set (steps, cfg); ValueError as the config's
+    own checks raise it."""
+    from dataclasses import replace
+
+    from sarah_models.config import StreamConfig
+
+    return replace(StreamConfig(), steps=args.steps, solver=args.solver, cfg_scale=args.cfg,
+                   noise_scale=args.noise_scale, imputation=args.imputation, guide=args.guide,
+                   guidance_interval=args.guidance_interval)
 
 
 def _client(args, parser) -> int:
@@ -108,9 +123,6 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.client is not None:
         return _client(args, parser)
-    from dataclasses import replace
-
-    from sarah_models.config import StreamConfig
     from sarah_models.generation.inputs import GenerateError
     from sarah_models.serving.server import LiveServer, ServeConfig, is_loopback, load_server_models
 
@@ -138,9 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     # 2-core VMs (paper size, p50 57-70 -> 100-108 ms; docs/performance.md), so it keeps one.
     torch.set_num_threads(1)
     try:
-        defaults = replace(StreamConfig(), steps=args.steps, cfg_scale=args.cfg,
-                           noise_scale=args.noise_scale, imputation=args.imputation,
-                           guide=args.guide, guidance_interval=args.guidance_interval)
+        defaults = session_defaults(args)
         models, path = load_server_models(args.run, args.checkpoint, args.device, args.speed, defaults)
     except (GenerateError, ValueError) as error:
         print(f"sarah-serve: error: {error}", file=sys.stderr)

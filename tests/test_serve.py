@@ -320,6 +320,36 @@ def test_two_server_processes_share_nothing(run_dir, raw, tmp_path, model):
             proc.wait(10)
 
 
+def test_the_solver_flag_reaches_every_session(run_dir, raw, tmp_path):
+    """``sarah-serve --solver euler``: a session streams what ``sarah-generate --solver euler``
+    writes, which is not the midpoint method's motion; a solver it does not know stops the
+    command before anything loads."""
+    with pytest.raises(SystemExit):
+        serve_main(["--run", str(run_dir), "--solver", "rk4"])
+    proc = subprocess.Popen([sys.executable, "-m", "sarah_cli.serve", "--run", str(run_dir),
+                             "--port", "0", "--device", "cpu", "--threads", "1",
+                             "--solver", "euler"], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        line = proc.stdout.readline()
+        match = re.search(r"ws://127\.0\.0\.1:(\d+)/", line)
+        assert match, line
+        assert serve_main(["--client", f"ws://127.0.0.1:{match.group(1)}/", *files(raw),
+                           "--out", str(tmp_path / "served"), "--seed", "5"]) == 0
+    finally:
+        proc.terminate()
+        proc.wait(10)
+    for solver in ("euler", "midpoint"):
+        assert generate(["--run", str(run_dir), *files(raw), "--out", str(tmp_path / solver),
+                         "--seed", "5", "--solver", solver, "--no-animation", "--device", "cpu",
+                         "--threads", "1"]) == 0
+    served, euler, midpoint = (np.load(tmp_path / name / "motion.npz", allow_pickle=False)["icosahedra"]
+                               for name in ("served", "euler", "midpoint"))
+    np.testing.assert_array_equal(served, euler)
+    assert np.abs(served - midpoint).max() > 1e-3
+
+
 def chromium_path():
     for name in ("chromium", "chromium-browser"):
         path = shutil.which(name)
