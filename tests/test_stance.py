@@ -302,7 +302,22 @@ def test_a_recipe_with_a_stance_head_trains_writes_its_model_file_and_generates(
     audio = np.zeros((frames, models.dims["audio"]), np.float32)
     motion = generate_offline(models.vae, models.flow, models.normalizer, head, audio, audio)
     assert motion.shape == (frames, models.dims["motion"]) and np.isfinite(motion).all()
+    # The VAE fine-tuned with another stance weight keeps its head (only the loss weighs
+    # otherwise); without one it would lose the head, which --init-from refuses by name.
+    def fine_tune(folder, settings):
+        return main(["--stage", "vae", "--config", "tiny", "--shards", str(prepared_shards),
+                     "--out", str(tmp_path / folder), "--steps", "1", "--batch-size", "2",
+                     "--device", "cpu", "--no-progress", "--init-from", str(out / "vae.pt")]
+                    + sum((["--set", s] for s in settings), []))
+
+    reweighed = [s.replace("vae.stance_weight=0.2", "vae.stance_weight=1.0") for s in small]
+    assert fine_tune("tuned", reweighed) == 0, capsys.readouterr().err
+    tuned = torch.load(tmp_path / "tuned" / "vae.pt", weights_only=True)
+    assert tuned["config"]["vae"]["stance_weight"] == 1.0
+    assert any(name.startswith("stance.") for name in tuned["vae"])
     capsys.readouterr()
+    assert fine_tune("headless", [s for s in small if not s.startswith("vae.stance_weight")]) == 2
+    assert "stance_weight: 0.2 there, 0.0 here" in capsys.readouterr().err
     assert main(["--stage", "model", "--init-from", "fixture-tiny", "--out", str(tmp_path / "no"),
                  "--set", "vae.foot_lock_reads=stance"]) == 2
     assert "vae.stance_weight" in capsys.readouterr().err

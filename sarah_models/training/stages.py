@@ -213,7 +213,8 @@ def _check_compatible(source: Mapping[str, Any], stage: str, config: RunConfig,
     file = source["path"]
     wanted, stored = config.to_dict()[stage], stored_config(source)[stage]
     differ = sorted(k for k in wanted if k not in FINE_TUNE_FIELDS[stage]
-                    and wanted[k] != stored.get(k) and not _gains_detail(stage, k, stored))
+                    and wanted[k] != stored.get(k) and not _gains_detail(stage, k, stored)
+                    and not _reweighs_stance(stage, k, stored, wanted))
     if differ:
         pairs = ", ".join(f"{k}: {stored.get(k)} there, {wanted[k]} here" for k in differ)
         raise ValueError(f"{file}: the {stage} architecture differs ({pairs}); --init-from needs "
@@ -235,6 +236,13 @@ def _gains_detail(stage: str, key: str, stored: Mapping[str, Any]) -> bool:
     """A deterministic VAE fine-tuned into a stochastic decoder (``vae.detail_dim``): its
     weights are all kept and the decoder's new detail input starts from its initialisation."""
     return stage == "vae" and key == "detail_dim" and not stored.get(key)
+
+
+def _reweighs_stance(stage: str, key: str, stored: Mapping[str, Any],
+                     wanted: Mapping[str, Any]) -> bool:
+    """A VAE with a stance head fine-tuned with another ``vae.stance_weight``: the weight makes
+    the head exist (> 0) and weighs its loss; with a head on both sides only the loss differs."""
+    return stage == "vae" and key == "stance_weight" and bool(stored.get(key)) and wanted[key] > 0
 
 
 def _with_new_detail_input(vae: CausalVAE, state: Mapping[str, Tensor]) -> dict[str, Tensor]:
