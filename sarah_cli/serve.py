@@ -11,7 +11,8 @@ from pathlib import Path
 from sarah_models.accel import MODE_HELP, MODES
 from sarah_cli.arguments import (GUIDANCE_INTERVAL_HELP, IMPUTATION_HELP, NOISE_SCALE_HELP,
                                  SOLVER_HELP, HelpFormatter, add_model_arguments, guide_help,
-                                 guidance_interval, guided_modalities, noise_scale, positive_int)
+                                 guidance_interval, guided_modalities, noise_scale, positive_int,
+                                 sampling_of)
 
 EXIT_ERROR = 2
 
@@ -80,19 +81,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def session_defaults(args: argparse.Namespace):
-    """The ``StreamConfig`` every session starts from: the server-wide sampling flags, and the
-    defaults of what a session's open message may set (steps, cfg); ValueError as the config's
-    own checks raise it."""
-    from dataclasses import replace
-
-    from sarah_models.config import StreamConfig
-
-    return replace(StreamConfig(), steps=args.steps, solver=args.solver, cfg_scale=args.cfg,
-                   noise_scale=args.noise_scale, imputation=args.imputation, guide=args.guide,
-                   guidance_interval=args.guidance_interval)
-
-
 def _client(args, parser) -> int:
     from sarah_cli.generate import _gaze
     from sarah_data.loading import DataProblem
@@ -123,6 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.client is not None:
         return _client(args, parser)
+    from sarah_models.config import StreamConfig
     from sarah_models.generation.inputs import GenerateError
     from sarah_models.serving.server import LiveServer, ServeConfig, is_loopback, load_server_models
 
@@ -150,7 +139,8 @@ def main(argv: list[str] | None = None) -> int:
     # 2-core VMs (paper size, p50 57-70 -> 100-108 ms; docs/performance.md), so it keeps one.
     torch.set_num_threads(1)
     try:
-        defaults = session_defaults(args)
+        # Server-wide sampling flags, and the defaults of what an open message may set.
+        defaults = sampling_of(args, StreamConfig())
         models, path = load_server_models(args.run, args.checkpoint, args.device, args.speed, defaults)
     except (GenerateError, ValueError) as error:
         print(f"sarah-serve: error: {error}", file=sys.stderr)

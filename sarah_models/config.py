@@ -794,9 +794,10 @@ class StreamConfig:
         if self.steps < 1:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
         if self.solver not in SOLVERS:
-            raise ValueError(f"unknown solver {self.solver!r}; choose from {SOLVERS}")
+            raise ValueError(f"unknown solver {self.solver!r}; choose from {', '.join(SOLVERS)}")
         if self.imputation not in IMPUTATIONS:
-            raise ValueError(f"unknown imputation {self.imputation!r}; choose from {IMPUTATIONS}")
+            raise ValueError(f"unknown imputation {self.imputation!r}; choose from "
+                             f"{', '.join(IMPUTATIONS)}")
         if not math.isfinite(self.cfg_scale):
             raise ValueError(f"cfg_scale must be finite, got {self.cfg_scale}")
         check_noise_scale(self.noise_scale)

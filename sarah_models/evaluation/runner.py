@@ -58,9 +58,8 @@ from sarah_data.atomic import atomic_write_text
 from sarah_data.constants import FPS
 from sarah_data.skeleton import MotionLayout, shell_parts
 
-from ..config import (CFG_SCALE, HISTORY_TOKENS, HISTORY_WINDOW, IMPUTATIONS, NOISE_SCALE,
-                      SOLVER_STEPS, SOLVERS, STRIDE, WINDOW, StreamConfig, check_gaze,
-                      check_history, check_noise_scale)
+from ..config import (CFG_SCALE, HISTORY_TOKENS, HISTORY_WINDOW, NOISE_SCALE, SOLVER_STEPS,
+                      STRIDE, WINDOW, StreamConfig, check_gaze, check_history, check_noise_scale)
 from .metrics import (
     FrechetRidgeWarning,
     MetricsConfig,
@@ -143,11 +142,10 @@ class EvalConfig:
             StreamConfig(guide=tuple(self.guide))
         except ValueError as error:
             raise EvalError(f"--guide: {error}") from None
-        if self.solver not in SOLVERS:
-            raise EvalError(f"unknown solver {self.solver!r}; choose from {', '.join(SOLVERS)}")
-        if self.imputation not in IMPUTATIONS:
-            raise EvalError(f"unknown imputation {self.imputation!r}; choose from "
-                            f"{', '.join(IMPUTATIONS)}")
+        try:  # the streams' own rules, one line each
+            StreamConfig(solver=self.solver, imputation=self.imputation)
+        except ValueError as error:
+            raise EvalError(str(error)) from None
         for name in ("windows", "window", "batch_clips", "steps", "library_size", "blur_frames"):
             if getattr(self, name) < 1:
                 raise EvalError(f"--{name.replace('_', '-')} must be positive, got "

@@ -162,15 +162,15 @@ class Attention(nn.Module):
             # scores, the same bits as the mask forward and backward (tests/test_masks.py);
             # the VAE's 500-token windows attend in 0.6-0.8x the time (2026-12-06).
             out = F.scaled_dot_product_attention(q, k, v, is_causal=True)
-            return self.out(out.transpose(1, 2).reshape(b, n, d))
-        if mask is None:
-            mask = causal_mask(n, k.shape[2], device=x.device)
-        if mask.dtype != torch.bool:
-            raise TypeError(f"attention mask must be bool (True = attend), got {mask.dtype}")
-        if mask.shape[-2:] != (n, k.shape[2]):
-            raise ValueError(f"attention mask {tuple(mask.shape)} does not match "
-                             f"{n} queries x {k.shape[2]} keys")
-        out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
+        else:
+            if mask is None:
+                mask = causal_mask(n, k.shape[2], device=x.device)
+            if mask.dtype != torch.bool:
+                raise TypeError(f"attention mask must be bool (True = attend), got {mask.dtype}")
+            if mask.shape[-2:] != (n, k.shape[2]):
+                raise ValueError(f"attention mask {tuple(mask.shape)} does not match "
+                                 f"{n} queries x {k.shape[2]} keys")
+            out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
         return self.out(out.transpose(1, 2).reshape(b, n, d))
 
 

@@ -172,6 +172,15 @@ FINE_TUNE_FIELDS = {
             *DECODING_FIELDS["vae"]),
     "flow": ("drop_prob", "gaze_drop_prob", "min_denominator", "difference_weight", "attention_window",
              "streamed_context", "place_noise", "stance_weight")}
+# Fields that shape the weights only in part: a fine-tune may change one where its rule holds
+# for (the source's value, this run's). ``vae.detail_dim``: a deterministic VAE fine-tuned into
+# a stochastic decoder keeps all its weights, its new detail input starting from its
+# initialisation (``_with_new_detail_input``). ``vae.stance_weight``: the weight makes the
+# stance head exist (> 0) and weighs its loss; with a head on both sides only the loss differs.
+FINE_TUNE_RULES = {
+    "vae": {"detail_dim": lambda stored, wanted: not stored,
+            "stance_weight": lambda stored, wanted: bool(stored) and wanted > 0},
+    "flow": {}}
 
 
 def _flow_run_config(config: RunConfig, stored_vae: Mapping[str, Any],
@@ -212,9 +221,10 @@ def _check_compatible(source: Mapping[str, Any], stage: str, config: RunConfig,
     """Refuse an --init-from source whose weights cannot be this stage's, naming the difference."""
     file = source["path"]
     wanted, stored = config.to_dict()[stage], stored_config(source)[stage]
+    rules = FINE_TUNE_RULES[stage]
     differ = sorted(k for k in wanted if k not in FINE_TUNE_FIELDS[stage]
-                    and wanted[k] != stored.get(k) and not _gains_detail(stage, k, stored)
-                    and not _reweighs_stance(stage, k, stored, wanted))
+                    and wanted[k] != stored.get(k)
+                    and not (k in rules and rules[k](stored.get(k), wanted[k])))
     if differ:
         pairs = ", ".join(f"{k}: {stored.get(k)} there, {wanted[k]} here" for k in differ)
         raise ValueError(f"{file}: the {stage} architecture differs ({pairs}); --init-from needs "
@@ -232,21 +242,8 @@ def _check_compatible(source: Mapping[str, Any], stage: str, config: RunConfig,
                          f"uses {features!r}")
 
 
-def _gains_detail(stage: str, key: str, stored: Mapping[str, Any]) -> bool:
-    """A deterministic VAE fine-tuned into a stochastic decoder (``vae.detail_dim``): its
-    weights are all kept and the decoder's new detail input starts from its initialisation."""
-    return stage == "vae" and key == "detail_dim" and not stored.get(key)
-
-
-def _reweighs_stance(stage: str, key: str, stored: Mapping[str, Any],
-                     wanted: Mapping[str, Any]) -> bool:
-    """A VAE with a stance head fine-tuned with another ``vae.stance_weight``: the weight makes
-    the head exist (> 0) and weighs its loss; with a head on both sides only the loss differs."""
-    return stage == "vae" and key == "stance_weight" and bool(stored.get(key)) and wanted[key] > 0
-
-
 def _with_new_detail_input(vae: CausalVAE, state: Mapping[str, Tensor]) -> dict[str, Tensor]:
-    """``state`` plus the detail input ``vae`` has and ``state`` lacks (``_gains_detail``)."""
+    """``state`` plus the detail input ``vae`` has and ``state`` lacks (``FINE_TUNE_RULES``)."""
     state = dict(state)
     if vae.detail_in is not None and "detail_in.weight" not in state:
         state.update({f"detail_in.{name}": value
