@@ -185,6 +185,32 @@ def test_difference_term_weighs_the_error_of_token_to_token_changes():
         FlowConfig(difference_weight=-1.0)
 
 
+def test_training_times_are_the_papers_uniform_unless_a_logit_mean_is_set():
+    """flow.time_logit_mean None draws tau ~ U[0, 1] (torch.rand's draws, so the paper's runs keep
+    their bits); a mean m draws the logit-normal sigmoid(N(m, std)), median sigmoid(m), and the
+    loss trains at those times."""
+    from dataclasses import replace
+
+    from sarah_models.sampling.path import training_times
+
+    uniform = training_times(8, torch.Generator().manual_seed(3), "cpu")
+    assert torch.equal(uniform, torch.rand(8, generator=torch.Generator().manual_seed(3)))
+    for mean, std in ((0.0, 1.0), (1.0, 1.0), (-0.5, 0.5)):
+        tau = training_times(20_000, torch.Generator().manual_seed(0), "cpu", mean, std)
+        assert 0 < tau.min() and tau.max() < 1
+        assert abs(tau.median().item() - torch.sigmoid(torch.tensor(mean)).item()) < 0.01
+        logits = torch.logit(tau.double())
+        assert abs(logits.std().item() - std) < 0.02
+    g = torch.Generator().manual_seed(0)
+    cond, z = make_cond(4, g), torch.randn(4, K, DZ, generator=g)
+    flow = FlowModel(replace(FlowConfig.tiny(), time_logit_mean=1.5, time_logit_std=0.5), DZ, S, DA)
+    with torch.no_grad():
+        out = flow_matching_loss(flow, z, cond, torch.Generator().manual_seed(1))
+    assert torch.equal(out["tau"], training_times(4, torch.Generator().manual_seed(1), "cpu", 1.5, 0.5))
+    with pytest.raises(ValueError, match="time_logit_std"):
+        FlowConfig(time_logit_std=0.0)
+
+
 def test_attention_window_limits_each_layer_to_the_streaming_context():
     """flow.attention_window = history + 1 limits every layer to the last 3 tokens, so token k
     depends on tokens k - layers * 2 .. k only (receptive field of stacked windows)."""

@@ -33,7 +33,7 @@ from ..nn.user_offset import block_starts, pelvis_floor, user_offset
 from ..nn.vae import CausalVAE
 from ..sampling.foot_lock import RELEASE
 from ..sampling.guidance import drop_probs, sample_drop_mask
-from ..sampling.path import interpolate
+from ..sampling.path import interpolate, training_times
 
 
 class VAEObjective(nn.Module):
@@ -350,10 +350,12 @@ class FlowObjective(nn.Module):
 
 def flow_matching_loss(flow: FlowModel, z: Tensor, cond: Mapping[str, Tensor],
                        generator: torch.Generator | None = None) -> dict[str, Tensor]:
-    """x1-prediction flow-matching loss (eq. 4-5) with tau ~ U[0, 1] and CFG dropout, plus
-    ``flow.config.difference_weight`` times the MSE of the tokens' differences ("difference")."""
+    """x1-prediction flow-matching loss (eq. 4-5) with tau ~ U[0, 1] (or the logit-normal,
+    ``flow.time_logit_mean``) and CFG dropout, plus ``flow.config.difference_weight`` times the
+    MSE of the tokens' differences ("difference")."""
     b, k = z.shape[:2]
-    tau = torch.rand(b, generator=generator, device=z.device)
+    tau = training_times(b, generator, z.device, flow.config.time_logit_mean,
+                         flow.config.time_logit_std)
     eps = torch.randn(z.shape, generator=generator, device=z.device, dtype=z.dtype)
     z_tau = interpolate(eps, z, tau[:, None, None].to(z.dtype))
     drop = sample_drop_mask(b, drop_probs(flow.config), generator, z.device)

@@ -171,7 +171,7 @@ FINE_TUNE_FIELDS = {
             "latent_noise", "recon_units", "energy_weight", "energy_frames", "energy_per_point",
             *DECODING_FIELDS["vae"]),
     "flow": ("drop_prob", "gaze_drop_prob", "min_denominator", "difference_weight", "attention_window",
-             "streamed_context", "place_noise", "stance_weight")}
+             "streamed_context", "place_noise", "stance_weight", "time_logit_mean", "time_logit_std")}
 # Fields that shape the weights only in part: a fine-tune may change one where its rule holds
 # for (the source's value, this run's). ``vae.detail_dim``: a deterministic VAE fine-tuned into
 # a stochastic decoder keeps all its weights, its new detail input starting from its
