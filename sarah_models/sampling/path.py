@@ -31,7 +31,7 @@ def velocity_from_x1(x1: Tensor, z_tau: Tensor, tau: Tensor | float,
     return (x1 - z_tau) / (1.0 - tau).clamp_min(min_denominator)
 
 
-def training_times(batch: int, generator: torch.Generator | None, device,
+def training_times(batch: int, generator: torch.Generator | None, device: torch.device | str,
                    logit_mean: float | None = None, logit_std: float = 1.0) -> Tensor:
     """One flow time per sample: U[0, 1] (the paper; ``logit_mean`` None), or the logit-normal
     sigmoid(N(logit_mean, logit_std)) (``flow.time_logit_mean``), whose median is
