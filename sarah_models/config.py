@@ -398,7 +398,7 @@ class FlowConfig:
     # n ~ N(time_logit_mean, time_logit_std), the logit-normal of Esser et al. 2024 (SD3).
     # Eq. 5's loss on the clean latents weighs the velocity's error by (1 - tau)^2, so near the
     # data, where the solver's last steps set the fine motion, U[0, 1] trains little; a
-    # positive mean draws more of the batch there (``sampling.path.training_times``). On the
+    # positive mean draws more of the batch there (``training.objectives.training_times``). On the
     # fixture benchmark means -1, 0 and 1 (std 1) and mean 0 at std 2.5 scored FGD_acc 357, 380,
     # 407 and 363 against U[0, 1]'s 327 at the recipe's pick (docs/results.md, ninety-fifth
     # run); no preset uses it.
@@ -504,8 +504,12 @@ class FlowConfig:
             raise ValueError(f"FlowConfig.place_noise must be >= 0, got {self.place_noise}")
         if not self.stance_weight >= 0:
             raise ValueError(f"FlowConfig.stance_weight must be >= 0, got {self.stance_weight}")
-        if not self.time_logit_std > 0:
-            raise ValueError(f"FlowConfig.time_logit_std must be > 0, got {self.time_logit_std}")
+        if self.time_logit_mean is not None and not math.isfinite(self.time_logit_mean):
+            raise ValueError(f"FlowConfig.time_logit_mean must be finite or None, got "
+                             f"{self.time_logit_mean}")
+        if not (math.isfinite(self.time_logit_std) and self.time_logit_std > 0):
+            raise ValueError(f"FlowConfig.time_logit_std must be finite and > 0, got "
+                             f"{self.time_logit_std}")
         if self.difference_weight < 0:
             raise ValueError(f"FlowConfig.difference_weight must be >= 0, got "
                              f"{self.difference_weight}")

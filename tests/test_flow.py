@@ -191,7 +191,7 @@ def test_training_times_are_the_papers_uniform_unless_a_logit_mean_is_set():
     loss trains at those times."""
     from dataclasses import replace
 
-    from sarah_models.sampling.path import training_times
+    from sarah_models.training.objectives import training_times
 
     uniform = training_times(8, torch.Generator().manual_seed(3), "cpu")
     assert torch.equal(uniform, torch.rand(8, generator=torch.Generator().manual_seed(3)))
@@ -209,6 +209,8 @@ def test_training_times_are_the_papers_uniform_unless_a_logit_mean_is_set():
     assert torch.equal(out["tau"], training_times(4, torch.Generator().manual_seed(1), "cpu", 1.5, 0.5))
     with pytest.raises(ValueError, match="time_logit_std"):
         FlowConfig(time_logit_std=0.0)
+    with pytest.raises(ValueError, match="time_logit_mean"):
+        FlowConfig(time_logit_mean=float("nan"))
 
 
 def test_attention_window_limits_each_layer_to_the_streaming_context():

@@ -7,8 +7,7 @@ Flow time tau runs from 0 (pure noise eps) to 1 (the clean latent z1):
 The model predicts z1 (x1-prediction), so the velocity a solver integrates is the second form
 with the model's z1; 1 - tau is floored at ``min_denominator`` (only tau > 0.95 is affected,
 and a midpoint solver on the grid 0, 1/n, ... never evaluates tau = 1). Training
-(``training/objectives.py``) and streaming imputation (``solver.imputer``) both form z_tau here;
-training draws its times here too (``training_times``).
+(``training/objectives.py``) and streaming imputation (``solver.imputer``) both form z_tau here.
 """
 
 from __future__ import annotations
@@ -29,14 +28,3 @@ def velocity_from_x1(x1: Tensor, z_tau: Tensor, tau: Tensor | float,
     while tau.dim() < z_tau.dim():
         tau = tau[..., None]
     return (x1 - z_tau) / (1.0 - tau).clamp_min(min_denominator)
-
-
-def training_times(batch: int, generator: torch.Generator | None, device: torch.device | str,
-                   logit_mean: float | None = None, logit_std: float = 1.0) -> Tensor:
-    """One flow time per sample: U[0, 1] (the paper; ``logit_mean`` None), or the logit-normal
-    sigmoid(N(logit_mean, logit_std)) (``flow.time_logit_mean``), whose median is
-    sigmoid(logit_mean)."""
-    if logit_mean is None:
-        return torch.rand(batch, generator=generator, device=device)
-    n = torch.randn(batch, generator=generator, device=device)
-    return torch.sigmoid(logit_mean + logit_std * n)

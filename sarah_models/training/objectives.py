@@ -33,7 +33,7 @@ from ..nn.user_offset import block_starts, pelvis_floor, user_offset
 from ..nn.vae import CausalVAE
 from ..sampling.foot_lock import RELEASE
 from ..sampling.guidance import drop_probs, sample_drop_mask
-from ..sampling.path import interpolate, training_times
+from ..sampling.path import interpolate
 
 
 class VAEObjective(nn.Module):
@@ -346,6 +346,17 @@ class FlowObjective(nn.Module):
             out["stance"] = (out["tau"] * per_sample).mean()
             out["loss"] = out["loss"] + self.flow.config.stance_weight * out["stance"]
         return out
+
+
+def training_times(batch: int, generator: torch.Generator | None, device: torch.device | str,
+                   logit_mean: float | None = None, logit_std: float = 1.0) -> Tensor:
+    """One flow time per sample: U[0, 1] (the paper; ``logit_mean`` None), or the logit-normal
+    sigmoid(N(logit_mean, logit_std)) (``flow.time_logit_mean``), whose median is
+    sigmoid(logit_mean)."""
+    if logit_mean is None:
+        return torch.rand(batch, generator=generator, device=device)
+    n = torch.randn(batch, generator=generator, device=device)
+    return torch.sigmoid(logit_mean + logit_std * n)
 
 
 def flow_matching_loss(flow: FlowModel, z: Tensor, cond: Mapping[str, Tensor],
