@@ -2,7 +2,8 @@
 # The fixture benchmark of docs/results.md and issue #16's acceptance run, in one command:
 # fixture dyads -> shards -> a tiny model trained on 2 CPU cores within #16's 30 minutes ->
 # sarah-eval on every 400-frame window of fixtures from a seed the training never saw (Table 1
-# in both protocols, the gaze sweep), at the paper's sampling settings and at those that
+# in both protocols, the gaze sweep; the training windows beside them for the generalization
+# gap), at the paper's sampling settings and at those that
 # scripts/choose_sampling.py picks on a tuning corpus of a third seed, for the paper's streaming
 # imputation and for trajectory imputation (docs/models.md). Not run in CI.
 #
@@ -237,9 +238,9 @@ tune_sampling "$BENCH/sampling_trajectory.txt" "$BENCH/tune_trajectory" "$TUNE_G
 read -r -a SAMPLING_TRAJECTORY < "$BENCH/sampling_trajectory.txt"
 stamp "eval trajectory: begin ($MODEL, $JOBS side by side; ${SAMPLING_TRAJECTORY[*]})"
 table1_and_sweep _trajectory gt,model --imputation trajectory "${SAMPLING_TRAJECTORY[@]}"
-# ... and offline on every window of the training corpus itself, with that corpus's real floor
-# and the VAE's reconstruction: whether the model (or its VAE) comes nearer the data on windows it
-# was trained on than on the test windows. The ninety-sixth run's recipe did not (FGD_acc 351
+# ... and offline on every window the training read (the seed-0 corpus's train split), with
+# their real floor and the VAE's reconstruction: whether the model (or its VAE) comes nearer the
+# data on windows it was trained on than on the test windows. The ninety-sixth run's recipe did not (FGD_acc 351
 # there against 327; its VAE 388 against 378): no generalization gap for more data to close.
 run_eval "$EVAL_OUT/offline_trajectory_train" train --gaze none --table1-gaze none \
   --methods gt,real,model,vae --protocol offline --imputation trajectory "${SAMPLING_TRAJECTORY[@]}"
