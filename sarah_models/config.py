@@ -399,9 +399,8 @@ class FlowConfig:
     # Eq. 5's loss on the clean latents weighs the velocity's error by (1 - tau)^2, so near the
     # data, where the solver's last steps set the fine motion, U[0, 1] trains little; a
     # positive mean draws more of the batch there (``training.objectives.training_times``). On the
-    # fixture benchmark means -1, 0 and 1 (std 1) and mean 0 at std 2.5 scored FGD_acc 357, 380,
-    # 407 and 363 against U[0, 1]'s 327 at the recipe's pick (docs/results.md, ninety-fifth
-    # run); no preset uses it.
+    # fixture benchmark no mean or std tried came nearer the data than U[0, 1] (docs/models.md,
+    # docs/results.md, ninety-fifth run); no preset uses it.
     time_logit_mean: float | None = None
     time_logit_std: float = 1.0
     rope_base: float = 10_000.0

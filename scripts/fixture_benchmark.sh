@@ -240,8 +240,8 @@ stamp "eval trajectory: begin ($MODEL, $JOBS side by side; ${SAMPLING_TRAJECTORY
 table1_and_sweep _trajectory gt,model --imputation trajectory "${SAMPLING_TRAJECTORY[@]}"
 # ... and offline on every window the training read (the seed-0 corpus's train split), with
 # their real floor and the VAE's reconstruction: whether the model (or its VAE) comes nearer the
-# data on windows it was trained on than on the test windows. The ninety-sixth run's recipe did not (FGD_acc 351
-# there against 327; its VAE 388 against 378): no generalization gap for more data to close.
+# data on windows it was trained on than on the test windows (the recipe did not: docs/results.md,
+# ninety-sixth run).
 run_eval "$EVAL_OUT/offline_trajectory_train" train --gaze none --table1-gaze none \
   --methods gt,real,model,vae --protocol offline --imputation trajectory "${SAMPLING_TRAJECTORY[@]}"
 wait
