@@ -70,11 +70,12 @@ import numpy as np
 
 from sarah_data.constants import FLOOR_HEIGHT
 from sarah_data.skeleton import MotionLayout
+from sarah_data.two_bone_ik import two_bone_ik
 
 from ..config import FOOT_STEPS, MIN_SWING_FRAMES, VAEConfig
 from ..evaluation.metrics.spec import FOOT_MAX_HEIGHT
 
-from .rigid_skeleton import ShellFollow, finish, legs, two_bone_ik
+from .rigid_skeleton import ShellFollow, finish, legs
 
 SWING_FRAMES = VAEConfig.foot_swing_frames  # an arc step's swing by default, 0.4 s at 30 fps
 STEP = VAEConfig.foot_step  # how a foot steps by drift by default

@@ -24,6 +24,7 @@ import numpy as np
 
 from sarah_data.constants import BODY_JOINTS, JOINT_NAMES
 from sarah_data.skeleton import MotionLayout
+from sarah_data.two_bone_ik import two_bone_ik
 
 LEGS = (("left_hip", "left_knee", "left_ankle", "left_foot"),
         ("right_hip", "right_knee", "right_ankle", "right_foot"))
@@ -41,28 +42,6 @@ def legs(layout: MotionLayout, lengths) -> list[tuple]:
         out.append((hip, knee, ankle, foot, length_of[(knee, hip)], length_of[(ankle, knee)],
                     length_of[(foot, ankle)]))
     return out
-
-
-def two_bone_ik(root: np.ndarray, middle: np.ndarray, target: np.ndarray, upper: float,
-                lower: float) -> tuple[np.ndarray, np.ndarray]:
-    """(..., 3) root (a hip), the decoded middle joint (a knee: which way the limb bends) and the
-    end's target (an ankle) -> (middle, end) with the limb's bones at ``upper`` and ``lower``
-    metres; a target out of reach is reached for along the root-target line."""
-    reach = target - root
-    distance = np.linalg.norm(reach, axis=-1, keepdims=True)
-    clamped = np.clip(distance, abs(upper - lower) + 1e-6, (upper + lower) * (1.0 - 1e-6))
-    axis = np.divide(reach, distance, out=np.zeros_like(reach), where=distance > 1e-9)
-    axis[distance[..., 0] <= 1e-9] = (0.0, -1.0, 0.0)  # the target on the root: straight down
-    end = root + axis * clamped
-    bend = middle - root
-    bend -= axis * np.sum(bend * axis, axis=-1, keepdims=True)
-    norm = np.linalg.norm(bend, axis=-1, keepdims=True)
-    forward = np.array([0.0, 0.0, 1.0]) - axis * axis[..., 2:3]  # a straight limb bends forward
-    bend = np.where(norm > 1e-9, bend / np.maximum(norm, 1e-12),
-                    forward / np.maximum(np.linalg.norm(forward, axis=-1, keepdims=True), 1e-12))
-    along = (upper ** 2 - lower ** 2 + clamped ** 2) / (2.0 * clamped)
-    middle_at = root + axis * along + bend * np.sqrt(np.maximum(upper ** 2 - along ** 2, 0.0))
-    return middle_at, end
 
 
 class RigidSkeleton:
