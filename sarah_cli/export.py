@@ -28,6 +28,7 @@ def _formats(text: str) -> tuple[str, ...]:
 
 def build_parser() -> argparse.ArgumentParser:
     from sarah_data.export.bvh import UNITS
+    from sarah_data.export.kinematics import POSE_SOURCES
     from sarah_data.export.smplx_params import UP_AXES
 
     parser = argparse.ArgumentParser(
@@ -35,9 +36,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="Write motion as SMPL-X parameters in the AMASS layout (.smplx.npz: poses, "
                     "trans, betas, gender, mocap_frame_rate, root_orient, pose_body, pose_hand, "
                     "pose_jaw, pose_eye) and as a BVH of the SMPL-X skeleton. The exported body "
-                    "uses the person's bone lengths and the motion's global rotations, so it is "
-                    "always a valid rigid body; each output line reports how far its joints are "
-                    "from the motion's own.")
+                    "keeps the person's bone lengths and follows the motion's joints (its global "
+                    "rotations turned onto them, the limbs by two-bone IK), so it is always a "
+                    "valid rigid body; each output line reports how far its joints are from the "
+                    "motion's own.")
     parser.add_argument("motion", nargs="*", type=Path,
                         help="motion.npz files written by sarah-generate")
     parser.add_argument("--shards", type=Path, help="a prepared shards folder: export ground "
@@ -57,6 +59,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--bvh-units", choices=sorted(UNITS), default="m",
                         help="BVH length unit: m (Blender's default import scale) or cm (most "
                              "game-engine importers)")
+    parser.add_argument("--pose-from", choices=POSE_SOURCES, default="joints",
+                        help="joints: each rotation turned as little as it must for the body's "
+                             "bones to point at the motion's joints, knees and elbows bent by "
+                             "two-bone IK so that ankles and wrists land on the motion's (the "
+                             "decoding chain moves joints and leaves their rotations: posed by "
+                             "those alone, generated feet that stand skate); rotations: the "
+                             "motion's global rotations as they are")
     parser.add_argument("--body-model", type=Path, default=None,
                         help="a SMPL-X .npz used only for motion without a body shape (raw-input "
                              "generations, schema-1 shards): its rest skeleton with zero betas")
@@ -86,10 +95,10 @@ def export_one(motion, args, neutral) -> list[str]:
                                  f"{neutral.source} ({motion.shape.source})")
     built = []
     if "smplx" in args.format:
-        arrays, fit = smplx_params.smplx_parameters(motion, args.up)
+        arrays, fit = smplx_params.smplx_parameters(motion, args.up, args.pose_from)
         built.append((args.out / f"{motion.name}.smplx.npz", "smplx", arrays, fit))
     if "bvh" in args.format:
-        text, fit = bvh.bvh_text(motion, args.bvh_units)
+        text, fit = bvh.bvh_text(motion, args.bvh_units, args.pose_from)
         built.append((args.out / f"{motion.name}.bvh", "bvh", text, fit))
     args.out.mkdir(parents=True, exist_ok=True)
     lines = []
@@ -100,7 +109,8 @@ def export_one(motion, args, neutral) -> list[str]:
         else:
             bvh.save_text(path, payload)
             detail = f"BVH, {args.bvh_units}, ZYX Euler"
-        lines.append(f"wrote {path} ({motion.frames} frames, {detail}); {fit.summary()}")
+        lines.append(f"wrote {path} ({motion.frames} frames, {detail}, posed from its "
+                     f"{args.pose_from}); {fit.summary()}")
     return lines
 
 

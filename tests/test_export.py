@@ -179,6 +179,24 @@ def test_generated_motion_exports_with_the_agents_body(generated, tmp_path, caps
     assert abs(np.linalg.norm(ankle - knee) - bone) < 1e-5
 
 
+def test_generated_motion_exports_on_its_joints_through_the_smplx_package(generated, prep_raw_dir,
+                                                                          tmp_path, capsys):
+    """The body the smplx package builds from the file is the one the export line reports, and
+    posed from the joints it is nearer the motion than posed from the decoded rotations."""
+    motion = np.load(generated, allow_pickle=False)["joint_positions"]
+    means = {}
+    for pose_from in ("joints", "rotations"):
+        code, out = export(tmp_path / pose_from, generated, "--format", "smplx", "--pose-from", pose_from)
+        line = capsys.readouterr().out
+        assert code == 0 and f"posed from its {pose_from}" in line
+        reported = float(line.split("joint residual to the motion: mean ")[1].split(" mm")[0])
+        params = dict(np.load(out / "gen.smplx.npz", allow_pickle=False))
+        back = smplx_joints(params, prep_raw_dir / "body_models" / "SMPLX_PROCEDURAL.npz")
+        means[pose_from] = 1000 * np.linalg.norm(back - motion, axis=-1).mean()
+        assert abs(means[pose_from] - reported) < 0.5, (pose_from, means[pose_from], reported)
+    assert means["joints"] < means["rotations"]
+
+
 def test_motion_without_a_body_needs_a_body_model_for_smplx(generated, prep_raw_dir, tmp_path, capsys):
     data = dict(np.load(generated, allow_pickle=False))
     del data["rest_joints"]  # what a raw-input generation writes
@@ -222,7 +240,8 @@ def test_arguments_are_checked_before_any_work(generated, tmp_path, capsys):
     for argv, words in (([generated, "--format", "fbx"], "--format"),
                         (["--sequence", "x"], "one of the two"),
                         ([generated, "--frames", "0"], "must be >= 1"),
-                        ([generated, "--body-model", tmp_path / "none.npz"], "no such file")):
+                        ([generated, "--body-model", tmp_path / "none.npz"], "no such file"),
+                        ([generated, "--pose-from", "icosahedra"], "--pose-from")):
         with pytest.raises(SystemExit) as exit_:
             export(tmp_path, *argv)
         assert exit_.value.code == 2 and words in capsys.readouterr().err

@@ -33,12 +33,13 @@ def bvh_skeleton(motion: ExportMotion) -> np.ndarray:
     return rest_offsets_from_motion(motion.positions, motion.rotations)
 
 
-def bvh_text(motion: ExportMotion, units: str = "m") -> tuple[str, SkeletonFit]:
+def bvh_text(motion: ExportMotion, units: str = "m",
+             pose_from: str = "joints") -> tuple[str, SkeletonFit]:
     if units not in UNITS:
         raise ValueError(f"BVH units must be one of {sorted(UNITS)}, got {units!r}")
     scale = UNITS[units]
     rest = bvh_skeleton(motion)
-    fit = fit_skeleton(motion.positions, motion.rotations, rest)
+    fit = fit_skeleton(motion.positions, motion.rotations, rest, pose_from=pose_from)
     children = {j: [c for c, p in enumerate(JOINT_PARENTS) if p == j] for j in range(len(JOINT_NAMES))}
     lines = ["HIERARCHY"]
     order: list[int] = []  # joints as the hierarchy lists them: the MOTION columns' order
@@ -82,8 +83,9 @@ def save_text(path: str | Path, text: str) -> None:
         Path(tmp).write_text(text)
 
 
-def write_bvh(path: str | Path, motion: ExportMotion, units: str = "m") -> SkeletonFit:
+def write_bvh(path: str | Path, motion: ExportMotion, units: str = "m",
+              pose_from: str = "joints") -> SkeletonFit:
     """Write ``path`` atomically; returns the fit (for its residual)."""
-    text, fit = bvh_text(motion, units)
+    text, fit = bvh_text(motion, units, pose_from)
     save_text(path, text)
     return fit

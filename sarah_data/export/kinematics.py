@@ -2,9 +2,17 @@
 rigid skeleton to a motion.
 
 Our icosahedra give every joint's global orientation, so a joint's local rotation is exactly
-``R_parent^T R_child``: no inverse kinematics. Rebuilding the joints from local rotations, the
-rest skeleton and the root position is the same forward pass SMPL-X makes (joints do not depend
-on the pose blend shapes), so for ground truth it reproduces the joints to float precision.
+``R_parent^T R_child``. Rebuilding the joints from local rotations, the rest skeleton and the
+root position is the same forward pass SMPL-X makes (joints do not depend on the pose blend
+shapes), so for ground truth it reproduces the joints to float precision.
+
+Generated motion is another matter: the decoding chain moves joints (bones at the training
+data's lengths, planted feet, legs bent to reach them) and leaves each joint's decoded rotation
+as it was, so the rotations no longer point the bones where the joints are, and a body posed by
+them alone skates where the motion's feet stand (the demo's clip: ankles 8 cm from the motion's on
+average, its planted feet sliding at 0.4-0.5 m/s). ``aim_rotations`` turns each rotation as
+little as it must for the body to follow the joints; the fit uses it unless asked for the
+rotations as they are.
 """
 
 from __future__ import annotations
@@ -13,7 +21,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sarah_data.constants import JOINT_PARENTS
+from sarah_data.constants import JOINT, JOINT_PARENTS
+from sarah_data.two_bone_ik import two_bone_ik
+
+# What a body follows: the motion's joints (its rotations turned onto them) or its rotations alone.
+POSE_SOURCES = ("joints", "rotations")
+# Limbs whose middle joint the fit places by two-bone IK on the body's own bone lengths, so that
+# their ends land on the motion's: an ankle that stands stays where it stands.
+LIMBS = (("left_hip", "left_knee", "left_ankle"), ("right_hip", "right_knee", "right_ankle"),
+         ("left_shoulder", "left_elbow", "left_wrist"), ("right_shoulder", "right_elbow", "right_wrist"))
 
 
 def local_rotations(rotations: np.ndarray, parents=JOINT_PARENTS) -> np.ndarray:
@@ -59,6 +75,76 @@ def rest_offsets_from_motion(positions: np.ndarray, rotations: np.ndarray,
     return rest
 
 
+def shortest_turn(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) the smallest rotations taking the directions ``source`` to ``target`` (..., 3)
+    (Rodrigues; opposite directions turn half a circle about an axis across ``source``)."""
+    u = source / np.linalg.norm(source, axis=-1, keepdims=True)
+    t = target / np.linalg.norm(target, axis=-1, keepdims=True)
+    axis = np.cross(u, t)
+    sine, cosine = np.linalg.norm(axis, axis=-1), np.sum(u * t, axis=-1)
+    opposite = (sine < 1e-12) & (cosine < 0.0)
+    if opposite.any():  # any axis across u will do
+        across = np.cross(u[opposite], np.array([1.0, 0.0, 0.0]))
+        weak = np.linalg.norm(across, axis=-1) < 1e-6
+        across[weak] = np.cross(u[opposite][weak], np.array([0.0, 1.0, 0.0]))
+        axis[opposite], sine[opposite] = across / np.linalg.norm(across, axis=-1, keepdims=True), 0.0
+    unit = np.divide(axis, sine[..., None], out=np.zeros_like(axis), where=sine[..., None] > 1e-12)
+    unit[opposite] = axis[opposite]
+    cross = np.zeros(axis.shape + (3,))
+    cross[..., 0, 1], cross[..., 0, 2], cross[..., 1, 2] = -unit[..., 2], unit[..., 1], -unit[..., 0]
+    cross -= np.swapaxes(cross, -1, -2)
+    return (np.eye(3) + sine[..., None, None] * cross
+            + (1.0 - cosine)[..., None, None] * (cross @ cross))
+
+
+def best_turn(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) the rotations that best take the directions ``source`` to ``target`` (..., K, 3),
+    K >= 2 (Kabsch on unit vectors; of equally good ones, the smallest)."""
+    u = source / np.linalg.norm(source, axis=-1, keepdims=True)
+    t = target / np.linalg.norm(target, axis=-1, keepdims=True)
+    cross = np.einsum("...ki,...kj->...ij", t, u) + 1e-9 * np.eye(3)  # the eye: the smallest turn
+    left, _, right = np.linalg.svd(cross)
+    flip = np.ones(cross.shape[:-1])
+    flip[..., -1] = np.sign(np.linalg.det(left @ right))
+    return (left * flip[..., None, :]) @ right
+
+
+def aim_rotations(positions: np.ndarray, rotations: np.ndarray, rest_joints: np.ndarray,
+                  parents=JOINT_PARENTS) -> np.ndarray:
+    """(T, J, 3, 3) global rotations turned as little as they must for the skeleton
+    ``rest_joints``, posed by them from the motion's pelvis, to follow the motion's joints
+    ``positions`` (T, J, 3): each joint's bones point at its children (the best turn over several
+    children), the limbs of ``LIMBS`` bend by two-bone IK so that their ends land on the motion's
+    where the body's bones reach, and a joint without children keeps its rotation (the feet's and
+    the fingertips' orientation, each bone's twist). Where the rotations already point the bones
+    at the joints (ground truth) nothing turns, to float precision. Frame by frame."""
+    positions = np.asarray(positions, dtype=np.float64)
+    rest = np.asarray(rest_joints, dtype=np.float64)
+    aimed = np.array(rotations, dtype=np.float64)
+    children = [[c for c, p in enumerate(parents) if p == j] for j in range(len(parents))]
+    middle_of = {JOINT[top]: (JOINT[middle], JOINT[end]) for top, middle, end in LIMBS}
+    targets = positions.copy()  # where each bone points: the motion's joints, a limb's middle by IK
+    placed = np.empty_like(positions)  # the body's joints as the turned rotations pose them
+    placed[:, 0] = positions[:, 0]
+    for joint, kids in enumerate(children):  # SMPL-X lists every parent before its children
+        if not kids:
+            continue
+        if joint in middle_of:
+            middle, end = middle_of[joint]
+            upper = np.linalg.norm(rest[middle] - rest[joint])
+            lower = np.linalg.norm(rest[end] - rest[middle])
+            targets[:, middle], _ = two_bone_ik(placed[:, joint], positions[:, middle],
+                                                positions[:, end], upper, lower)
+        bones = rest[kids] - rest[joint]  # (K, 3)
+        posed = np.einsum("tij,kj->tki", aimed[:, joint], bones)
+        wanted = targets[:, kids] - placed[:, joint, None]
+        turn = (shortest_turn(posed[:, 0], wanted[:, 0]) if len(kids) == 1
+                else best_turn(posed, wanted))
+        aimed[:, joint] = turn @ aimed[:, joint]
+        placed[:, kids] = placed[:, joint, None] + np.einsum("tij,kj->tki", aimed[:, joint], bones)
+    return aimed
+
+
 @dataclass
 class SkeletonFit:
     """A motion expressed on a rigid skeleton: what both exporters write."""
@@ -76,11 +162,17 @@ class SkeletonFit:
 
 
 def fit_skeleton(positions: np.ndarray, rotations: np.ndarray, rest_joints: np.ndarray,
-                 parents=JOINT_PARENTS) -> SkeletonFit:
-    """The motion on the rigid skeleton ``rest_joints``: its global rotations, its pelvis
-    position, the skeleton's bone lengths. Generated motion need not keep its bone lengths; this
-    body always does, and the residual says how far it is from the generated joints."""
+                 parents=JOINT_PARENTS, pose_from: str = "joints") -> SkeletonFit:
+    """The motion on the rigid skeleton ``rest_joints``: its pelvis position, the skeleton's bone
+    lengths, and its global rotations, turned onto its joints (``pose_from="joints"``,
+    ``aim_rotations``) or as they are (``"rotations"``). Generated motion need not keep the
+    body's bone lengths; this body always does, and the residual says how far it is from the
+    generated joints."""
+    if pose_from not in POSE_SOURCES:
+        raise ValueError(f"pose_from must be one of {POSE_SOURCES}, got {pose_from!r}")
     positions = np.asarray(positions, dtype=np.float64)
+    if pose_from == "joints":
+        rotations = aim_rotations(positions, rotations, rest_joints, parents)
     local = local_rotations(rotations, parents)
     root = positions[:, 0]
     posed, _ = forward_kinematics(rest_joints, local, root, parents)

@@ -40,8 +40,10 @@ def _rotate_world(motion: ExportMotion, up: str) -> tuple[np.ndarray, np.ndarray
     return motion.positions @ Y_UP_TO_Z_UP.T, Y_UP_TO_Z_UP @ motion.rotations
 
 
-def smplx_parameters(motion: ExportMotion, up: str = "y") -> tuple[dict[str, np.ndarray], SkeletonFit]:
-    """The AMASS-layout arrays of ``motion`` and the rigid-body fit they encode."""
+def smplx_parameters(motion: ExportMotion, up: str = "y",
+                     pose_from: str = "joints") -> tuple[dict[str, np.ndarray], SkeletonFit]:
+    """The AMASS-layout arrays of ``motion`` and the rigid-body fit they encode (``pose_from``:
+    ``kinematics.fit_skeleton``'s)."""
     if not motion.shape.known:
         raise ExportError(motion.source or motion.name,
                           f"no body shape ({motion.shape.source}); SMPL-X parameters need the "
@@ -49,7 +51,7 @@ def smplx_parameters(motion: ExportMotion, up: str = "y") -> tuple[dict[str, np.
                           f"with neutral (zero) betas")
     positions, rotations = _rotate_world(motion, up)
     rest = motion.shape.rest_joints
-    fit = fit_skeleton(positions, rotations, rest)
+    fit = fit_skeleton(positions, rotations, rest, pose_from=pose_from)
     frames = motion.frames
     axis_angle = Rotation.from_matrix(fit.local.reshape(-1, 3, 3)).as_rotvec().reshape(frames, NUM_JOINTS * 3)
     arrays = {
@@ -76,8 +78,9 @@ def save_npz(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
         np.savez(handle, **arrays)
 
 
-def write_smplx(path: str | Path, motion: ExportMotion, up: str = "y") -> SkeletonFit:
+def write_smplx(path: str | Path, motion: ExportMotion, up: str = "y",
+                pose_from: str = "joints") -> SkeletonFit:
     """Write ``path`` (.npz) atomically; returns the fit (for its residual)."""
-    arrays, fit = smplx_parameters(motion, up)
+    arrays, fit = smplx_parameters(motion, up, pose_from)
     save_npz(path, arrays)
     return fit

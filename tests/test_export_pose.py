@@ -1,0 +1,93 @@
+"""The exported body follows the motion's joints: rotations turned onto them (``aim_rotations``),
+the limbs by two-bone IK, so that a foot that stands in the motion stands in the file."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from sarah_data import icosahedron
+from sarah_data.constants import JOINT, JOINT_PARENTS, NUM_JOINTS
+from sarah_data.export.kinematics import LIMBS, aim_rotations, fit_skeleton
+from sarah_data.shards import ShardSet
+
+LEAVES = [j for j in range(NUM_JOINTS) if j not in JOINT_PARENTS]
+
+
+@pytest.fixture(scope="module")
+def truth(prepared_shards):
+    """(joints (T, 55, 3), rotations (T, 55, 3, 3), rest joints (55, 3)) of a real person."""
+    shards = ShardSet(prepared_shards)
+    sequence = shards.sequences("train")[0]
+    seq = shards.read_sequence(sequence)
+    group = shards.group(sequence)
+    person = seq.persons[0]
+    ico = group[str(group.attrs["persons"][0])]["icosahedra"][()][:120].astype(np.float64)
+    shards.close()
+    joints, rotations = icosahedron.decode(ico)
+    return joints, rotations, np.asarray(person.rest_joints, np.float64)
+
+
+def turned(rotations: np.ndarray, degrees: float, seed: int) -> np.ndarray:
+    """Every joint's global rotation turned by its own random rotation of up to ``degrees``: what
+    the decoding chain leaves where it moves joints and not their rotations."""
+    rng = np.random.default_rng(seed)
+    axes = rng.normal(size=rotations.shape[:2] + (3,))
+    axes /= np.linalg.norm(axes, axis=-1, keepdims=True)
+    angles = np.radians(degrees) * rng.uniform(size=rotations.shape[:2] + (1,))
+    noise = Rotation.from_rotvec((axes * angles).reshape(-1, 3)).as_matrix()
+    return noise.reshape(rotations.shape) @ rotations
+
+
+def test_rotations_that_agree_with_the_joints_are_left_alone(truth):
+    joints, rotations, rest = truth
+    # float32 shards: directions agree to ~1e-6 rad
+    np.testing.assert_allclose(aim_rotations(joints, rotations, rest), rotations, atol=5e-5)
+    fit = fit_skeleton(joints, rotations, rest)
+    assert fit.residual_max.max() < 1e-6
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_body_follows_the_joints_whatever_the_rotations_say(truth, seed):
+    joints, rotations, rest = truth
+    wrong = turned(rotations, 25.0, seed)
+    as_decoded = fit_skeleton(joints, wrong, rest, pose_from="rotations")
+    followed = fit_skeleton(joints, wrong, rest, pose_from="joints")
+    assert as_decoded.residual.mean() > 0.02  # centimetres off, feet that skate
+    assert followed.residual_max.max() < 1e-6  # the same bone lengths: every joint on the motion's
+    # Joints without children keep their orientation (a foot's, a fingertip's) ...
+    aimed = aim_rotations(joints, wrong, rest)
+    np.testing.assert_allclose(aimed[:, LEAVES], wrong[:, LEAVES], atol=1e-12)
+    # ... and each turn is the smallest that points the bone: no more than the noise undid.
+    turn = np.einsum("tjik,tjil->tjkl", wrong, aimed)  # R_wrong^T R_aimed, per joint
+    angle = np.degrees(Rotation.from_matrix(turn.reshape(-1, 3, 3)).magnitude())
+    assert angle.max() < 25.0 + 1e-6
+
+
+@pytest.mark.parametrize("scale", [1.03, 0.97])
+def test_limbs_reach_the_motions_ends_on_a_body_of_other_lengths(truth, scale):
+    """A body 3 % larger reaches every end exactly (its knees bend more); one 3 % smaller
+    reaches where its limbs are long enough, and elsewhere misses by no more than they fall
+    short (the fixtures' people mostly stand on straight legs)."""
+    joints, rotations, rest = truth
+    body = rest[0] + scale * (rest - rest[0])
+    fit = fit_skeleton(joints, turned(rotations, 10.0, 3), body)
+    for top, middle, end in LIMBS:
+        t, m, e = JOINT[top], JOINT[middle], JOINT[end]
+        reach = np.linalg.norm(body[m] - body[t]) + np.linalg.norm(body[e] - body[m])
+        distance = np.linalg.norm(joints[:, e] - fit.positions[:, t], axis=-1)
+        miss = np.linalg.norm(fit.positions[:, e] - joints[:, e], axis=-1)
+        within = distance < reach - 1e-4
+        assert within.any() or scale < 1, f"{end}: no frame in reach"
+        assert not within.any() or miss[within].max() < 1e-6, f"{end} misses the motion's by {1000 * miss.max():.3f} mm"
+        over = miss[~within] - np.maximum(distance[~within] - reach, 0.0)
+        assert (over < 1e-5).all(), f"{end}: {over.max()}, {(over > 1e-5).sum()} of {len(over)}"
+        if scale > 1:
+            assert within.all()
+    # A foot that stands in the motion stands in the file.
+    for name in ("left_ankle", "right_ankle"):
+        motion_step = np.linalg.norm(np.diff(joints[:, JOINT[name]], axis=0), axis=-1)
+        file_step = np.linalg.norm(np.diff(fit.positions[:, JOINT[name]], axis=0), axis=-1)
+        still = motion_step < 1e-4
+        assert still.sum() > 10 and file_step[still].max() < 2e-4 + (scale < 1) * 5e-3
