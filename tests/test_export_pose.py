@@ -91,3 +91,28 @@ def test_limbs_reach_the_motions_ends_on_a_body_of_other_lengths(truth, scale):
         file_step = np.linalg.norm(np.diff(fit.positions[:, JOINT[name]], axis=0), axis=-1)
         still = motion_step < 1e-4
         assert still.sum() > 10 and file_step[still].max() < 2e-4 + (scale < 1) * 5e-3
+
+
+def test_turns_point_directions_where_they_are_asked_to():
+    from sarah_data.export.kinematics import best_turn, shortest_turn
+
+    rng = np.random.default_rng(0)
+    source, target = rng.normal(size=(2, 500, 3))
+    target[0] = -source[0]  # opposite directions: half a circle
+    target[1] = 0.0  # a child on its parent: no turn
+    turn = shortest_turn(source, target)
+    unit = lambda v: v / np.linalg.norm(v, axis=-1, keepdims=True)  # noqa: E731
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", turn[2:], unit(source[2:])), unit(target[2:]),
+                               atol=1e-10)
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", turn[:1], unit(source[:1])), -unit(source[:1]),
+                               atol=1e-10)
+    np.testing.assert_allclose(turn[1], np.eye(3), atol=1e-12)
+    angle = Rotation.from_matrix(turn[2:]).magnitude()  # the smallest: the angle between them
+    between = np.arccos(np.clip(np.sum(unit(source[2:]) * unit(target[2:]), -1), -1, 1))
+    np.testing.assert_allclose(angle, between, atol=1e-8)
+    np.testing.assert_allclose(np.linalg.det(turn), 1.0, atol=1e-10)
+    # Several directions turned by one rotation: the best turn is that rotation.
+    rotation = Rotation.random(200, random_state=1).as_matrix()
+    bones = rng.normal(size=(200, 3, 3))
+    np.testing.assert_allclose(best_turn(bones, np.einsum("nij,nkj->nki", rotation, bones)), rotation,
+                               atol=1e-7)

@@ -9,10 +9,9 @@ shapes), so for ground truth it reproduces the joints to float precision.
 Generated motion is another matter: the decoding chain moves joints (bones at the training
 data's lengths, planted feet, legs bent to reach them) and leaves each joint's decoded rotation
 as it was, so the rotations no longer point the bones where the joints are, and a body posed by
-them alone skates where the motion's feet stand (the demo's clip: ankles 8 cm from the motion's on
-average, its planted feet sliding at 0.4-0.5 m/s). ``aim_rotations`` turns each rotation as
-little as it must for the body to follow the joints; the fit uses it unless asked for the
-rotations as they are.
+them alone skates where the motion's feet stand (docs/export.md has the demo clip's figures).
+``aim_rotations`` turns each rotation as little as it must for the body to follow the joints;
+the fit uses it unless asked for the rotations as they are.
 """
 
 from __future__ import annotations
@@ -75,11 +74,18 @@ def rest_offsets_from_motion(positions: np.ndarray, rotations: np.ndarray,
     return rest
 
 
+def _unit_or(vectors: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """``vectors`` made unit, ``fallback`` where one has no length."""
+    norm = np.linalg.norm(vectors, axis=-1, keepdims=True)
+    return np.where(norm > 1e-12, vectors / np.maximum(norm, 1e-12), fallback)
+
+
 def shortest_turn(source: np.ndarray, target: np.ndarray) -> np.ndarray:
     """(..., 3, 3) the smallest rotations taking the directions ``source`` to ``target`` (..., 3)
-    (Rodrigues; opposite directions turn half a circle about an axis across ``source``)."""
+    (Rodrigues; opposite directions turn half a circle about an axis across ``source``; a target
+    of no length, a child on its parent, leaves the direction as it is)."""
     u = source / np.linalg.norm(source, axis=-1, keepdims=True)
-    t = target / np.linalg.norm(target, axis=-1, keepdims=True)
+    t = _unit_or(target, u)
     axis = np.cross(u, t)
     sine, cosine = np.linalg.norm(axis, axis=-1), np.sum(u * t, axis=-1)
     opposite = (sine < 1e-12) & (cosine < 0.0)
@@ -101,7 +107,7 @@ def best_turn(source: np.ndarray, target: np.ndarray) -> np.ndarray:
     """(..., 3, 3) the rotations that best take the directions ``source`` to ``target`` (..., K, 3),
     K >= 2 (Kabsch on unit vectors; of equally good ones, the smallest)."""
     u = source / np.linalg.norm(source, axis=-1, keepdims=True)
-    t = target / np.linalg.norm(target, axis=-1, keepdims=True)
+    t = _unit_or(target, u)
     cross = np.einsum("...ki,...kj->...ij", t, u) + 1e-9 * np.eye(3)  # the eye: the smallest turn
     left, _, right = np.linalg.svd(cross)
     flip = np.ones(cross.shape[:-1])
