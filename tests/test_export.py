@@ -1,6 +1,7 @@
 """sarah-export and the shareable model file: ground truth survives SMPL-X (through the `smplx`
 package) and BVH (through bvhio and Blender's own importer); generated motion exports with its
-body; bad input is one line and writes nothing; model.safetensors generates what flow.pt does."""
+body, and Blender shows its joints where its rotations disagree with them; bad input is one line and
+writes nothing; model.safetensors generates what flow.pt does."""
 
 from __future__ import annotations
 
@@ -140,6 +141,43 @@ def test_blender_imports_the_bvh(prepared_shards, shard_person, tmp_path):
         ours = joints[int(frame) - 1, wrist]
         in_blender = np.array([ours[0], -ours[2], ours[1]])  # Blender is z up: (x, y, z) -> (x, -z, y)
         assert np.linalg.norm(np.array(heads["left_wrist"]) - in_blender) < 0.01
+
+
+def test_blender_shows_the_joints_of_a_motion_whose_rotations_disagree(prepared_shards, generated,
+                                                                        tmp_path):
+    """A motion.npz as the decoding chain leaves it, joints moved and rotations not (here: ground
+    truth with every rotation turned up to 20 degrees): in Blender the ankles and wrists stand
+    where the motion's do."""
+    from test_export_pose import turned
+
+    blender = shutil.which("blender")
+    if blender is None:
+        pytest.skip("Blender is not installed (.ci/run installs Debian's blender package)")
+    shards = ShardSet(prepared_shards)
+    sequence = shards.sequences("train")[0]
+    group = shards.group(sequence)
+    person = shards.read_sequence(sequence).persons[0]
+    ico = group[str(group.attrs["persons"][0])]["icosahedra"][()][:60].astype(np.float64)
+    shards.close()
+    joints, rotations = icosahedron.decode(ico)
+    motion = dict(np.load(generated, allow_pickle=False))
+    motion.update(joint_positions=joints, joint_rotations=turned(rotations, 20.0, 0),
+                  rest_joints=person.rest_joints, betas=person.betas)
+    path = tmp_path / "turned" / "motion.npz"
+    path.parent.mkdir()
+    np.savez(path, **{k: v for k, v in motion.items() if k not in ("icosahedra", "shell")})
+    code, out = export(tmp_path, path, "--format", "bvh")
+    assert code == 0
+    probe = tmp_path / "blender.json"
+    run = subprocess.run([blender, "-b", "--factory-startup", "--python",
+                          str(HERE / "blender_bvh_probe.py"), "--", str(out / "turned.bvh"), str(probe)],
+                         capture_output=True, text=True, timeout=300)
+    assert probe.is_file(), run.stdout[-2000:] + run.stderr[-2000:]
+    for frame, heads in json.loads(probe.read_text())["heads"].items():
+        for name in ("left_ankle", "right_ankle", "left_wrist", "right_wrist"):
+            ours = joints[int(frame) - 1, JOINT_NAMES.index(name)]
+            in_blender = np.array([ours[0], -ours[2], ours[1]])  # Blender is z up
+            assert np.linalg.norm(np.array(heads[name]) - in_blender) < 1e-3, (frame, name)
 
 
 @pytest.fixture(scope="module")
