@@ -13,6 +13,7 @@ import pytest
 
 from sarah_cli.generate import main as generate
 from sarah_data.constants import FPS, JOINT
+from sarah_data.export.kinematics import fit_skeleton
 from sarah_models.evaluation.metrics import foot_slide
 from sarah_models.evaluation.metrics.bone_length import bone_length_error
 from sarah_models.evaluation.metrics.seam_share import seam_share
@@ -68,6 +69,7 @@ def test_the_pretrained_model_follows_the_gaze_dial_on_unseen_fixtures(prepared_
         with np.load(out / "motion.npz", allow_pickle=False) as data:
             gaze[target] = float(data["gaze_score"].mean())
             joints, anchor = data["joint_positions"], data["anchor"]
+            rotations, rest_joints = data["joint_rotations"], data["rest_joints"]
         assert np.isfinite(joints).all()
         _assert_starts_at_the_anchor(joints, anchor)
         _assert_feet_follow_the_ankles(joints)
@@ -77,6 +79,10 @@ def test_the_pretrained_model_follows_the_gaze_dial_on_unseen_fixtures(prepared_
         slide = foot_slide(joints)
         # Before the seventeenth run (docs/results.md) its decoded feet glided: 0.95 streamed.
         assert slide < 0.1, f"feet slide in {slide:.2f} of the frame steps"
+        # What sarah-export writes stands where the motion stands (posed from the decoded
+        # rotations alone, the demo's clip slid at 0.73).
+        exported = fit_skeleton(joints, rotations, rest_joints).positions
+        assert foot_slide(exported) <= slide + 0.01, (foot_slide(exported), slide)
     printed = capsys.readouterr().out
     assert f"checkpoint {model_path(NAME)} " in printed
     assert gaze[1.0] - gaze[0.0] >= 0.3, gaze
