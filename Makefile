@@ -24,7 +24,7 @@ test: setup
 # from the model shipped with the package (sarah_models/pretrained: ~125 CPU-minutes of the same
 # training, scripts/pretrained_fixture_model.sh), on a window of fixtures it never saw: it trained
 # on seed 0, whose sessions come out with the same motion and voices whatever their count. The
-# shipped model's clip is then exported for Blender and game engines (BVH, SMPL-X parameters).
+# shipped model's clip is then exported for Blender and game engines (BVH, glTF, SMPL-X parameters).
 demo: setup
 	$(BIN)/sarah-fixtures $(DEMO)/raw --sessions 5 --seconds 60 --seed 7
 	$(BIN)/sarah-prep $(DEMO)/raw $(DEMO)/shards

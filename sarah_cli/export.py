@@ -1,8 +1,9 @@
-"""sarah-export: motion out of the toolkit, as SMPL-X parameters (AMASS layout) and BVH.
+"""sarah-export: motion out of the toolkit, as SMPL-X parameters (AMASS layout), BVH and glTF.
 
 Sources: motion.npz files written by sarah-generate, or one person of a prepared sequence
-(--shards with --sequence). Each source gives <out>/<name>.smplx.npz and/or <out>/<name>.bvh,
-and one line with the joint residual between the motion and the exported rigid body.
+(--shards with --sequence). Each source gives <out>/<name>.smplx.npz, <out>/<name>.bvh and
+<out>/<name>.glb (or those --format names), and one line each with the joint residual between
+the motion and the exported rigid body.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from pathlib import Path
 from sarah_cli.arguments import HelpFormatter, non_negative_int, positive_int
 
 EXIT_ERROR = 2
-FORMATS = ("smplx", "bvh")
+FORMATS = ("smplx", "bvh", "glb")
 
 
 def _formats(text: str) -> tuple[str, ...]:
@@ -35,7 +36,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="sarah-export", formatter_class=HelpFormatter,
         description="Write motion as SMPL-X parameters in the AMASS layout (.smplx.npz: poses, "
                     "trans, betas, gender, mocap_frame_rate, root_orient, pose_body, pose_hand, "
-                    "pose_jaw, pose_eye) and as a BVH of the SMPL-X skeleton. The exported body "
+                    "pose_jaw, pose_eye), as a BVH of the SMPL-X skeleton and as binary glTF "
+                    "(.glb: the skeleton animated, with a stick figure skinned to it, for game "
+                    "engines and the web). The exported body "
                     "keeps the person's bone lengths and follows the motion's joints (its global "
                     "rotations turned onto them, the limbs by two-bone IK), so it is always a "
                     "valid rigid body; each output line reports how far its joints are from the "
@@ -88,7 +91,7 @@ def _validate(args, parser) -> None:
 def export_one(motion, args, neutral) -> list[str]:
     """Build every requested output in memory first (so a failure writes nothing), then write
     each atomically; returns the lines to print."""
-    from sarah_data.export import BodyShape, bvh, smplx_params
+    from sarah_data.export import BodyShape, bvh, gltf, smplx_params
 
     if not motion.shape.known and neutral is not None:
         motion.shape = BodyShape(neutral.betas, neutral.rest_joints, neutral.gender,
@@ -100,15 +103,21 @@ def export_one(motion, args, neutral) -> list[str]:
     if "bvh" in args.format:
         text, fit = bvh.bvh_text(motion, args.bvh_units, args.pose_from)
         built.append((args.out / f"{motion.name}.bvh", "bvh", text, fit))
+    if "glb" in args.format:
+        document, binary, fit = gltf.gltf_document(motion, args.pose_from)
+        built.append((args.out / f"{motion.name}.glb", "glb", gltf.glb_bytes(document, binary), fit))
     args.out.mkdir(parents=True, exist_ok=True)
     lines = []
     for path, kind, payload, fit in built:
         if kind == "smplx":
             smplx_params.save_npz(path, payload)
             detail = f"SMPL-X, {args.up} up, betas from {motion.shape.source}"
-        else:
+        elif kind == "bvh":
             bvh.save_text(path, payload)
             detail = f"BVH, {args.bvh_units}, ZYX Euler"
+        else:
+            gltf.save_glb(path, payload)
+            detail = "binary glTF 2.0, m, y up"
         lines.append(f"wrote {path} ({motion.frames} frames, {detail}, posed from its "
                      f"{args.pose_from}); {fit.summary()}")
     return lines

@@ -1,12 +1,13 @@
 """sarah-export and the shareable model file: ground truth survives SMPL-X (through the `smplx`
-package) and BVH (through bvhio and Blender's own importer); generated motion exports with its
-body, and Blender shows its joints where its rotations disagree with them; bad input is one line and
-writes nothing; model.safetensors generates what flow.pt does."""
+package), BVH (through bvhio and Blender's own importer) and glTF (through Blender's); generated
+motion exports with its body, and Blender shows its joints where its rotations disagree with them;
+bad input is one line and writes nothing; model.safetensors generates what flow.pt does."""
 
 from __future__ import annotations
 
 import json
 import shutil
+import struct
 import subprocess
 from pathlib import Path
 
@@ -143,6 +144,39 @@ def test_blender_imports_the_bvh(prepared_shards, shard_person, tmp_path):
         assert np.linalg.norm(np.array(heads["left_wrist"]) - in_blender) < 0.01
 
 
+def test_blender_imports_the_glb(prepared_shards, shard_person, tmp_path):
+    """The glTF through Blender's own importer (what game engines read too): an armature of the 55
+    joints with the stick figure skinned to it, every frame at 30 fps, every joint where the
+    ground truth's is."""
+    blender = shutil.which("blender")
+    if blender is None:
+        pytest.skip("Blender is not installed (.ci/run installs Debian's blender package)")
+    sequence, person, joints = shard_person
+    code, out = export(tmp_path, "--shards", prepared_shards, "--sequence", sequence,
+                       "--person", person, "--format", "glb")
+    assert code == 0
+    glb = (out / f"{sequence}_{person}.glb").read_bytes()
+    magic, version, length = struct.unpack("<III", glb[:12])
+    assert (magic, version, length) == (0x46546C67, 2, len(glb))
+    probe = tmp_path / "blender.json"
+    run = subprocess.run([blender, "-b", "--factory-startup", "--python",
+                          str(HERE / "blender_gltf_probe.py"), "--",
+                          str(out / f"{sequence}_{person}.glb"), str(probe)],
+                         capture_output=True, text=True, timeout=300)
+    if not probe.is_file() and "No module named 'numpy'" in run.stdout + run.stderr:
+        pytest.skip("Blender's Python has no NumPy, which its glTF importer needs (.ci/run "
+                    "installs Debian's python3-numpy)")
+    assert probe.is_file(), run.stdout[-2000:] + run.stderr[-2000:]
+    data = json.loads(probe.read_text())
+    assert data["frame_range"] == [0, len(joints) - 1] and data["fps"] == 30
+    assert data["bones"] == NUM_JOINTS and data["meshes"] == ["body"]
+    for frame, heads in data["heads"].items():
+        ours = joints[int(frame)]
+        in_blender = np.stack([ours[:, 0], -ours[:, 2], ours[:, 1]], axis=1)  # Blender is z up
+        theirs = np.array([heads[name] for name in JOINT_NAMES])
+        assert np.linalg.norm(theirs - in_blender, axis=-1).max() < 1e-3, frame
+
+
 def test_blender_shows_the_joints_of_a_motion_whose_rotations_disagree(prepared_shards, generated,
                                                                         tmp_path):
     """A motion.npz as the decoding chain leaves it, joints moved and rotations not (here: ground
@@ -204,7 +238,8 @@ def test_generated_motion_exports_with_the_agents_body(generated, tmp_path, caps
     code, out = export(tmp_path, generated)
     assert code == 0
     lines = capsys.readouterr().out.strip().splitlines()
-    assert len(lines) == 2 and all("joint residual to the motion" in line for line in lines)
+    assert len(lines) == 3 and all("joint residual to the motion" in line for line in lines)
+    assert (out / "gen.glb").is_file()
     params = np.load(out / "gen.smplx.npz", allow_pickle=False)
     np.testing.assert_allclose(params["betas"], data["betas"])
     # The exported body keeps the agent's bone lengths whatever the generated joints did.
