@@ -22,6 +22,7 @@ from sarah_data.export.smplx_params import Y_UP_TO_Z_UP
 from sarah_data.shards import ShardSet
 
 HERE = Path(__file__).parent
+GLTF_VALIDATOR = HERE.parent / ".cache" / "npm" / "node_modules" / "gltf-validator"
 
 
 @pytest.fixture(scope="module")
@@ -175,6 +176,22 @@ def test_blender_imports_the_glb(prepared_shards, shard_person, tmp_path):
         in_blender = np.stack([ours[:, 0], -ours[:, 2], ours[:, 1]], axis=1)  # Blender is z up
         theirs = np.array([heads[name] for name in JOINT_NAMES])
         assert np.linalg.norm(theirs - in_blender, axis=-1).max() < 1e-3, frame
+
+
+def test_the_glb_passes_the_khronos_validator(generated, tmp_path):
+    """The reference glTF validator (what engines' importers follow) finds nothing: no error,
+    no warning, no note."""
+    node = shutil.which("node")
+    if node is None or not GLTF_VALIDATOR.is_dir():
+        pytest.skip(f"the Khronos glTF validator is not installed ({GLTF_VALIDATOR}: .ci/run "
+                    f"installs it with npm)")
+    code, out = export(tmp_path, generated, "--format", "glb")
+    assert code == 0
+    run = subprocess.run([node, str(HERE / "gltf_validate.js"), str(GLTF_VALIDATOR),
+                          str(out / "gen.glb")], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr[-2000:]
+    report = json.loads(run.stdout)
+    assert (report["errors"], report["warnings"], report["infos"]) == (0, 0, 0), report["messages"][:10]
 
 
 def test_blender_shows_the_joints_of_a_motion_whose_rotations_disagree(prepared_shards, generated,
