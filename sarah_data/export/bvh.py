@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 from sarah_data.atomic import atomic_path
 from sarah_data.constants import JOINT_NAMES, JOINT_PARENTS
 
-from .kinematics import SkeletonFit, fit_skeleton, rest_offsets_from_motion
+from .kinematics import SkeletonFit, children_of, fit_skeleton
 from .motion import ExportMotion
 
 UNITS = {"m": 1.0, "cm": 100.0}
@@ -26,21 +26,14 @@ CHANNEL_ORDER = "ZYX"  # scipy's intrinsic order: R = Rz @ Ry @ Rx
 END_SITE_FRACTION = 0.5  # a leaf's end site continues its bone by half its length
 
 
-def bvh_skeleton(motion: ExportMotion) -> np.ndarray:
-    """The rest skeleton the BVH is built on: the body's, or one fitted to the motion."""
-    if motion.shape.rest_joints is not None:
-        return np.asarray(motion.shape.rest_joints, np.float64)
-    return rest_offsets_from_motion(motion.positions, motion.rotations)
-
-
 def bvh_text(motion: ExportMotion, units: str = "m",
              pose_from: str = "joints") -> tuple[str, SkeletonFit]:
     if units not in UNITS:
         raise ValueError(f"BVH units must be one of {sorted(UNITS)}, got {units!r}")
     scale = UNITS[units]
-    rest = bvh_skeleton(motion)
+    rest = motion.skeleton()
     fit = fit_skeleton(motion.positions, motion.rotations, rest, pose_from=pose_from)
-    children = {j: [c for c, p in enumerate(JOINT_PARENTS) if p == j] for j in range(len(JOINT_NAMES))}
+    children = children_of()
     lines = ["HIERARCHY"]
     order: list[int] = []  # joints as the hierarchy lists them: the MOTION columns' order
 

@@ -28,8 +28,7 @@ from scipy.spatial.transform import Rotation
 from sarah_data.atomic import atomic_path
 from sarah_data.constants import JOINT_NAMES, JOINT_PARENTS
 
-from .bvh import bvh_skeleton
-from .kinematics import SkeletonFit, fit_skeleton
+from .kinematics import SkeletonFit, children_of, fit_skeleton
 from .motion import ExportMotion
 
 BONE_WIDTH = 0.2  # of its length, the stick figure's prism side (at most ``MAX_WIDTH`` metres)
@@ -99,7 +98,7 @@ class _Buffer:
 
 def gltf_document(motion: ExportMotion, pose_from: str = "joints") -> tuple[dict, bytes, SkeletonFit]:
     """The glTF JSON, its binary chunk and the rigid-body fit they encode."""
-    rest = bvh_skeleton(motion)
+    rest = motion.skeleton()
     fit = fit_skeleton(motion.positions, motion.rotations, rest, pose_from=pose_from)
     frames, joints = fit.local.shape[:2]
     buffer = _Buffer()
@@ -131,14 +130,13 @@ def gltf_document(motion: ExportMotion, pose_from: str = "joints") -> tuple[dict
                          "output": buffer.add(quaternions[:, joint], "VEC4", FLOAT)})
         channels.append({"sampler": len(samplers) - 1, "target": {"node": joint, "path": "rotation"}})
 
-    nodes = []
+    nodes, children = [], children_of()
     for joint, name in enumerate(JOINT_NAMES):
         parent = JOINT_PARENTS[joint]
         node = {"name": name,
                 "translation": (rest[joint] - (rest[parent] if parent >= 0 else 0.0)).tolist()}
-        kids = [c for c, p in enumerate(JOINT_PARENTS) if p == joint]
-        if kids:
-            node["children"] = kids
+        if children[joint]:
+            node["children"] = children[joint]
         nodes.append(node)
     nodes.append({"name": "body", "mesh": 0, "skin": 0})
     document = {

@@ -31,6 +31,11 @@ LIMBS = (("left_hip", "left_knee", "left_ankle"), ("right_hip", "right_knee", "r
          ("left_shoulder", "left_elbow", "left_wrist"), ("right_shoulder", "right_elbow", "right_wrist"))
 
 
+def children_of(parents=JOINT_PARENTS) -> list[list[int]]:
+    """Each joint's children, in joint order."""
+    return [[c for c, p in enumerate(parents) if p == j] for j in range(len(parents))]
+
+
 def local_rotations(rotations: np.ndarray, parents=JOINT_PARENTS) -> np.ndarray:
     """(T, J, 3, 3) global rotations -> local ones (the root's stays global)."""
     rotations = np.asarray(rotations, dtype=np.float64)
@@ -127,7 +132,7 @@ def aim_rotations(positions: np.ndarray, rotations: np.ndarray, rest_joints: np.
     positions = np.asarray(positions, dtype=np.float64)
     rest = np.asarray(rest_joints, dtype=np.float64)
     aimed = np.array(rotations, dtype=np.float64)
-    children = [[c for c, p in enumerate(parents) if p == j] for j in range(len(parents))]
+    children = children_of(parents)
     middle_of = {JOINT[top]: (JOINT[middle], JOINT[end]) for top, middle, end in LIMBS}
     targets = positions.copy()  # where each bone points: the motion's joints, a limb's middle by IK
     placed = np.empty_like(positions)  # the body's joints as the turned rotations pose them

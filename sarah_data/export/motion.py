@@ -13,6 +13,8 @@ from sarah_data import icosahedron
 from sarah_data.constants import FPS, NUM_JOINTS
 from sarah_data.loading import DataProblem
 
+from .kinematics import rest_offsets_from_motion
+
 
 class ExportError(DataProblem):
     """Input an export cannot use: ``path`` and ``reason`` (one line)."""
@@ -45,6 +47,13 @@ class ExportMotion:
     @property
     def frames(self) -> int:
         return int(self.positions.shape[0])
+
+    def skeleton(self) -> np.ndarray:
+        """(55, 3) the rest skeleton a skeleton file (BVH, glTF) is built on: the body's, or,
+        for motion without a body shape, one fitted to the motion."""
+        if self.shape.rest_joints is not None:
+            return np.asarray(self.shape.rest_joints, np.float64)
+        return rest_offsets_from_motion(self.positions, self.rotations)
 
 
 MOTION_KEYS = ("joint_positions", "joint_rotations")
