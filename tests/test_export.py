@@ -63,6 +63,22 @@ def smplx_joints(params, body_model_path):
     return out.joints[:, :NUM_JOINTS].detach().double().numpy()
 
 
+def blender_probe(probe: str, path: Path, tmp_path: Path) -> dict:
+    """What Blender's own importer makes of ``path``, as the probe script ``probe`` reports it;
+    skips where Blender (or the NumPy its glTF importer needs) is not installed."""
+    blender = shutil.which("blender")
+    if blender is None:
+        pytest.skip("Blender is not installed (.ci/run installs Debian's blender package)")
+    out = tmp_path / "blender.json"
+    run = subprocess.run([blender, "-b", "--factory-startup", "--python", str(HERE / probe), "--",
+                          str(path), str(out)], capture_output=True, text=True, timeout=300)
+    if not out.is_file() and "No module named 'numpy'" in run.stdout + run.stderr:
+        pytest.skip("Blender's Python has no NumPy, which its glTF importer needs (.ci/run "
+                    "installs Debian's python3-numpy)")
+    assert out.is_file(), run.stdout[-2000:] + run.stderr[-2000:]
+    return json.loads(out.read_text())
+
+
 def test_shards_hold_each_persons_body(prepared_shards, prep_raw_dir):
     from sarah_data.body import BodyModel
 
@@ -123,20 +139,11 @@ def test_bvh_read_by_an_independent_parser(prepared_shards, shard_person, tmp_pa
 
 
 def test_blender_imports_the_bvh(prepared_shards, shard_person, tmp_path):
-    blender = shutil.which("blender")
-    if blender is None:
-        pytest.skip("Blender is not installed (.ci/run installs Debian's blender package)")
     sequence, person, joints = shard_person
     code, out = export(tmp_path, "--shards", prepared_shards, "--sequence", sequence,
                        "--person", person, "--format", "bvh")
     assert code == 0
-    probe = tmp_path / "blender.json"
-    run = subprocess.run([blender, "-b", "--factory-startup", "--python",
-                          str(HERE / "blender_bvh_probe.py"), "--",
-                          str(out / f"{sequence}_{person}.bvh"), str(probe)],
-                         capture_output=True, text=True, timeout=300)
-    assert probe.is_file(), run.stdout[-2000:] + run.stderr[-2000:]
-    data = json.loads(probe.read_text())
+    data = blender_probe("blender_bvh_probe.py", out / f"{sequence}_{person}.bvh", tmp_path)
     assert data["frame_range"] == [1, len(joints)] and data["fps"] == 30
     wrist = JOINT_NAMES.index("left_wrist")
     for frame, heads in data["heads"].items():
@@ -149,9 +156,6 @@ def test_blender_imports_the_glb(prepared_shards, shard_person, tmp_path):
     """The glTF through Blender's own importer (what game engines read too): an armature of the 55
     joints with the stick figure skinned to it, every frame at 30 fps, every joint where the
     ground truth's is."""
-    blender = shutil.which("blender")
-    if blender is None:
-        pytest.skip("Blender is not installed (.ci/run installs Debian's blender package)")
     sequence, person, joints = shard_person
     code, out = export(tmp_path, "--shards", prepared_shards, "--sequence", sequence,
                        "--person", person, "--format", "glb")
@@ -159,16 +163,7 @@ def test_blender_imports_the_glb(prepared_shards, shard_person, tmp_path):
     glb = (out / f"{sequence}_{person}.glb").read_bytes()
     magic, version, length = struct.unpack("<III", glb[:12])
     assert (magic, version, length) == (0x46546C67, 2, len(glb))
-    probe = tmp_path / "blender.json"
-    run = subprocess.run([blender, "-b", "--factory-startup", "--python",
-                          str(HERE / "blender_gltf_probe.py"), "--",
-                          str(out / f"{sequence}_{person}.glb"), str(probe)],
-                         capture_output=True, text=True, timeout=300)
-    if not probe.is_file() and "No module named 'numpy'" in run.stdout + run.stderr:
-        pytest.skip("Blender's Python has no NumPy, which its glTF importer needs (.ci/run "
-                    "installs Debian's python3-numpy)")
-    assert probe.is_file(), run.stdout[-2000:] + run.stderr[-2000:]
-    data = json.loads(probe.read_text())
+    data = blender_probe("blender_gltf_probe.py", out / f"{sequence}_{person}.glb", tmp_path)
     assert data["frame_range"] == [0, len(joints) - 1] and data["fps"] == 30
     assert data["bones"] == NUM_JOINTS and data["meshes"] == ["body"]
     for frame, heads in data["heads"].items():
@@ -199,32 +194,19 @@ def test_blender_shows_the_joints_of_a_motion_whose_rotations_disagree(prepared_
     """A motion.npz as the decoding chain leaves it, joints moved and rotations not (here: ground
     truth with every rotation turned up to 20 degrees): in Blender the ankles and wrists stand
     where the motion's do."""
-    from test_export_pose import turned
+    from test_export_pose import person_motion, turned
 
-    blender = shutil.which("blender")
-    if blender is None:
-        pytest.skip("Blender is not installed (.ci/run installs Debian's blender package)")
-    shards = ShardSet(prepared_shards)
-    sequence = shards.sequences("train")[0]
-    group = shards.group(sequence)
-    person = shards.read_sequence(sequence).persons[0]
-    ico = group[str(group.attrs["persons"][0])]["icosahedra"][()][:60].astype(np.float64)
-    shards.close()
-    joints, rotations = icosahedron.decode(ico)
+    joints, rotations, rest_joints, betas = person_motion(prepared_shards, 60)
     motion = dict(np.load(generated, allow_pickle=False))
     motion.update(joint_positions=joints, joint_rotations=turned(rotations, 20.0, 0),
-                  rest_joints=person.rest_joints, betas=person.betas)
+                  rest_joints=rest_joints, betas=betas)
     path = tmp_path / "turned" / "motion.npz"
     path.parent.mkdir()
     np.savez(path, **{k: v for k, v in motion.items() if k not in ("icosahedra", "shell")})
     code, out = export(tmp_path, path, "--format", "bvh")
     assert code == 0
-    probe = tmp_path / "blender.json"
-    run = subprocess.run([blender, "-b", "--factory-startup", "--python",
-                          str(HERE / "blender_bvh_probe.py"), "--", str(out / "turned.bvh"), str(probe)],
-                         capture_output=True, text=True, timeout=300)
-    assert probe.is_file(), run.stdout[-2000:] + run.stderr[-2000:]
-    for frame, heads in json.loads(probe.read_text())["heads"].items():
+    data = blender_probe("blender_bvh_probe.py", out / "turned.bvh", tmp_path)
+    for frame, heads in data["heads"].items():
         for name in ("left_ankle", "right_ankle", "left_wrist", "right_wrist"):
             ours = joints[int(frame) - 1, JOINT_NAMES.index(name)]
             in_blender = np.array([ours[0], -ours[2], ours[1]])  # Blender is z up

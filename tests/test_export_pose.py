@@ -15,18 +15,22 @@ from sarah_data.shards import ShardSet
 LEAVES = [j for j in range(NUM_JOINTS) if j not in JOINT_PARENTS]
 
 
-@pytest.fixture(scope="module")
-def truth(prepared_shards):
-    """(joints (T, 55, 3), rotations (T, 55, 3, 3), rest joints (55, 3)) of a real person."""
+def person_motion(prepared_shards, frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(joints (T, 55, 3), rotations (T, 55, 3, 3), rest joints (55, 3), betas) of the first
+    ``frames`` frames of a real person: the first training sequence's first person."""
     shards = ShardSet(prepared_shards)
     sequence = shards.sequences("train")[0]
-    seq = shards.read_sequence(sequence)
+    person = shards.read_sequence(sequence).persons[0]
     group = shards.group(sequence)
-    person = seq.persons[0]
-    ico = group[str(group.attrs["persons"][0])]["icosahedra"][()][:120].astype(np.float64)
+    ico = group[str(group.attrs["persons"][0])]["icosahedra"][()][:frames].astype(np.float64)
     shards.close()
     joints, rotations = icosahedron.decode(ico)
-    return joints, rotations, np.asarray(person.rest_joints, np.float64)
+    return joints, rotations, np.asarray(person.rest_joints, np.float64), person.betas
+
+
+@pytest.fixture(scope="module")
+def truth(prepared_shards):
+    return person_motion(prepared_shards, 120)[:3]
 
 
 def turned(rotations: np.ndarray, degrees: float, seed: int) -> np.ndarray:
