@@ -65,10 +65,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--pose-from", choices=POSE_SOURCES, default="joints",
                         help="joints: each rotation turned as little as it must for the body's "
                              "bones to point at the motion's joints, knees and elbows bent by "
-                             "two-bone IK so that ankles and wrists land on the motion's (the "
+                             "two-bone IK so that ankles and wrists land on the motion's, the "
+                             "pelvis lowered where the body's legs are too short for them (the "
                              "decoding chain moves joints and leaves their rotations: posed by "
                              "those alone, generated feet that stand skate); rotations: the "
-                             "motion's global rotations as they are")
+                             "motion's global rotations and pelvis as they are")
     parser.add_argument("--body-model", type=Path, default=None,
                         help="a SMPL-X .npz used only for motion without a body shape (raw-input "
                              "generations, schema-1 shards): its rest skeleton with zero betas")

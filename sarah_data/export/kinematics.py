@@ -29,6 +29,10 @@ POSE_SOURCES = ("joints", "rotations")
 # their ends land on the motion's: an ankle that stands stays where it stands.
 LIMBS = (("left_hip", "left_knee", "left_ankle"), ("right_hip", "right_knee", "right_ankle"),
          ("left_shoulder", "left_elbow", "left_wrist"), ("right_shoulder", "right_elbow", "right_wrist"))
+# m: the most the fit lowers the pelvis for legs too short to reach the motion's ankles (the
+# shipped model's clips needed up to 3.4 cm: its bones are the training data's median, the file's
+# the agent's own); beyond it the ankles stop short.
+MAX_PELVIS_DROP = 0.1
 
 
 def children_of(parents=JOINT_PARENTS) -> list[list[int]]:
@@ -120,20 +124,35 @@ def best_turn(source: np.ndarray, target: np.ndarray) -> np.ndarray:
     return (left * flip[..., None, :]) @ right
 
 
+def pelvis_drop(hips: np.ndarray, ankles: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """(T,) metres the pelvis must come down for legs of ``reach`` (2,) metres from ``hips`` to
+    reach ``ankles`` (T, 2, 3): 0 where both reach, else the larger leg's shortfall in height
+    (where an ankle lies further off on the floor than the leg is long, the height that brings
+    the hip to the ankle's), at most ``MAX_PELVIS_DROP``."""
+    gap = hips - ankles
+    floor = np.hypot(gap[..., 0], gap[..., 2])
+    allowed = np.sqrt(np.maximum((reach * (1.0 - 1e-5)) ** 2 - floor ** 2, 0.0))
+    return np.clip((gap[..., 1] - allowed).max(axis=-1), 0.0, MAX_PELVIS_DROP)
+
+
 def aim_rotations(positions: np.ndarray, rotations: np.ndarray, rest_joints: np.ndarray,
-                  parents=JOINT_PARENTS) -> np.ndarray:
-    """(T, J, 3, 3) global rotations turned as little as they must for the skeleton
-    ``rest_joints``, posed by them from the motion's pelvis, to follow the motion's joints
-    ``positions`` (T, J, 3): each joint's bones point at its children (the best turn over several
+                  parents=JOINT_PARENTS) -> tuple[np.ndarray, np.ndarray]:
+    """(T, J, 3, 3) global rotations and (T, 3) pelvis positions for the skeleton
+    ``rest_joints`` to follow the motion's joints ``positions`` (T, J, 3), each rotation turned as
+    little as it must: each joint's bones point at its children (the best turn over several
     children), the limbs of ``LIMBS`` bend by two-bone IK so that their ends land on the motion's
     where the body's bones reach, and a joint without children keeps its rotation (the feet's and
-    the fingertips' orientation, each bone's twist). Where the rotations already point the bones
-    at the joints (ground truth) nothing turns, to float precision. Frame by frame."""
+    the fingertips' orientation, each bone's twist). The pelvis is the motion's, lowered where
+    the body's legs are too short for the motion's ankles (``pelvis_drop``), since a foot that
+    stands is what a viewer sees first. Where the rotations already point the bones at the joints
+    (ground truth) nothing turns, to float precision. Frame by frame."""
     positions = np.asarray(positions, dtype=np.float64)
     rest = np.asarray(rest_joints, dtype=np.float64)
     aimed = np.array(rotations, dtype=np.float64)
     children = children_of(parents)
-    middle_of = {JOINT[top]: (JOINT[middle], JOINT[end]) for top, middle, end in LIMBS}
+    limbs = [tuple(JOINT[name] for name in limb) for limb in LIMBS]
+    middle_of = {top: (middle, end) for top, middle, end in limbs}
+    legs = [limb for limb in limbs if parents[limb[0]] == 0]
     targets = positions.copy()  # where each bone points: the motion's joints, a limb's middle by IK
     placed = np.empty_like(positions)  # the body's joints as the turned rotations pose them
     placed[:, 0] = positions[:, 0]
@@ -153,7 +172,13 @@ def aim_rotations(positions: np.ndarray, rotations: np.ndarray, rest_joints: np.
                 else best_turn(posed, wanted))
         aimed[:, joint] = turn @ aimed[:, joint]
         placed[:, kids] = placed[:, joint, None] + np.einsum("tij,kj->tki", aimed[:, joint], bones)
-    return aimed
+        if joint == 0 and legs:
+            reach = np.array([np.linalg.norm(rest[m] - rest[t]) + np.linalg.norm(rest[e] - rest[m])
+                              for t, m, e in legs])
+            drop = pelvis_drop(placed[:, [t for t, _, _ in legs]], positions[:, [e for _, _, e in legs]],
+                               reach)
+            placed[:, [0] + kids, 1] -= drop[:, None]
+    return aimed, placed[:, 0]
 
 
 @dataclass
@@ -174,18 +199,18 @@ class SkeletonFit:
 
 def fit_skeleton(positions: np.ndarray, rotations: np.ndarray, rest_joints: np.ndarray,
                  parents=JOINT_PARENTS, pose_from: str = "joints") -> SkeletonFit:
-    """The motion on the rigid skeleton ``rest_joints``: its pelvis position, the skeleton's bone
-    lengths, and its global rotations, turned onto its joints (``pose_from="joints"``,
+    """The motion on the rigid skeleton ``rest_joints``: the skeleton's bone lengths, and the
+    motion's global rotations and pelvis, turned onto its joints (``pose_from="joints"``,
     ``aim_rotations``) or as they are (``"rotations"``). Generated motion need not keep the
     body's bone lengths; this body always does, and the residual says how far it is from the
     generated joints."""
     if pose_from not in POSE_SOURCES:
         raise ValueError(f"pose_from must be one of {POSE_SOURCES}, got {pose_from!r}")
     positions = np.asarray(positions, dtype=np.float64)
-    if pose_from == "joints":
-        rotations = aim_rotations(positions, rotations, rest_joints, parents)
-    local = local_rotations(rotations, parents)
     root = positions[:, 0]
+    if pose_from == "joints":
+        rotations, root = aim_rotations(positions, rotations, rest_joints, parents)
+    local = local_rotations(rotations, parents)
     posed, _ = forward_kinematics(rest_joints, local, root, parents)
     distance = np.linalg.norm(posed - positions, axis=-1)
     return SkeletonFit(np.asarray(rest_joints, np.float64), local, root, posed,
