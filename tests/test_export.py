@@ -189,6 +189,24 @@ def test_the_glb_passes_the_khronos_validator(generated, tmp_path):
     assert (report["errors"], report["warnings"], report["infos"]) == (0, 0, 0), report["messages"][:10]
 
 
+def test_glb_quaternions_never_turn_the_long_way_between_frames():
+    """q and -q are one rotation; an engine interpolating between two keys must not go round."""
+    from scipy.spatial.transform import Rotation
+
+    from sarah_data.export.gltf import continuous
+
+    steps = Rotation.from_rotvec(np.random.default_rng(0).normal(scale=0.05, size=(200 * 3, 3)))
+    path = Rotation.random(3, random_state=0)
+    frames = [path]
+    for t in range(1, 200):
+        frames.append(steps[3 * t: 3 * t + 3] * frames[-1])
+    raw = np.stack([f.as_quat() for f in frames])  # (200, 3, 4)
+    raw[1::2] *= -1.0  # the same rotations, every other frame written the other way round
+    smooth = continuous(raw)
+    assert (np.sum(smooth[1:] * smooth[:-1], axis=-1) > 0.9).all()
+    np.testing.assert_allclose(np.abs(np.sum(smooth * raw, axis=-1)), 1.0)
+
+
 def test_blender_shows_the_joints_of_a_motion_whose_rotations_disagree(prepared_shards, generated,
                                                                         tmp_path):
     """A motion.npz as the decoding chain leaves it, joints moved and rotations not (here: ground

@@ -130,3 +130,4 @@ def test_turns_point_directions_where_they_are_asked_to():
     bones = rng.normal(size=(200, 3, 3))
     np.testing.assert_allclose(best_turn(bones, np.einsum("nij,nkj->nki", rotation, bones)), rotation,
                                atol=1e-7)
+

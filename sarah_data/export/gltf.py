@@ -69,6 +69,17 @@ def stick_figure(rest: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             np.asarray(joints, np.uint16))
 
 
+def continuous(quaternions: np.ndarray) -> np.ndarray:
+    """(T, J, 4) each quaternion's sign chosen to agree with the frame before: q and -q are the
+    same rotation, and an engine that interpolates between frames (a 60 Hz game loop) must not
+    turn the long way round between two keys."""
+    out = quaternions.copy()
+    for t in range(1, len(out)):
+        flip = np.sum(out[t] * out[t - 1], axis=-1) < 0.0
+        out[t, flip] *= -1.0
+    return out
+
+
 class _Buffer:
     """The binary chunk and its accessors, filled in order (each view 4-byte aligned)."""
 
@@ -121,7 +132,7 @@ def gltf_document(motion: ExportMotion, pose_from: str = "joints") -> tuple[dict
 
     times = buffer.add((np.arange(frames) / motion.fps).astype(np.float32), "SCALAR", FLOAT, bounds=True)
     quaternions = Rotation.from_matrix(fit.local.reshape(-1, 3, 3)).as_quat().astype(np.float32)
-    quaternions = quaternions.reshape(frames, joints, 4)
+    quaternions = continuous(quaternions.reshape(frames, joints, 4))
     samplers = [{"input": times, "interpolation": "LINEAR",
                  "output": buffer.add(fit.root_position.astype(np.float32), "VEC3", FLOAT)}]
     channels = [{"sampler": 0, "target": {"node": 0, "path": "translation"}}]
@@ -142,7 +153,7 @@ def gltf_document(motion: ExportMotion, pose_from: str = "joints") -> tuple[dict
     document = {
         "asset": {"version": "2.0", "generator": "sarah-export"},
         "extras": {"source": motion.source, "body_shape_source": motion.shape.source,
-                   "pose_from": pose_from, "fps": motion.fps},
+                   "pose_from": pose_from, "fps": float(motion.fps)},
         "scene": 0,
         "scenes": [{"name": motion.name, "nodes": [0, joints]}],
         "nodes": nodes,
