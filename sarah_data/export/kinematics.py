@@ -30,8 +30,8 @@ POSE_SOURCES = ("joints", "rotations")
 LIMBS = (("left_hip", "left_knee", "left_ankle"), ("right_hip", "right_knee", "right_ankle"),
          ("left_shoulder", "left_elbow", "left_wrist"), ("right_shoulder", "right_elbow", "right_wrist"))
 # m: the most the fit lowers the pelvis for legs too short to reach the motion's ankles (the
-# shipped model's clips needed up to 3.4 cm: its bones are the training data's median, the file's
-# the agent's own); beyond it the ankles stop short.
+# shipped model's clips needed up to 3.4 cm: its bones are the training data's mean lengths, the
+# file's the agent's own); beyond it the ankles stop short.
 MAX_PELVIS_DROP = 0.1
 
 
