@@ -97,19 +97,19 @@ def export_one(motion, args, neutral) -> list[str]:
     if not motion.shape.known and neutral is not None:
         motion.shape = BodyShape(neutral.betas, neutral.rest_joints, neutral.gender,
                                  f"{neutral.source} ({motion.shape.source})")
+    fit = motion.fit(args.pose_from)  # one body, written in every format
     built = []
     if "smplx" in args.format:
-        arrays, fit = smplx_params.smplx_parameters(motion, args.up, args.pose_from)
-        built.append((args.out / f"{motion.name}.smplx.npz", "smplx", arrays, fit))
+        built.append((args.out / f"{motion.name}.smplx.npz", "smplx",
+                      smplx_params.smplx_parameters(motion, fit, args.up)))
     if "bvh" in args.format:
-        text, fit = bvh.bvh_text(motion, args.bvh_units, args.pose_from)
-        built.append((args.out / f"{motion.name}.bvh", "bvh", text, fit))
+        built.append((args.out / f"{motion.name}.bvh", "bvh", bvh.bvh_text(motion, fit, args.bvh_units)))
     if "glb" in args.format:
-        document, binary, fit = gltf.gltf_document(motion, args.pose_from)
-        built.append((args.out / f"{motion.name}.glb", "glb", gltf.glb_bytes(document, binary), fit))
+        built.append((args.out / f"{motion.name}.glb", "glb",
+                      gltf.glb_bytes(*gltf.gltf_document(motion, fit))))
     args.out.mkdir(parents=True, exist_ok=True)
     lines = []
-    for path, kind, payload, fit in built:
+    for path, kind, payload in built:
         if kind == "smplx":
             smplx_params.save_npz(path, payload)
             detail = f"SMPL-X, {args.up} up, betas from {motion.shape.source}"

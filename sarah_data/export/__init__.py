@@ -2,10 +2,9 @@
 
 ``motion.py`` reads what is exported (a ``sarah-generate`` motion.npz, or a person of a shard
 sequence) into one ``ExportMotion``; ``kinematics.py`` turns global rotations into the local ones
-of the SMPL-X tree and back, and fits a rigid body to the motion's joints; ``smplx_params.py``,
-``bvh.py`` and ``gltf.py`` write the files. All rebuild the body from its rest skeleton, so what
-they write is always a valid rigid body; ``fit`` reports how far that body's joints are from the
-motion's own.
+of the SMPL-X tree and back, and fits a rigid body to the motion's joints (``ExportMotion.fit``,
+once per motion); ``smplx_params.py``, ``bvh.py`` and ``gltf.py`` write that body. It is always a
+valid rigid body; the fit reports how far its joints are from the motion's own.
 """
 
 from .bvh import write_bvh

@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 from sarah_data.atomic import atomic_path
 from sarah_data.constants import JOINT_NAMES, JOINT_PARENTS
 
-from .kinematics import SkeletonFit, children_of, fit_skeleton
+from .kinematics import SkeletonFit, children_of
 from .motion import ExportMotion
 
 UNITS = {"m": 1.0, "cm": 100.0}
@@ -26,13 +26,12 @@ CHANNEL_ORDER = "ZYX"  # scipy's intrinsic order: R = Rz @ Ry @ Rx
 END_SITE_FRACTION = 0.5  # a leaf's end site continues its bone by half its length
 
 
-def bvh_text(motion: ExportMotion, units: str = "m",
-             pose_from: str = "joints") -> tuple[str, SkeletonFit]:
+def bvh_text(motion: ExportMotion, fit: SkeletonFit, units: str = "m") -> str:
+    """The BVH of ``fit`` (``motion.fit()``)."""
     if units not in UNITS:
         raise ValueError(f"BVH units must be one of {sorted(UNITS)}, got {units!r}")
     scale = UNITS[units]
-    rest = motion.skeleton()
-    fit = fit_skeleton(motion.positions, motion.rotations, rest, pose_from=pose_from)
+    rest = fit.rest_joints
     children = children_of()
     lines = ["HIERARCHY"]
     order: list[int] = []  # joints as the hierarchy lists them: the MOTION columns' order
@@ -68,7 +67,7 @@ def bvh_text(motion: ExportMotion, units: str = "m",
     for t in range(frames):
         root = " ".join(f"{scale * x:.6f}" for x in fit.root_position[t])
         lines.append(root + " " + " ".join(f"{a:.6f}" for a in euler[t]))
-    return "\n".join(lines) + "\n", fit
+    return "\n".join(lines) + "\n"
 
 
 def save_text(path: str | Path, text: str) -> None:
@@ -79,6 +78,6 @@ def save_text(path: str | Path, text: str) -> None:
 def write_bvh(path: str | Path, motion: ExportMotion, units: str = "m",
               pose_from: str = "joints") -> SkeletonFit:
     """Write ``path`` atomically; returns the fit (for its residual)."""
-    text, fit = bvh_text(motion, units, pose_from)
-    save_text(path, text)
+    fit = motion.fit(pose_from)
+    save_text(path, bvh_text(motion, fit, units))
     return fit

@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 from sarah_data.atomic import atomic_path
 from sarah_data.constants import JOINT_NAMES, JOINT_PARENTS
 
-from .kinematics import SkeletonFit, children_of, fit_skeleton
+from .kinematics import SkeletonFit, children_of
 from .motion import ExportMotion
 
 BONE_WIDTH = 0.2  # of its length, the stick figure's prism side (at most ``MAX_WIDTH`` metres)
@@ -72,11 +72,12 @@ def stick_figure(rest: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def continuous(quaternions: np.ndarray) -> np.ndarray:
     """(T, J, 4) each quaternion's sign chosen to agree with the frame before: q and -q are the
     same rotation, and an engine that interpolates between frames (a 60 Hz game loop) must not
-    turn the long way round between two keys."""
+    turn the long way round between two keys. A frame flips where the raw pair disagrees, so its
+    sign is the running product of those flips."""
+    agree = np.sum(quaternions[1:] * quaternions[:-1], axis=-1) >= 0.0
+    signs = np.cumprod(np.where(agree, 1.0, -1.0), axis=0)
     out = quaternions.copy()
-    for t in range(1, len(out)):
-        flip = np.sum(out[t] * out[t - 1], axis=-1) < 0.0
-        out[t, flip] *= -1.0
+    out[1:] *= signs[..., None].astype(out.dtype)
     return out
 
 
@@ -107,10 +108,9 @@ class _Buffer:
         return len(self.accessors) - 1
 
 
-def gltf_document(motion: ExportMotion, pose_from: str = "joints") -> tuple[dict, bytes, SkeletonFit]:
-    """The glTF JSON, its binary chunk and the rigid-body fit they encode."""
-    rest = motion.skeleton()
-    fit = fit_skeleton(motion.positions, motion.rotations, rest, pose_from=pose_from)
+def gltf_document(motion: ExportMotion, fit: SkeletonFit) -> tuple[dict, bytes]:
+    """The glTF JSON and its binary chunk for ``fit`` (``motion.fit()``)."""
+    rest = fit.rest_joints
     frames, joints = fit.local.shape[:2]
     buffer = _Buffer()
 
@@ -153,7 +153,7 @@ def gltf_document(motion: ExportMotion, pose_from: str = "joints") -> tuple[dict
     document = {
         "asset": {"version": "2.0", "generator": "sarah-export"},
         "extras": {"source": motion.source, "body_shape_source": motion.shape.source,
-                   "pose_from": pose_from, "fps": float(motion.fps)},
+                   "pose_from": fit.pose_from, "fps": float(motion.fps)},
         "scene": 0,
         "scenes": [{"name": motion.name, "nodes": [0, joints]}],
         "nodes": nodes,
@@ -165,7 +165,7 @@ def gltf_document(motion: ExportMotion, pose_from: str = "joints") -> tuple[dict
         "bufferViews": buffer.views,
         "buffers": [{"byteLength": len(buffer.data)}],
     }
-    return document, bytes(buffer.data), fit
+    return document, bytes(buffer.data)
 
 
 def glb_bytes(document: dict, binary: bytes) -> bytes:
@@ -185,6 +185,6 @@ def save_glb(path: str | Path, payload: bytes) -> None:
 
 def write_glb(path: str | Path, motion: ExportMotion, pose_from: str = "joints") -> SkeletonFit:
     """Write ``path`` (.glb) atomically; returns the fit (for its residual)."""
-    document, binary, fit = gltf_document(motion, pose_from)
-    save_glb(path, glb_bytes(document, binary))
+    fit = motion.fit(pose_from)
+    save_glb(path, glb_bytes(*gltf_document(motion, fit)))
     return fit

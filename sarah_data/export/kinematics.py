@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sarah_data.constants import JOINT, JOINT_PARENTS
+from sarah_data.bone_turns import best_rotation, shortest_rotation
 from sarah_data.two_bone_ik import two_bone_ik
 
 # What a body follows: the motion's joints (its rotations turned onto them) or its rotations alone.
@@ -83,47 +84,6 @@ def rest_offsets_from_motion(positions: np.ndarray, rotations: np.ndarray,
     return rest
 
 
-def _unit_or(vectors: np.ndarray, fallback: np.ndarray) -> np.ndarray:
-    """``vectors`` made unit, ``fallback`` where one has no length."""
-    norm = np.linalg.norm(vectors, axis=-1, keepdims=True)
-    return np.where(norm > 1e-12, vectors / np.maximum(norm, 1e-12), fallback)
-
-
-def shortest_turn(source: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) the smallest rotations taking the directions ``source`` to ``target`` (..., 3)
-    (Rodrigues; opposite directions turn half a circle about an axis across ``source``; a target
-    of no length, a child on its parent, leaves the direction as it is)."""
-    u = source / np.linalg.norm(source, axis=-1, keepdims=True)
-    t = _unit_or(target, u)
-    axis = np.cross(u, t)
-    sine, cosine = np.linalg.norm(axis, axis=-1), np.sum(u * t, axis=-1)
-    opposite = (sine < 1e-12) & (cosine < 0.0)
-    if opposite.any():  # any axis across u will do
-        across = np.cross(u[opposite], np.array([1.0, 0.0, 0.0]))
-        weak = np.linalg.norm(across, axis=-1) < 1e-6
-        across[weak] = np.cross(u[opposite][weak], np.array([0.0, 1.0, 0.0]))
-        axis[opposite], sine[opposite] = across / np.linalg.norm(across, axis=-1, keepdims=True), 0.0
-    unit = np.divide(axis, sine[..., None], out=np.zeros_like(axis), where=sine[..., None] > 1e-12)
-    unit[opposite] = axis[opposite]
-    cross = np.zeros(axis.shape + (3,))
-    cross[..., 0, 1], cross[..., 0, 2], cross[..., 1, 2] = -unit[..., 2], unit[..., 1], -unit[..., 0]
-    cross -= np.swapaxes(cross, -1, -2)
-    return (np.eye(3) + sine[..., None, None] * cross
-            + (1.0 - cosine)[..., None, None] * (cross @ cross))
-
-
-def best_turn(source: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) the rotations that best take the directions ``source`` to ``target`` (..., K, 3),
-    K >= 2 (Kabsch on unit vectors; of equally good ones, the smallest)."""
-    u = source / np.linalg.norm(source, axis=-1, keepdims=True)
-    t = _unit_or(target, u)
-    cross = np.einsum("...ki,...kj->...ij", t, u) + 1e-9 * np.eye(3)  # the eye: the smallest turn
-    left, _, right = np.linalg.svd(cross)
-    flip = np.ones(cross.shape[:-1])
-    flip[..., -1] = np.sign(np.linalg.det(left @ right))
-    return (left * flip[..., None, :]) @ right
-
-
 def pelvis_drop(hips: np.ndarray, ankles: np.ndarray, reach: np.ndarray) -> np.ndarray:
     """(T,) metres the pelvis must come down for legs of ``reach`` (2,) metres from ``hips`` to
     reach ``ankles`` (T, 2, 3): 0 where both reach, else the larger leg's shortfall in height
@@ -153,6 +113,9 @@ def aim_rotations(positions: np.ndarray, rotations: np.ndarray, rest_joints: np.
     limbs = [tuple(JOINT[name] for name in limb) for limb in LIMBS]
     middle_of = {top: (middle, end) for top, middle, end in limbs}
     legs = [limb for limb in limbs if parents[limb[0]] == 0]
+    hips, ankles = [t for t, _, _ in legs], [e for _, _, e in legs]
+    reach = np.array([np.linalg.norm(rest[m] - rest[t]) + np.linalg.norm(rest[e] - rest[m])
+                      for t, m, e in legs])
     targets = positions.copy()  # where each bone points: the motion's joints, a limb's middle by IK
     placed = np.empty_like(positions)  # the body's joints as the turned rotations pose them
     placed[:, 0] = positions[:, 0]
@@ -168,15 +131,12 @@ def aim_rotations(positions: np.ndarray, rotations: np.ndarray, rest_joints: np.
         bones = rest[kids] - rest[joint]  # (K, 3)
         posed = np.einsum("tij,kj->tki", aimed[:, joint], bones)
         wanted = targets[:, kids] - placed[:, joint, None]
-        turn = (shortest_turn(posed[:, 0], wanted[:, 0]) if len(kids) == 1
-                else best_turn(posed, wanted))
+        turn = (shortest_rotation(posed[:, 0], wanted[:, 0]) if len(kids) == 1
+                else best_rotation(posed, wanted))
         aimed[:, joint] = turn @ aimed[:, joint]
         placed[:, kids] = placed[:, joint, None] + np.einsum("tij,kj->tki", aimed[:, joint], bones)
-        if joint == 0 and legs:
-            reach = np.array([np.linalg.norm(rest[m] - rest[t]) + np.linalg.norm(rest[e] - rest[m])
-                              for t, m, e in legs])
-            drop = pelvis_drop(placed[:, [t for t, _, _ in legs]], positions[:, [e for _, _, e in legs]],
-                               reach)
+        if joint == 0 and legs:  # the pelvis and its children down where the legs fall short
+            drop = pelvis_drop(placed[:, hips], positions[:, ankles], reach)
             placed[:, [0] + kids, 1] -= drop[:, None]
     return aimed, placed[:, 0]
 
@@ -191,6 +151,7 @@ class SkeletonFit:
     positions: np.ndarray  # (T, J, 3) the rigid body's joints (forward kinematics)
     residual: np.ndarray  # (T,) per frame, mean distance (m) to the motion's own joints
     residual_max: np.ndarray  # (T,) per frame, largest distance (m)
+    pose_from: str = "joints"  # what the body follows (``POSE_SOURCES``)
 
     def summary(self) -> str:
         return (f"joint residual to the motion: mean {1000 * self.residual.mean():.3f} mm, "
@@ -214,4 +175,4 @@ def fit_skeleton(positions: np.ndarray, rotations: np.ndarray, rest_joints: np.n
     posed, _ = forward_kinematics(rest_joints, local, root, parents)
     distance = np.linalg.norm(posed - positions, axis=-1)
     return SkeletonFit(np.asarray(rest_joints, np.float64), local, root, posed,
-                       distance.mean(axis=1), distance.max(axis=1))
+                       distance.mean(axis=1), distance.max(axis=1), pose_from)

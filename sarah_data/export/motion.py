@@ -13,7 +13,7 @@ from sarah_data import icosahedron
 from sarah_data.constants import FPS, NUM_JOINTS
 from sarah_data.loading import DataProblem
 
-from .kinematics import rest_offsets_from_motion
+from .kinematics import SkeletonFit, fit_skeleton, rest_offsets_from_motion
 
 
 class ExportError(DataProblem):
@@ -49,11 +49,16 @@ class ExportMotion:
         return int(self.positions.shape[0])
 
     def skeleton(self) -> np.ndarray:
-        """(55, 3) the rest skeleton a skeleton file (BVH, glTF) is built on: the body's, or,
-        for motion without a body shape, one fitted to the motion."""
+        """(55, 3) the rest skeleton the exported body is built on: the body's, or, for motion
+        without a body shape, one fitted to the motion (BVH and glTF only: SMPL-X needs betas)."""
         if self.shape.rest_joints is not None:
             return np.asarray(self.shape.rest_joints, np.float64)
         return rest_offsets_from_motion(self.positions, self.rotations)
+
+    def fit(self, pose_from: str = "joints") -> SkeletonFit:
+        """The rigid body every exporter writes, in our world (y up): ``skeleton()`` posed to
+        follow the motion (``kinematics.fit_skeleton``). Fitted once, written in every format."""
+        return fit_skeleton(self.positions, self.rotations, self.skeleton(), pose_from=pose_from)
 
 
 MOTION_KEYS = ("joint_positions", "joint_rotations")

@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 from sarah_data.atomic import atomic_path
 from sarah_data.constants import FPS, JOINT, NUM_JOINTS
 
-from .kinematics import SkeletonFit, fit_skeleton
+from .kinematics import SkeletonFit
 from .motion import ExportError, ExportMotion
 
 Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
@@ -32,31 +32,27 @@ SPLIT_KEYS = {"root_orient": (0, 1), "pose_body": (1, 21), "pose_jaw": (JOINT["j
               "pose_eye": (JOINT["left_eye_smplhf"], 2), "pose_hand": (JOINT["left_index1"], 30)}
 
 
-def _rotate_world(motion: ExportMotion, up: str) -> tuple[np.ndarray, np.ndarray]:
-    if up not in UP_AXES:
-        raise ValueError(f"up axis must be one of {UP_AXES}, got {up!r}")
-    if up == "y":
-        return motion.positions, motion.rotations
-    return motion.positions @ Y_UP_TO_Z_UP.T, Y_UP_TO_Z_UP @ motion.rotations
-
-
-def smplx_parameters(motion: ExportMotion, up: str = "y",
-                     pose_from: str = "joints") -> tuple[dict[str, np.ndarray], SkeletonFit]:
-    """The AMASS-layout arrays of ``motion`` and the rigid-body fit they encode (``pose_from``:
-    ``kinematics.fit_skeleton``'s)."""
+def smplx_parameters(motion: ExportMotion, fit: SkeletonFit, up: str = "y") -> dict[str, np.ndarray]:
+    """The AMASS-layout arrays of ``fit`` (``motion.fit()``: the body in our world), turned to
+    ``up``: the whole body turns with the root, so only the root's rotation and the pelvis turn."""
     if not motion.shape.known:
         raise ExportError(motion.source or motion.name,
                           f"no body shape ({motion.shape.source}); SMPL-X parameters need the "
                           f"betas and their rest skeleton: pass --body-model to use that model "
                           f"with neutral (zero) betas")
-    positions, rotations = _rotate_world(motion, up)
-    rest = motion.shape.rest_joints
-    fit = fit_skeleton(positions, rotations, rest, pose_from=pose_from)
+    if up not in UP_AXES:
+        raise ValueError(f"up axis must be one of {UP_AXES}, got {up!r}")
+    local, root = fit.local, fit.root_position
+    if up == "z":
+        local = local.copy()
+        local[:, 0] = Y_UP_TO_Z_UP @ local[:, 0]
+        root = root @ Y_UP_TO_Z_UP.T
+    rest = fit.rest_joints
     frames = motion.frames
-    axis_angle = Rotation.from_matrix(fit.local.reshape(-1, 3, 3)).as_rotvec().reshape(frames, NUM_JOINTS * 3)
+    axis_angle = Rotation.from_matrix(local.reshape(-1, 3, 3)).as_rotvec().reshape(frames, NUM_JOINTS * 3)
     arrays = {
         "poses": axis_angle,
-        "trans": fit.root_position - rest[0],
+        "trans": root - rest[0],
         "betas": np.asarray(motion.shape.betas, np.float64),
         "num_betas": np.int64(len(motion.shape.betas)),
         "gender": np.array(motion.shape.gender),
@@ -70,7 +66,7 @@ def smplx_parameters(motion: ExportMotion, up: str = "y",
     }
     for key, (first, count) in SPLIT_KEYS.items():
         arrays[key] = axis_angle[:, 3 * first: 3 * (first + count)]
-    return arrays, fit
+    return arrays
 
 
 def save_npz(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
@@ -81,6 +77,6 @@ def save_npz(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
 def write_smplx(path: str | Path, motion: ExportMotion, up: str = "y",
                 pose_from: str = "joints") -> SkeletonFit:
     """Write ``path`` (.npz) atomically; returns the fit (for its residual)."""
-    arrays, fit = smplx_parameters(motion, up, pose_from)
-    save_npz(path, arrays)
+    fit = motion.fit(pose_from)
+    save_npz(path, smplx_parameters(motion, fit, up))
     return fit

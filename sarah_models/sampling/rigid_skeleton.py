@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from sarah_data.bone_turns import shortest_rotation
 from sarah_data.constants import BODY_JOINTS, JOINT_NAMES
 from sarah_data.skeleton import MotionLayout
 from sarah_data.two_bone_ik import two_bone_ik
@@ -186,20 +187,3 @@ class ShellFollow:
             "tpij,tpj->tpi", turn, offset - along * before)
         return moved - shell
 
-
-def shortest_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotations turning directions (..., 3) ``a`` onto ``b`` about their common
-    normal (Rodrigues); the identity where either is a point or they are opposite (a turn
-    about no one axis, which no joint correction makes)."""
-    def unit(v):
-        norm = np.linalg.norm(v, axis=-1, keepdims=True)
-        return np.divide(v, norm, out=np.zeros_like(v), where=norm > 1e-9)
-    a, b = unit(a), unit(b)
-    v, cos = np.cross(a, b), np.sum(a * b, axis=-1)
-    cross = np.zeros(a.shape[:-1] + (3, 3))
-    cross[..., 0, 1], cross[..., 0, 2], cross[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    cross[..., 1, 0], cross[..., 2, 0], cross[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    turn = np.divide(1.0, 1.0 + cos, out=np.zeros_like(cos), where=cos > -1.0 + 1e-6)
-    rotation = np.eye(3) + cross + cross @ cross * turn[..., None, None]
-    rotation[cos <= -1.0 + 1e-6] = np.eye(3)
-    return rotation

@@ -111,7 +111,8 @@ class LiveSession:
         if self.request.smplx and len(motion):
             from sarah_data.export import ExportMotion, smplx_parameters
 
-            params, _ = smplx_parameters(ExportMotion("live", positions, rotations, self.body))
+            live = ExportMotion("live", positions, rotations, self.body)
+            params = smplx_parameters(live, live.fit())
             parts["smplx_poses"] = params["poses"].astype(np.float32)
             parts["smplx_trans"] = params["trans"].astype(np.float32)
         header = {"type": "frames", "seq": chunk.seq, "first_frame": self.frames_out,
