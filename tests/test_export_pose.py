@@ -9,10 +9,11 @@ from scipy.spatial.transform import Rotation
 
 from sarah_data import icosahedron
 from sarah_data.constants import JOINT, JOINT_PARENTS, NUM_JOINTS
-from sarah_data.export.kinematics import LIMBS, aim_rotations, fit_skeleton
+from sarah_data.export.kinematics import KEEP_ROTATION, LIMBS, aim_rotations, fit_skeleton
 from sarah_data.shards import ShardSet
 
 LEAVES = [j for j in range(NUM_JOINTS) if j not in JOINT_PARENTS]
+HEAD_AND_FACE = [JOINT[name] for name in ("head", "jaw", "left_eye_smplhf", "right_eye_smplhf")]
 
 
 def person_motion(prepared_shards, frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -61,14 +62,50 @@ def test_the_body_follows_the_joints_whatever_the_rotations_say(truth, seed):
     as_decoded = fit_skeleton(joints, wrong, rest, pose_from="rotations")
     followed = fit_skeleton(joints, wrong, rest, pose_from="joints")
     assert as_decoded.residual.mean() > 0.02  # centimetres off, feet that skate
-    assert followed.residual_max.max() < 1e-6  # the same bone lengths: every joint on the motion's
-    # Joints without children keep their orientation (a foot's, a fingertip's) ...
+    # The same bone lengths: every joint on the motion's but the head and the face, which the
+    # neck's and the head's rotations place as they are (``KEEP_ROTATION``).
+    body = [j for j in range(NUM_JOINTS) if j not in HEAD_AND_FACE]
+    distance = np.linalg.norm(followed.positions - joints, axis=-1)
+    assert distance[:, body].max() < 1e-6
+    # Joints without children keep their orientation (a foot's, a fingertip's), and so do the
+    # neck and the head ...
     aimed, _ = aim_rotations(joints, wrong, rest)
     np.testing.assert_allclose(aimed[:, LEAVES], wrong[:, LEAVES], atol=1e-12)
+    kept = [JOINT[name] for name in KEEP_ROTATION]
+    np.testing.assert_allclose(aimed[:, kept], wrong[:, kept], atol=1e-12)
     # ... and each turn is the smallest that points the bone: no more than the noise undid.
     turn = np.einsum("tjik,tjil->tjkl", wrong, aimed)  # R_wrong^T R_aimed, per joint
     angle = np.degrees(Rotation.from_matrix(turn.reshape(-1, 3, 3)).magnitude())
     assert angle.max() < 25.0 + 1e-6
+
+
+def test_the_head_faces_where_the_motions_head_faces_whatever_its_face_joints_say(truth):
+    """The gaze is the head's facing. A decoder places the jaw and the eyes, points 3-12 cm
+    from the head, loosely (the shipped model's demo window: the eyes ~40 degrees around the head
+    from where its rotation puts them, the jaw pointing backward); the body turned onto them
+    faced away from the motion's head and lost its gaze. The file's head is the motion's."""
+    from sarah_data.export.kinematics import forward_kinematics
+    from sarah_data.gaze import FACING_AXIS
+
+    joints, rotations, rest = truth
+    loose = joints.copy()
+    head = JOINT["head"]
+    yaw = Rotation.from_euler("y", 40, degrees=True).as_matrix()
+    for name in ("left_eye_smplhf", "right_eye_smplhf"):
+        j = JOINT[name]
+        loose[:, j] = joints[:, head] + (joints[:, j] - joints[:, head]) @ yaw.T
+    jaw = JOINT["jaw"]
+    loose[:, jaw] = 2 * joints[:, head] - joints[:, jaw]  # pointing backward and up
+    loose[:, head] += [0.0, 0.0, 0.05]  # and the head 5 cm from where the neck puts it
+    fit = fit_skeleton(loose, rotations, rest)
+    _, posed = forward_kinematics(fit.rest_joints, fit.local, fit.root_position)
+    np.testing.assert_allclose(posed[:, head], rotations[:, head], atol=1e-9)
+    facing = posed[:, head, :, FACING_AXIS]
+    np.testing.assert_allclose(facing, rotations[:, head, :, FACING_AXIS], atol=1e-9)
+    # The neck is the motion's too: it does not swing to reach a head placed off it.
+    neck = JOINT["neck"]
+    np.testing.assert_allclose(posed[:, neck], rotations[:, neck], atol=1e-9)
+    np.testing.assert_allclose(fit.positions[:, head], joints[:, head], atol=1e-6)
 
 
 @pytest.mark.parametrize("scale", [1.03, 0.97])

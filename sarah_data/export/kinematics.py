@@ -30,6 +30,17 @@ POSE_SOURCES = ("joints", "rotations")
 # their ends land on the motion's: an ankle that stands stays where it stands.
 LIMBS = (("left_hip", "left_knee", "left_ankle"), ("right_hip", "right_knee", "right_ankle"),
          ("left_shoulder", "left_elbow", "left_wrist"), ("right_shoulder", "right_elbow", "right_wrist"))
+# Joints whose rotation the fit keeps as the motion has it, their children following: the head,
+# whose facing is the agent's gaze (what the gaze score and eye contact read), and the neck that
+# carries it. The head's children are the face's jaw and eyes, points 3-12 cm from it that the
+# decoder places loosely, and the decoded head sits off where the neck's rotation puts it: on
+# the shipped model's demo window the eyes lay ~40 degrees around the head from where its
+# rotation puts them, the jaw pointed backward and the head joint was 5 cm off the neck's
+# rotation; a head turned onto them faced 107 degrees from the motion's on average (its gaze
+# score 0.41 against the motion's 0.76), and a neck swung to the head bent 56 degrees from the
+# spine (the data's 18). Kept, the file's head is 5 cm from the motion's head joint and faces
+# as it faces (docs/results.md, ninety-eighth run).
+KEEP_ROTATION = ("neck", "head")
 # m: the most the fit lowers the pelvis for legs too short to reach the motion's ankles (the
 # shipped model's clips needed up to 3.4 cm: its bones are the training data's mean lengths, the
 # file's the agent's own); beyond it the ankles stop short.
@@ -102,7 +113,8 @@ def aim_rotations(positions: np.ndarray, rotations: np.ndarray, rest_joints: np.
     little as it must: each joint's bones point at its children (the best turn over several
     children), the limbs of ``LIMBS`` bend by two-bone IK so that their ends land on the motion's
     where the body's bones reach, and a joint without children keeps its rotation (the feet's and
-    the fingertips' orientation, each bone's twist). The pelvis is the motion's, lowered where
+    the fingertips' orientation, each bone's twist), as do those of ``KEEP_ROTATION`` (the
+    head: the gaze). The pelvis is the motion's, lowered where
     the body's legs are too short for the motion's ankles (``pelvis_drop``), since a foot that
     stands is what a viewer sees first. Where the rotations already point the bones at the joints
     (ground truth) nothing turns, to float precision. Frame by frame."""
@@ -110,6 +122,7 @@ def aim_rotations(positions: np.ndarray, rotations: np.ndarray, rest_joints: np.
     rest = np.asarray(rest_joints, dtype=np.float64)
     aimed = np.array(rotations, dtype=np.float64)
     children = children_of(parents)
+    kept = {JOINT[name] for name in KEEP_ROTATION}
     limbs = [tuple(JOINT[name] for name in limb) for limb in LIMBS]
     middle_of = {top: (middle, end) for top, middle, end in limbs}
     legs = [limb for limb in limbs if parents[limb[0]] == 0]
@@ -129,11 +142,12 @@ def aim_rotations(positions: np.ndarray, rotations: np.ndarray, rest_joints: np.
             targets[:, middle], _ = two_bone_ik(placed[:, joint], positions[:, middle],
                                                 positions[:, end], upper, lower)
         bones = rest[kids] - rest[joint]  # (K, 3)
-        posed = np.einsum("tij,kj->tki", aimed[:, joint], bones)
-        wanted = targets[:, kids] - placed[:, joint, None]
-        turn = (shortest_rotation(posed[:, 0], wanted[:, 0]) if len(kids) == 1
-                else best_rotation(posed, wanted))
-        aimed[:, joint] = turn @ aimed[:, joint]
+        if joint not in kept:
+            posed = np.einsum("tij,kj->tki", aimed[:, joint], bones)
+            wanted = targets[:, kids] - placed[:, joint, None]
+            turn = (shortest_rotation(posed[:, 0], wanted[:, 0]) if len(kids) == 1
+                    else best_rotation(posed, wanted))
+            aimed[:, joint] = turn @ aimed[:, joint]
         placed[:, kids] = placed[:, joint, None] + np.einsum("tij,kj->tki", aimed[:, joint], bones)
         if joint == 0 and legs:  # the pelvis and its children down where the legs fall short
             drop = pelvis_drop(placed[:, hips], positions[:, ankles], reach)
