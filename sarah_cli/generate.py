@@ -10,6 +10,7 @@ from sarah_cli.arguments import (HISTORY_HELP, HelpFormatter, add_model_argument
                                  add_sampling_arguments, history_tokens, positive_int,
                                  sampling_of)
 from sarah_models.accel import MODE_HELP, MODES
+from sarah_models.generation.run import SKELETONS
 
 EXIT_ERROR = 2
 
@@ -79,6 +80,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="the offline protocol: all tokens denoised jointly")
     parser.add_argument("--no-animation", action="store_true",
                         help="skip skeleton.gif (drawing it takes most of a short run)")
+    parser.add_argument("--skeleton", choices=tuple(SKELETONS), default="agent",
+                        help="whose bones the motion is decoded on: " + "; ".join(
+                            f"{k}: {v}" for k, v in SKELETONS.items()))
     parser.add_argument("--speed", choices=MODES, default="fp32",
                         help="inference fast path: " + "; ".join(f"{k}: {v}" for k, v in MODE_HELP.items())
                              + " (int8 stays within 1 mm of fp32; see docs/performance.md)")
@@ -143,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
             agent_audio=args.agent_audio, user_audio=args.user_audio,
             agent_start=args.agent_start, feature_options=dict(args.feature_option),
             offline=args.offline, animation=not args.no_animation, speed=args.speed, pad=args.pad,
-            threads=args.threads)
+            threads=args.threads, skeleton=args.skeleton)
     except (GenerateError, DataProblem) as exc:
         print(f"sarah-generate: error: {exc}", file=sys.stderr)
         return EXIT_ERROR

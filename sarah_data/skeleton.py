@@ -107,6 +107,23 @@ class MotionLayout:
                  if parent_name.get(n) in self.joint_names]
         return tuple(sorted(pairs, key=lambda pair: _depth(self.joint_names[pair[0]], parent_name)))
 
+    def rest_bone_lengths(self, rest_joints) -> np.ndarray:
+        """(55, 3) joints of a body at rest, SMPL-X's order (``BodyModel.rest_joints``, a shard
+        person's ``rest_joints``) -> (len(bones),) its bone lengths, metres."""
+        rest_joints = np.asarray(rest_joints, dtype=np.float64)
+        if rest_joints.shape != (len(JOINT_NAMES), 3):
+            raise ValueError(f"rest joints of shape {rest_joints.shape}: expected "
+                             f"({len(JOINT_NAMES)}, 3)")
+        order = [JOINT_NAMES.index(name) for name in self.joint_names]
+        return bone_lengths(rest_joints[order], self.bones)
+
+    def motion_bone_lengths(self, motion) -> np.ndarray:
+        """(T, width) motion vectors of one person -> (len(bones),) the median length of each
+        bone over the frames, metres: a captured person's skeleton (their bones keep one length;
+        the median passes over a badly tracked frame)."""
+        joints = self.joint_positions(np.asarray(motion, dtype=np.float64))
+        return np.median(bone_lengths(joints, self.bones), axis=0)
+
     def joint_slice(self, name: str) -> slice:
         """The channels of ``name``'s icosahedron in a motion vector."""
         start = self.joint(name) * POINT_WIDTH

@@ -4,6 +4,7 @@ on seed 0)."""
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 from pathlib import Path
@@ -13,10 +14,12 @@ import pytest
 
 from sarah_cli.generate import main as generate
 from sarah_data.constants import FPS, JOINT
-from sarah_data.export.kinematics import fit_skeleton
+from sarah_data.export.kinematics import fit_skeleton, forward_kinematics
+from sarah_data.skeleton import MotionLayout, bone_lengths
 from sarah_models.evaluation.metrics import foot_slide
 from sarah_models.evaluation.metrics.bone_length import bone_length_error
 from sarah_models.evaluation.metrics.seam_share import seam_share
+from sarah_models.generation.outputs import head_gaze
 from sarah_models.pretrained import MODELS, model_path, verified
 from sarah_models.training.model_file import load_model_file
 
@@ -70,6 +73,7 @@ def test_the_pretrained_model_follows_the_gaze_dial_on_unseen_fixtures(prepared_
             gaze[target] = float(data["gaze_score"].mean())
             joints, anchor = data["joint_positions"], data["anchor"]
             rotations, rest_joints = data["joint_rotations"], data["rest_joints"]
+            user_head, settings = data["user_head"], json.loads(str(data["settings"]))
         assert np.isfinite(joints).all()
         _assert_starts_at_the_anchor(joints, anchor)
         _assert_feet_follow_the_ankles(joints)
@@ -81,8 +85,19 @@ def test_the_pretrained_model_follows_the_gaze_dial_on_unseen_fixtures(prepared_
         assert slide < 0.1, f"feet slide in {slide:.2f} of the frame steps"
         # What sarah-export writes stands where the motion stands (posed from the decoded
         # rotations alone, the demo's clip slid at 0.73).
-        exported = fit_skeleton(joints, rotations, rest_joints).positions
-        assert foot_slide(exported) <= slide + 0.01, (foot_slide(exported), slide)
+        fit = fit_skeleton(joints, rotations, rest_joints)
+        assert foot_slide(fit.positions) <= slide + 0.01, (foot_slide(fit.positions), slide)
+        # The motion is on the agent's own bones (`--skeleton agent`, the default), the file's
+        # body's: before the ninety-eighth run it was on the training data's mean lengths.
+        assert settings["skeleton"].startswith("the agent's own")
+        bones = MotionLayout().bones
+        np.testing.assert_allclose(bone_lengths(joints, bones), np.broadcast_to(
+            MotionLayout().rest_bone_lengths(rest_joints), (len(joints), len(bones))), atol=1e-4)
+        # And it looks where the motion looks: the file's head is the motion's (turned onto the
+        # decoded face joints it faced 107 degrees away on the demo's clip).
+        _, posed = forward_kinematics(fit.rest_joints, fit.local, fit.root_position)
+        exported_gaze = head_gaze(fit.positions, posed, user_head).mean()
+        assert abs(exported_gaze - gaze[target]) < 0.02, (exported_gaze, gaze[target])
     printed = capsys.readouterr().out
     assert f"checkpoint {model_path(NAME)} " in printed
     assert gaze[1.0] - gaze[0.0] >= 0.3, gaze

@@ -388,6 +388,82 @@ def test_a_raised_foot_is_left_to_the_decoder(windows, skeleton):
                                joints_of(raised, layout)[:, FEET[0]], atol=1e-12)
 
 
+def test_an_agents_own_skeleton_takes_the_bones_and_its_legs_set_the_bodys_height(windows, skeleton):
+    # The motion of one fixture person decoded on another's skeleton: every bone at the agent's
+    # length, the body lower by as much as its thighs and shins are shorter than the skeleton the
+    # decoder made the motion for, so its knees bend as they did over the same ankles.
+    layout = MotionLayout.from_width(windows.motion_dim)
+    motion = windows[1]["motion"].numpy().astype(np.float64)
+    made_for = layout.motion_bone_lengths(motion)
+    np.testing.assert_allclose(made_for, bone_lengths(joints_of(motion, layout)[0], layout.bones),
+                               atol=1e-5)
+    agent = made_for * 0.94  # a person 6 % smaller in every bone
+    out = RigidSkeleton(layout, agent, reference=made_for)(motion)
+    before, after = joints_of(motion, layout), joints_of(out, layout)
+    np.testing.assert_allclose(bone_lengths(after, layout.bones),
+                               np.broadcast_to(agent, (len(out), 54)), rtol=1e-9)
+    legs = [[layout.bones.index(bone) for bone in (
+        (JOINT[f"{side}_hip"], JOINT["pelvis"]), (JOINT[f"{side}_knee"], JOINT[f"{side}_hip"]),
+        (JOINT[f"{side}_ankle"], JOINT[f"{side}_knee"]))] for side in ("left", "right")]
+    shorter = np.mean([0.06 * made_for[leg].sum() for leg in legs])
+    from sarah_models.sampling.rigid_skeleton import leg_height_change
+
+    assert leg_height_change(layout, agent, made_for) == pytest.approx(-shorter)
+    np.testing.assert_allclose(after[:, 0] - before[:, 0], [[0.0, -shorter, 0.0]] * len(out), atol=1e-12)
+    # Its ankles stand where the decoder's did, at the knee angles the data's own legs had.
+    ankles = [JOINT["left_ankle"], JOINT["right_ankle"]]
+    reached = np.linalg.norm(after[:, ankles] - before[:, ankles], axis=-1) < 1e-9
+    assert reached.mean() > 0.9
+
+    def knee_angle(j, side):
+        hip, knee, ankle = (j[:, JOINT[f"{side}_{n}"]] for n in ("hip", "knee", "ankle"))
+        a, b = hip - knee, ankle - knee
+        return np.degrees(np.arccos(np.sum(a * b, -1) / np.linalg.norm(a, axis=-1) / np.linalg.norm(b, axis=-1)))
+
+    for k, side in enumerate(("left", "right")):
+        both = reached[:, k]
+        assert np.abs(knee_angle(after, side) - knee_angle(before, side))[both].mean() < 5.0
+    # Left at the decoded height, the smaller body's nearly straight legs fall short of them.
+    unlowered = joints_of(RigidSkeleton(layout, agent)(motion), layout)
+    assert (np.linalg.norm(unlowered[:, ankles] - before[:, ankles], axis=-1) > 0.01).mean() > 0.5
+    # The skeleton it was made for changes nothing; its own lengths given as the agent's neither.
+    np.testing.assert_allclose(RigidSkeleton(layout, made_for, reference=made_for)(motion),
+                               RigidSkeleton(layout, made_for)(motion), atol=0)
+    with pytest.raises(ValueError, match="53 reference bone lengths"):
+        RigidSkeleton(layout, agent, reference=made_for[:53])
+
+
+def test_a_stream_decodes_on_the_agents_skeleton_when_given_one(windows, skeleton):
+    from sarah_models.sampling.decoding import stream_decoding, takes_bone_lengths
+    from sarah_models.sampling.foot_lock import FootLock
+    from sarah_models.testing import random_models
+
+    vae, _, normalizer = random_models("tiny")
+    normalizer.set("bone_length", skeleton, np.zeros(54))
+    vae.config = dataclasses.replace(vae.config, rigid_bones=True, foot_lock=0.1)
+    layout = MotionLayout.from_width(windows.motion_dim)
+    motion = windows[1]["motion"].numpy().astype(np.float64)
+    agent = layout.motion_bone_lengths(motion) * 1.05
+    assert takes_bone_lengths(vae)
+    decoding = stream_decoding(vae, normalizer, agent)
+    rigid, lock = decoding.filters[1], decoding.filters[2]
+    assert isinstance(lock, FootLock)
+    np.testing.assert_array_equal(rigid.lengths, agent)  # the lock's legs are the agent's too
+    thigh = layout.bones.index((JOINT["left_knee"], JOINT["left_hip"]))
+    assert lock.legs[0][4] == agent[thigh]
+    out = decoding(motion)
+    np.testing.assert_allclose(bone_lengths(joints_of(out, layout), layout.bones)[:, thigh], agent[thigh])
+    # Block by block as a stream decodes, the same frames.
+    again = stream_decoding(vae, normalizer, agent)
+    np.testing.assert_allclose(np.concatenate([again(motion[i:i + 4]) for i in range(0, 60, 4)]), out,
+                               atol=1e-12)
+    with pytest.raises(ValueError, match="10 the agent's bone lengths for a layout of 54"):
+        stream_decoding(vae, normalizer, agent[:10])
+    # A decoding that keeps no lengths puts nothing on the agent's bones, and says so.
+    vae.config = dataclasses.replace(vae.config, rigid_bones=False, foot_lock=0.0)
+    assert not takes_bone_lengths(vae)
+
+
 def test_the_decoding_needs_a_skeleton_and_says_where_to_get_one():
     from sarah_models.sampling.decoding import stream_decoding
     from sarah_models.testing import random_models

@@ -21,6 +21,7 @@ from sarah_data.gaze import FACING_AXIS
 from sarah_data.skeleton import HEAD, MotionLayout
 
 from ..config import StreamConfig, check_gaze
+from ..sampling.decoding import takes_bone_lengths
 from ..sampling.stream import StreamingGenerator, StreamingSession, offline_with_latents
 from ..training.checkpoint import LoadedModels, load_models
 from ..training.model_file import MODEL_FILE, flow_source, load_model_file
@@ -75,10 +76,33 @@ def load_run(run: str | Path, checkpoint: str | Path | None = None,
     return models, path
 
 
+# Whose bones the decoding puts the generated motion on (``sampling.decoding.stream_decoding``).
+SKELETONS = {
+    "agent": "the agent's own where the input has a person (a shard window's rest skeleton), so "
+             "that the motion is the body its export poses; else the training data's",
+    "training": "the training data's mean bone lengths, whoever the agent is (what sarah-eval "
+                "scores by default)",
+}
+
+
+def skeleton_of(models: LoadedModels, inputs: Inputs, skeleton: str) -> tuple[np.ndarray | None, str]:
+    """The agent's bone lengths the decoding takes (None: the training data's) and a phrase
+    saying whose bones the motion is on."""
+    if not takes_bone_lengths(models.vae):
+        return None, "the decoder's own bones (this model's decoding keeps no bone lengths)"
+    rest = (inputs.body_shape or {}).get("rest_joints")
+    if skeleton == "training" or rest is None:
+        why = "" if skeleton == "training" else " (the input has no person's body)"
+        return None, "the training data's mean bone lengths" + why
+    layout = MotionLayout.from_width(models.vae.motion_dim)
+    return layout.rest_bone_lengths(rest), "the agent's own (its rest skeleton in the shards)"
+
+
 def generate(models: LoadedModels, inputs: Inputs, config: StreamConfig, offline: bool = False,
-             extractor=None, policy=None) -> Result:
+             extractor=None, policy=None, bone_lengths=None) -> Result:
     """Run the streaming generator chunk by chunk (or the offline protocol) on ``inputs``.
-    ``policy`` (an ``accel.ThreadPolicy``) sets the intra-op threads before every chunk."""
+    ``policy`` (an ``accel.ThreadPolicy``) sets the intra-op threads before every chunk;
+    ``bone_lengths`` is the skeleton the motion is decoded on (``skeleton_of``)."""
     vae, flow, normalizer = models.vae, models.flow, models.normalizer
     apply_threads = (lambda: None) if policy is None else policy.apply
     s, count = vae.stride, inputs.frames
@@ -95,12 +119,12 @@ def generate(models: LoadedModels, inputs: Inputs, config: StreamConfig, offline
         apply_threads()
         tick = time.perf_counter()
         motion, z = offline_with_latents(vae, flow, normalizer, inputs.user_head, a, b, config,
-                                         inputs.anchor)
+                                         inputs.anchor, bone_lengths)
         _synchronize(flow)
         return Result(motion, a, b, seconds=time.perf_counter() - tick,
                       latents=z.float().cpu().numpy())
 
-    generator = StreamingGenerator(vae, flow, normalizer, config, inputs.anchor)
+    generator = StreamingGenerator(vae, flow, normalizer, config, inputs.anchor, bone_lengths)
     chunks, latencies, latents = [], [], []
     if inputs.agent_audio is not None:
         a, b = inputs.agent_audio, inputs.user_audio
@@ -146,13 +170,14 @@ def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
         agent_start: tuple[float, float, float] = (0.0, 0.0, 0.0),
         feature_options: dict[str, Any] | None = None, offline: bool = False, pad: bool = False,
         animation: bool = True, speed: str = "fp32", threads: int | None = None,
-        echo: Callable[[str], None] = print) -> Summary:
+        skeleton: str = "agent", echo: Callable[[str], None] = print) -> Summary:
     """Everything ``sarah-generate`` does: load, read inputs, generate, write, plot.
 
     speed: the inference fast path of ``accel.optimize_for_inference`` ("fp32" is exact; "int8"
     stays within 1 mm of it and is the real-time setting on a CPU; "none" the plain models).
     threads: intra-op threads on a CPU; None picks them from the cores other processes leave
-    free (``accel.ThreadPolicy``), re-measured while streaming."""
+    free (``accel.ThreadPolicy``), re-measured while streaming. skeleton: whose bones the motion
+    is on (``SKELETONS``)."""
     from ..accel import ThreadPolicy, optimize_for_inference
     from ..accel.threads import stream_probe
     from .plots import animate_skeleton, plot_topview
@@ -161,6 +186,8 @@ def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
         check_gaze(config.gaze)
     except ValueError as exc:
         raise GenerateError(str(exc)) from None
+    if skeleton not in SKELETONS:
+        raise GenerateError(f"unknown skeleton {skeleton!r}; choose from {', '.join(SKELETONS)}")
     models, ckpt = load_run(run_dir, checkpoint, device)
     if speed != "none":
         models = optimize_for_inference(models, mode=speed, stream_config=config)
@@ -191,9 +218,10 @@ def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
         if not offline:
             policy.calibrate(stream_probe(models, config))
         on = f"cpu, threads {policy.describe()}"
+    bone_lengths, bones = skeleton_of(models, inputs, skeleton)
     echo(f"checkpoint {ckpt} (step {models.step}, features {models.features!r}) on "
-         f"{on}; {inputs.frames} frames of {where}")
-    result = generate(models, inputs, config, offline, extractor, policy)
+         f"{on}; {inputs.frames} frames of {where}; skeleton: {bones}")
+    result = generate(models, inputs, config, offline, extractor, policy, bone_lengths)
 
     positions, rotations = icosahedron.decode(MotionLayout.from_width(result.motion.shape[-1])
                                               .split(result.motion)[0])
@@ -201,7 +229,8 @@ def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     settings = {"run": str(run_dir), "checkpoint": str(ckpt), "step": models.step,
-                "features": models.features, "offline": offline, "stream": asdict(config)}
+                "features": models.features, "offline": offline, "stream": asdict(config),
+                "skeleton": bones}
     paths = [write_motion(out / "motion.npz", result, inputs, config, positions, rotations,
                           gaze, settings)]
     head = JOINT[HEAD]

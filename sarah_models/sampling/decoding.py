@@ -2,7 +2,8 @@
 
 In order: ``SeamInertia`` (``vae.boundary_inertia``, ``vae.root_inertia``: the seams between
 latent blocks), ``LimbLowpass`` (``vae.limb_lowpass``: the arms' and hands' jitter), ``RootHold`` (``vae.root_hold``: a body that stands still until the decoder
-walks it), ``RigidSkeleton`` (``vae.rigid_bones``: bones at the training data's lengths) and
+walks it), ``RigidSkeleton`` (``vae.rigid_bones``: bones at the training data's lengths, or
+at an agent's own) and
 ``FootLock`` (``vae.foot_lock``: planted feet, and steps). All five are causal and off in
 the paper's config; one ``StreamDecoding`` per stream, fed its frames in order, whole blocks at a
 time; streaming, the offline protocol and sarah-eval's VAE row all decode through it. A filter
@@ -23,7 +24,7 @@ from ..nn.vae import detail_generator
 from .continuity import SeamInertia
 from .foot_lock import FootLock
 from .limb_lowpass import LimbLowpass
-from .rigid_skeleton import RigidSkeleton
+from .rigid_skeleton import RigidSkeleton, check_lengths
 from .root_hold import RootHold
 
 
@@ -81,6 +82,13 @@ def decoder_frames(vae, normalizer, tokens: torch.Tensor,
     return frames.double().cpu().numpy(), decoded_stance(vae, tokens)
 
 
+def takes_bone_lengths(vae) -> bool:
+    """Whether this VAE's decoding puts the motion on a skeleton of given bone lengths
+    (``vae.rigid_bones``), and so on an agent's own where ``stream_decoding`` is given one;
+    without it the bones are the decoder's."""
+    return bool(vae.config.rigid_bones)
+
+
 def skeleton_lengths(normalizer) -> np.ndarray:
     """The training data's bone lengths the model carries (metres, ``MotionLayout.bones``
     order); ValueError when it carries none."""
@@ -92,8 +100,14 @@ def skeleton_lengths(normalizer) -> np.ndarray:
     return normalizer.bone_length_mean.detach().double().cpu().numpy()
 
 
-def stream_decoding(vae, normalizer) -> StreamDecoding:
-    """A new stream's decoding for this VAE's output (its normalizer carries the skeleton)."""
+def stream_decoding(vae, normalizer, bone_lengths=None) -> StreamDecoding:
+    """A new stream's decoding for this VAE's output (its normalizer carries the training data's
+    skeleton). ``bone_lengths``: the agent's own (metres, ``MotionLayout.bones`` order:
+    ``MotionLayout.rest_bone_lengths`` of an avatar's rest joints, ``MotionLayout.motion_bone_lengths``
+    of a captured person's motion), which the rigid skeleton and the foot lock put the motion on in
+    place of the training data's, the body lowered or raised by its legs' length
+    (``rigid_skeleton.leg_height_change``); None: the training data's. Only a chain that puts
+    bones at lengths (``vae.rigid_bones``) reads it: ``takes_bone_lengths``."""
     cfg = vae.config
     layout = MotionLayout.from_width(vae.motion_dim)
     channels = layout.joint_slice(ROOT)
@@ -105,9 +119,11 @@ def stream_decoding(vae, normalizer) -> StreamDecoding:
         filters.append(RootHold(layout, cfg.root_hold, reads=cfg.root_hold_reads,
                                 turn=cfg.root_hold_turn))
     if cfg.rigid_bones or cfg.foot_lock:
-        lengths = skeleton_lengths(normalizer)
+        lengths = reference = skeleton_lengths(normalizer)
+        if bone_lengths is not None and cfg.rigid_bones:
+            lengths = check_lengths(layout, bone_lengths, "the agent's ")
         if cfg.rigid_bones:
-            filters.append(RigidSkeleton(layout, lengths))
+            filters.append(RigidSkeleton(layout, lengths, reference))
         if cfg.foot_lock:
             if reads_stance(vae) and getattr(vae, "stance", None) is None:
                 raise ValueError("vae.foot_lock_reads='stance' needs the VAE's stance head, and "

@@ -8,7 +8,11 @@ sees (docs/results.md, seventeenth run). ``RigidSkeleton`` keeps what the decode
 the pose, each bone's direction, and takes each bone's length from the training data's skeleton
 (``stats.h5``'s ``bone_length``): walking the skeleton from the root, every joint is placed at
 its parent's corrected position plus the bone's length along its decoded direction, and its
-icosahedron moves with it (its rotation is the decoder's). The legs are the exception: their
+icosahedron moves with it (its rotation is the decoder's). Given an agent's own bone lengths
+(an avatar's, a captured person's: ``sampling.decoding.stream_decoding``'s ``bone_lengths``), the
+bones take those, and the body is lowered (or raised) by how much shorter (or longer) the agent's
+legs are than the training data's (``leg_height_change``), so that its knees bend as the decoded
+ones do over feet where the decoder put them. The legs are the exception: their
 ankles stay where the decoder put them, as far as the legs reach (two-bone inverse kinematics
 on the hips, bending the way the decoded knees bend), and the foot joints at the decoded
 feet's height (``foot_at_its_height``), so that feet stay on the floor. Shell
@@ -24,7 +28,7 @@ import numpy as np
 
 from sarah_data.bone_turns import shortest_rotation
 from sarah_data.constants import BODY_JOINTS, JOINT_NAMES
-from sarah_data.skeleton import MotionLayout
+from sarah_data.skeleton import ROOT, MotionLayout
 from sarah_data.two_bone_ik import two_bone_ik
 
 LEGS = (("left_hip", "left_knee", "left_ankle", "left_foot"),
@@ -45,19 +49,48 @@ def legs(layout: MotionLayout, lengths) -> list[tuple]:
     return out
 
 
+def check_lengths(layout: MotionLayout, lengths, whose: str = "") -> np.ndarray:
+    """``lengths`` as (bones,) float64 metres; ValueError unless there is one finite positive
+    length per ``layout.bones``."""
+    lengths = np.asarray(lengths, dtype=np.float64).reshape(-1)
+    if len(lengths) != len(layout.bones):
+        raise ValueError(f"rigid skeleton: {len(lengths)} {whose}bone lengths for a layout of "
+                         f"{len(layout.bones)} bones")
+    if not (np.all(np.isfinite(lengths)) and np.all(lengths > 0)):
+        raise ValueError(f"rigid skeleton: {whose}bone lengths must be finite and positive")
+    return lengths
+
+
+def leg_height_change(layout: MotionLayout, lengths, reference) -> float:
+    """Metres by which a body on ``lengths`` stands higher than one on ``reference`` (both one
+    per ``layout.bones``): the mean over the two legs of pelvis-to-hip, thigh and shin, the
+    part of a standing body's height its legs hold (the hip bones point two thirds down: taken
+    whole, they leave a smaller body's knees a few millimetres more bent rather than its ankles
+    short of the decoder's); 0 for a layout without legs or a pelvis."""
+    if not legs(layout, lengths) or ROOT not in layout.joint_names:
+        return 0.0
+    root, index = layout.joint(ROOT), {bone: i for i, bone in enumerate(layout.bones)}
+    change = []
+    for hip, knee, ankle, *_ in legs(layout, lengths):
+        chain = [index[(hip, root)], index[(knee, hip)], index[(ankle, knee)]]
+        change.append(np.sum(np.asarray(lengths)[chain]) - np.sum(np.asarray(reference)[chain]))
+    return float(np.mean(change))
+
+
 class RigidSkeleton:
     """(n, Dx) motion vectors in metres -> the same frames on a skeleton with ``lengths``
     (metres, one per ``layout.bones``). Call it on a stream's frames in order (``reset`` starts
-    another stream): each shell point rides the bone nearest it in the first frame."""
+    another stream): each shell point rides the bone nearest it in the first frame.
+    ``reference``: the lengths of the body the decoder's motion was made for (the training
+    data's) where ``lengths`` are another body's (an agent's own): the body moves up or down by
+    ``leg_height_change`` from it; None: ``lengths`` are that body's."""
 
-    def __init__(self, layout: MotionLayout, lengths) -> None:
-        lengths = np.asarray(lengths, dtype=np.float64).reshape(-1)
-        if len(lengths) != len(layout.bones):
-            raise ValueError(f"rigid skeleton: {len(lengths)} bone lengths for a layout of "
-                             f"{len(layout.bones)} bones")
-        if not (np.all(np.isfinite(lengths)) and np.all(lengths > 0)):
-            raise ValueError("rigid skeleton: bone lengths must be finite and positive")
+    def __init__(self, layout: MotionLayout, lengths, reference=None) -> None:
+        lengths = check_lengths(layout, lengths)
         self.layout, self.lengths = layout, lengths
+        self.root = layout.joint(ROOT) if ROOT in layout.joint_names else None
+        self.lift = 0.0 if reference is None or self.root is None else leg_height_change(
+            layout, lengths, check_lengths(layout, reference, "reference "))
         # Bones a level at a time (parents placed before their children), as index arrays.
         depth: dict[int, int] = {}
         for child, parent in layout.bones:
@@ -79,6 +112,8 @@ class RigidSkeleton:
         icosahedra, shell = self.layout.split(x)
         joints = icosahedra.mean(axis=-2)
         placed = joints.copy()
+        if self.lift:
+            placed[:, self.root, 1] += self.lift
         for child, parent, length in self._levels:
             direction = joints[:, child] - joints[:, parent]
             norm = np.linalg.norm(direction, axis=-1, keepdims=True)

@@ -135,7 +135,8 @@ class _Models:
     """The three modules plus the conversions between world inputs/outputs and model space."""
 
     def __init__(self, vae: CausalVAE, flow: FlowModel, normalizer: Normalizer,
-                 config: StreamConfig, anchor: WindowTransform | None) -> None:
+                 config: StreamConfig, anchor: WindowTransform | None,
+                 bone_lengths=None) -> None:
         if flow.stride != vae.stride or flow.latent_dim != vae.config.latent_dim:
             raise ValueError(f"flow (stride {flow.stride}, Dz {flow.latent_dim}) does not match "
                              f"the VAE (stride {vae.stride}, Dz {vae.config.latent_dim})")
@@ -145,6 +146,8 @@ class _Models:
         MotionLayout.from_width(vae.motion_dim)  # ValueError naming the width if it is not ours
         self.vae, self.flow, self.normalizer, self.config = vae, flow, normalizer, config
         self.anchor = IDENTITY if anchor is None else anchor
+        self.bone_lengths = bone_lengths  # the agent's own skeleton, or None: the training data's
+        stream_decoding(vae, normalizer, bone_lengths)  # ValueError now, not at the first block
         self.device = next(flow.parameters()).device
         self.stride, self.audio_dim = vae.stride, flow.audio_dim
         self.audio_keys = {k: normalizer.stats_key(k) for k in ("agent_audio", "user_audio")}
@@ -188,7 +191,7 @@ class _Models:
 
     def decoding(self) -> StreamDecoding:
         """A new stream's decoding (seams, skeleton, feet: as the VAE config asks)."""
-        return stream_decoding(self.vae, self.normalizer)
+        return stream_decoding(self.vae, self.normalizer, self.bone_lengths)
 
     def decode(self, motion: Tensor, decoding: StreamDecoding, stance: np.ndarray | None,
                user: np.ndarray) -> np.ndarray:
@@ -212,12 +215,14 @@ class StreamingGenerator:
 
     Only past and current inputs are used: ``step`` sees the chunk it is given and what earlier
     calls gave. The flow's context is the last ``kept_history(flow, config)`` latents plus the new one.
+    ``anchor`` puts the generation frame in the world; ``bone_lengths`` is the agent's own
+    skeleton, which the decoding puts the motion on (``decoding.stream_decoding``).
     """
 
     def __init__(self, vae: CausalVAE, flow: FlowModel, normalizer: Normalizer,
                  config: StreamConfig = StreamConfig(),
-                 anchor: WindowTransform | None = None) -> None:
-        self._m = _Models(vae, flow, normalizer, config, anchor)
+                 anchor: WindowTransform | None = None, bone_lengths=None) -> None:
+        self._m = _Models(vae, flow, normalizer, config, anchor, bone_lengths)
         self.config = config
         self.gaze = config.gaze
         self.reset()
@@ -394,17 +399,18 @@ def step_together(generators: Sequence[StreamingGenerator],
 @torch.inference_mode()
 def generate_offline(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer,
                      user_head, agent_audio, user_audio, config: StreamConfig = StreamConfig(),
-                     anchor: WindowTransform | None = None) -> np.ndarray:
+                     anchor: WindowTransform | None = None, bone_lengths=None) -> np.ndarray:
     """The paper's offline protocol: all K = T/s tokens denoised jointly (causal mask, same
     solver, guidance and per-token noise as streaming); returns world motion (T, Dx)."""
     return offline_with_latents(vae, flow, normalizer, user_head, agent_audio, user_audio,
-                                config, anchor)[0]
+                                config, anchor, bone_lengths)[0]
 
 
 @torch.inference_mode()
 def offline_with_latents(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer,
                          user_head, agent_audio, user_audio, config: StreamConfig = StreamConfig(),
-                         anchor: WindowTransform | None = None) -> tuple[np.ndarray, Tensor]:
+                         anchor: WindowTransform | None = None,
+                         bone_lengths=None) -> tuple[np.ndarray, Tensor]:
     """``generate_offline``'s motion and the standardized latents it decoded (K, Dz)."""
     t = len(user_head)
     if t == 0 or t % vae.stride:
@@ -412,8 +418,8 @@ def offline_with_latents(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer
                          f"got {t}")
     if flow.config.user_relative:
         return _offline_by_blocks(vae, flow, normalizer, user_head, agent_audio, user_audio,
-                                  config, anchor)
-    m = _Models(vae, flow, normalizer, config, anchor)
+                                  config, anchor, bone_lengths)
+    m = _Models(vae, flow, normalizer, config, anchor, bone_lengths)
     floor = m.user_floor(user_head, None)
     cond = m.condition(floor, agent_audio, user_audio, config.gaze)
     generator = torch.Generator().manual_seed(config.seed)
@@ -426,14 +432,14 @@ def offline_with_latents(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer
 
 def _offline_by_blocks(vae: CausalVAE, flow: FlowModel, normalizer: Normalizer, user_head,
                        agent_audio, user_audio, config: StreamConfig,
-                       anchor: WindowTransform | None) -> tuple[np.ndarray, Tensor]:
+                       anchor: WindowTransform | None, bone_lengths) -> tuple[np.ndarray, Tensor]:
     """The offline protocol for a flow that reads where its agent stands: each block needs the
     decoded frames before it, so the joint solve runs as the stream that equals it, trajectory
     imputation over everything the flow's attention reaches."""
     s = vae.stride
     stream = StreamingGenerator(vae, flow, normalizer,
                                 replace(config, imputation="trajectory", history_tokens=None),
-                                anchor)
+                                anchor, bone_lengths)
     motion, latents = [], []
     for i in range(0, len(user_head), s):
         motion.append(stream.step(user_head[i:i + s], agent_audio[i:i + s], user_audio[i:i + s]))
