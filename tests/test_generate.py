@@ -89,6 +89,9 @@ def test_raw_files_end_to_end(run_dir, raw, tmp_path, capsys):
     assert data["agent_speaking"].shape == (FRAMES,) and data["agent_speaking"].dtype == bool
     settings = json.loads(str(data["settings"]))
     assert settings["stream"]["steps"] == 4 and settings["stream"]["cfg_scale"] == 1.3
+    # Whose bones: this model's decoding keeps none (the paper's), and the line says so.
+    assert settings["skeleton"].startswith("the decoder's own bones")
+    assert f"skeleton: {settings['skeleton']}" in printed
     assert str(data["source_kind"]) == "raw"
     with Image.open(out / "topview.png") as png:
         assert png.format == "PNG" and png.size[0] > 100

@@ -81,7 +81,7 @@ SKELETONS = {
     "agent": "the agent's own where the input has a person (a shard window's rest skeleton), so "
              "that the motion is the body its export poses; else the training data's",
     "training": "the training data's mean bone lengths, whoever the agent is (what sarah-eval "
-                "scores by default)",
+                "scores)",
 }
 
 
