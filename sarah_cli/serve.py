@@ -54,8 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--speed", choices=MODES, default="fp32",
                         help="inference fast path: " + "; ".join(f"{k}: {v}" for k, v in MODE_HELP.items()))
     parser.add_argument("--body-model", type=Path, default=None,
-                        help="a SMPL-X .npz: sessions that open with smplx: true also get SMPL-X "
-                             "parameters per frame (this model's body with zero betas)")
+                        help="a SMPL-X .npz: the live agent is this model's body with zero "
+                             "betas (every session's motion on its bones), and sessions that "
+                             "open with smplx: true also get its SMPL-X parameters per frame")
     parser.add_argument("--imputation", choices=IMPUTATIONS, default=d.imputation,
                         help=IMPUTATION_HELP + " (every session's)")
     parser.add_argument("--guide", type=guided_modalities, default="all",

@@ -425,6 +425,37 @@ def test_smplx_parameters_on_request(server, procedural_model_path):
 
 
 
+def test_a_server_with_a_body_animates_that_body(procedural_model_path):
+    """--body-model: the live agent is that body, its motion decoded on its bones (those its
+    SMPL-X parameters pose) for every session; without one, on the training data's. The shipped
+    model, whose decoding keeps bone lengths, streamed one chunk of 8 frames each way."""
+    from sarah_data.export.motion import neutral_shape
+    from sarah_data.skeleton import MotionLayout, bone_lengths
+    from sarah_models.generation.inputs import make_extractor
+    from sarah_models.pretrained import model_path
+    from sarah_models.serving.protocol import Chunk, OpenRequest
+    from sarah_models.serving.server import LiveSession
+    from sarah_models.training.model_file import load_model_file
+
+    models = load_model_file(model_path("fixture-tiny"), device="cpu")
+    body = neutral_shape(procedural_model_path)
+    layout = MotionLayout()
+    wave = (0.1 * np.sin(np.arange(8 * SAMPLES_PER_FRAME) / 20.0)).astype(np.float32)
+    pushed = Chunk(0, np.tile(np.float32([[0.5, 1.5]]), (8, 1)), wave, wave)
+    lengths = {}
+    for name, given in (("body", body), ("none", None)):
+        session = LiveSession(models, OpenRequest(smplx=given is not None), StreamConfig(),
+                              make_extractor(models.features), given)
+        header, arrays = session.push(pushed)
+        joints = dict(zip((a["name"] for a in header["arrays"]), arrays))["joint_positions"]
+        assert len(joints) == 8
+        lengths[name] = bone_lengths(joints.astype(np.float64), layout.bones)
+    np.testing.assert_allclose(lengths["body"], np.broadcast_to(
+        layout.rest_bone_lengths(body.rest_joints), lengths["body"].shape), atol=1e-4)
+    np.testing.assert_allclose(lengths["none"], np.broadcast_to(
+        models.normalizer.bone_length_mean.double().numpy(), lengths["none"].shape), atol=1e-4)
+
+
 def test_smplx_without_a_body_model_is_refused_by_name(run_dir):
     plain = RunningServer(run_dir)
     try:
