@@ -81,7 +81,7 @@ def test_the_body_follows_the_joints_whatever_the_rotations_say(truth, seed):
 
 def test_the_head_faces_where_the_motions_head_faces_whatever_its_face_joints_say(truth):
     """The gaze is the head's facing. A decoder places the jaw and the eyes, points 3-12 cm
-    from the head, loosely (the shipped model's demo window: the eyes ~40 degrees around the head
+    from the head, loosely (a window of the shipped model's: the eyes ~40 degrees around the head
     from where its rotation puts them, the jaw pointing backward); the body turned onto them
     faced away from the motion's head and lost its gaze. The file's head is the motion's."""
     from sarah_data.export.kinematics import forward_kinematics
