@@ -3,7 +3,7 @@
 Sources: motion.npz files written by sarah-generate, or one person of a prepared sequence
 (--shards with --sequence). Each source gives <out>/<name>.smplx.npz, <out>/<name>.bvh and
 <out>/<name>.glb (or those --format names), and one line each with the joint residual between
-the motion and the exported rigid body.
+the motion and the exported rigid body, and how far the body's head turns from the motion's.
 """
 
 from __future__ import annotations

@@ -52,3 +52,9 @@ def best_rotation(source: np.ndarray, target: np.ndarray) -> np.ndarray:
     flip = np.ones(cross.shape[:-1])
     flip[..., -1] = np.sign(np.linalg.det(left @ right))
     return (left * flip[..., None, :]) @ right
+
+
+def rotation_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(...) degrees of the rotation between rotations ``a`` and ``b`` (..., 3, 3)."""
+    cos = (np.trace(np.swapaxes(a, -1, -2) @ b, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))

@@ -79,7 +79,7 @@ def test_the_body_follows_the_joints_whatever_the_rotations_say(truth, seed):
     assert angle.max() < 25.0 + 1e-6
 
 
-def test_the_head_faces_where_the_motions_head_faces_whatever_its_face_joints_say(truth):
+def test_the_head_faces_where_the_motions_head_faces_whatever_its_face_joints_say(truth, monkeypatch):
     """The gaze is the head's facing. A decoder places the jaw and the eyes, points 3-12 cm
     from the head, loosely (a window of the shipped model's: the eyes ~40 degrees around the head
     from where its rotation puts them, the jaw pointing backward); the body turned onto them
@@ -105,7 +105,13 @@ def test_the_head_faces_where_the_motions_head_faces_whatever_its_face_joints_sa
     # The neck is the motion's too: it does not swing to reach a head placed off it.
     neck = JOINT["neck"]
     np.testing.assert_allclose(posed[:, neck], rotations[:, neck], atol=1e-9)
+    # So the head sits where the neck's rotation carries it, not 5 cm off with the loose joint.
     np.testing.assert_allclose(fit.positions[:, head], joints[:, head], atol=1e-6)
+    # The export line says where the file's head looks against the motion's: turned onto these
+    # face joints, as the ninety-seventh run's fit did, tens of degrees away.
+    assert fit.head_turn.max() < 1e-5 and "head 0.0 degrees from the motion's" in fit.summary()
+    monkeypatch.setattr("sarah_data.export.kinematics.KEEP_ROTATION", ())
+    assert fit_skeleton(loose, rotations, rest).head_turn.mean() > 20.0
 
 
 @pytest.mark.parametrize("scale", [1.03, 0.97])

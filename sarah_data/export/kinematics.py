@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sarah_data.constants import JOINT, JOINT_PARENTS
-from sarah_data.bone_turns import best_rotation, shortest_rotation
+from sarah_data.bone_turns import best_rotation, rotation_angle, shortest_rotation
 from sarah_data.two_bone_ik import two_bone_ik
 
 # What a body follows: the motion's joints (its rotations turned onto them) or its rotations alone.
@@ -165,11 +165,17 @@ class SkeletonFit:
     positions: np.ndarray  # (T, J, 3) the rigid body's joints (forward kinematics)
     residual: np.ndarray  # (T,) per frame, mean distance (m) to the motion's own joints
     residual_max: np.ndarray  # (T,) per frame, largest distance (m)
+    # (T,) per frame, degrees between the body's head and the motion's: where it looks
+    head_turn: np.ndarray
     pose_from: str = "joints"  # what the body follows (``POSE_SOURCES``)
 
     def summary(self) -> str:
+        # The head's turn is on the line because the gaze is the head's facing: a fit that
+        # turned it onto the face joints faced ~100 degrees away and no figure said so
+        # (docs/results.md, ninety-eighth run).
         return (f"joint residual to the motion: mean {1000 * self.residual.mean():.3f} mm, "
-                f"worst frame {1000 * self.residual_max.max():.3f} mm")
+                f"worst frame {1000 * self.residual_max.max():.3f} mm; head "
+                f"{self.head_turn.mean():.1f} degrees from the motion's (mean)")
 
 
 def fit_skeleton(positions: np.ndarray, rotations: np.ndarray, rest_joints: np.ndarray,
@@ -183,10 +189,13 @@ def fit_skeleton(positions: np.ndarray, rotations: np.ndarray, rest_joints: np.n
         raise ValueError(f"pose_from must be one of {POSE_SOURCES}, got {pose_from!r}")
     positions = np.asarray(positions, dtype=np.float64)
     root = positions[:, 0]
+    head = JOINT["head"]
+    given_head = np.asarray(rotations, dtype=np.float64)[:, head]
     if pose_from == "joints":
         rotations, root = aim_rotations(positions, rotations, rest_joints, parents)
     local = local_rotations(rotations, parents)
-    posed, _ = forward_kinematics(rest_joints, local, root, parents)
+    posed, turned = forward_kinematics(rest_joints, local, root, parents)
     distance = np.linalg.norm(posed - positions, axis=-1)
     return SkeletonFit(np.asarray(rest_joints, np.float64), local, root, posed,
-                       distance.mean(axis=1), distance.max(axis=1), pose_from)
+                       distance.mean(axis=1), distance.max(axis=1),
+                       rotation_angle(given_head, turned[:, head]), pose_from)
