@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -37,6 +38,16 @@ def _agent_start(text: str) -> tuple[float, float, float]:
     if len(values) != 3:
         raise argparse.ArgumentTypeError(f"--agent-start expects X,Z,YAW_DEG, got {text!r}")
     return values  # type: ignore[return-value]
+
+
+def _betas(text: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(p) for p in text.split(","))
+    except ValueError:
+        values = ()
+    if not values or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"--betas expects comma-separated numbers, got {text!r}")
+    return values
 
 
 def _option(text: str) -> tuple[str, object]:
@@ -83,6 +94,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--skeleton", choices=tuple(SKELETONS), default="agent",
                         help="whose bones the motion is decoded on: " + "; ".join(
                             f"{k}: {v}" for k, v in SKELETONS.items()))
+    parser.add_argument("--body-model", type=Path, default=None,
+                        help="a SMPL-X .npz: the agent is this model's body with --betas (an "
+                             "avatar's), for raw inputs or in place of a shard window's person: "
+                             "the motion is decoded on its bones and motion.npz carries it for "
+                             "sarah-export")
+    parser.add_argument("--betas", type=_betas, default=None,
+                        help="B1,B2,...: the --body-model body's shape (default: zeros; fewer "
+                             "than the model has are padded with zeros)")
     parser.add_argument("--speed", choices=MODES, default="fp32",
                         help="inference fast path: " + "; ".join(f"{k}: {v}" for k, v in MODE_HELP.items())
                              + " (int8 stays within 1 mm of fp32; see docs/performance.md)")
@@ -133,6 +152,8 @@ def main(argv: list[str] | None = None) -> int:
         problems.append(f"--frames must be >= 1, got {args.frames}")
     if args.start is not None and args.start < 0:
         problems.append(f"--start must be >= 0, got {args.start}")
+    if args.betas is not None and args.body_model is None:
+        problems.append("--betas needs --body-model (the SMPL-X file whose shape they are)")
     if args.device is not None:
         from sarah_data.config import device_problems
 
@@ -147,7 +168,8 @@ def main(argv: list[str] | None = None) -> int:
             agent_audio=args.agent_audio, user_audio=args.user_audio,
             agent_start=args.agent_start, feature_options=dict(args.feature_option),
             offline=args.offline, animation=not args.no_animation, speed=args.speed, pad=args.pad,
-            threads=args.threads, skeleton=args.skeleton)
+            threads=args.threads, skeleton=args.skeleton, body_model=args.body_model,
+            betas=args.betas)
     except (GenerateError, DataProblem) as exc:
         print(f"sarah-generate: error: {exc}", file=sys.stderr)
         return EXIT_ERROR

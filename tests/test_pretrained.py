@@ -103,6 +103,36 @@ def test_the_pretrained_model_follows_the_gaze_dial_on_unseen_fixtures(prepared_
     assert gaze[1.0] - gaze[0.0] >= 0.3, gaze
 
 
+def test_an_avatar_given_by_its_body_model_and_betas_is_the_body_generated(prepared_shards, tmp_path,
+                                                                         procedural_model_path, capsys):
+    """--body-model --betas: a conversation of a captured window played by an avatar: the
+    motion on the avatar's bones, motion.npz carrying its betas for sarah-export."""
+    from sarah_data.export.motion import avatar_shape
+
+    out = tmp_path / "avatar"
+    assert generate(["--pretrained", NAME, "--shards", str(prepared_shards), "--split", "test",
+                     "--frames", "40", "--seed", "0", "--threads", "1", "--no-animation",
+                     "--device", "cpu", "--body-model", str(procedural_model_path),
+                     "--betas", "1.5,-0.5", "--out", str(out)]) == 0
+    assert "skeleton: the avatar's (betas [1.5, -0.5] of" in capsys.readouterr().out
+    avatar = avatar_shape(procedural_model_path, [1.5, -0.5])
+    with np.load(out / "motion.npz", allow_pickle=False) as data:
+        joints = data["joint_positions"]
+        np.testing.assert_allclose(data["betas"][:2], [1.5, -0.5])
+        np.testing.assert_allclose(data["rest_joints"], avatar.rest_joints, atol=1e-6)
+    bones = MotionLayout().bones
+    np.testing.assert_allclose(bone_lengths(joints, bones), np.broadcast_to(
+        MotionLayout().rest_bone_lengths(avatar.rest_joints), (len(joints), len(bones))), atol=1e-4)
+    # Betas with no body model, or more than the model has, are one line before any work.
+    assert generate(["--pretrained", NAME, "--betas", "1", "--out", str(tmp_path / "x")]) == 2
+    assert "--betas needs --body-model" in capsys.readouterr().err
+    assert generate(["--pretrained", NAME, "--shards", str(prepared_shards), "--split", "test",
+                     "--body-model", str(procedural_model_path), "--betas", ",".join(["1"] * 401),
+                     "--out", str(tmp_path / "y")]) == 2
+    assert "401 betas for a model of" in capsys.readouterr().err
+    assert not (tmp_path / "y").exists()
+
+
 def _assert_feet_follow_the_ankles(joints: np.ndarray) -> None:
     """The foot joints stay on the legs (an SMPL-X ankle-to-foot bone is ~14 cm) and move with
     them. The model shipped before the fifteenth run (docs/results.md) failed both: trained with

@@ -67,15 +67,28 @@ MOTION_KEYS = ("joint_positions", "joint_rotations")
 def neutral_shape(body_model: str | Path, why: str = "") -> BodyShape:
     """Zero betas and the rest skeleton they give with ``body_model`` (a SMPL-X .npz): the body
     of motion that belongs to no captured person. ExportError when the file cannot be loaded."""
+    return avatar_shape(body_model, None, why)
+
+
+def avatar_shape(body_model: str | Path, betas=None, why: str = "") -> BodyShape:
+    """``betas`` (zero when None; fewer than the model has are padded with zeros) and the rest
+    skeleton they give with ``body_model`` (a SMPL-X .npz): an avatar's body. ExportError when
+    the file cannot be loaded or the betas do not fit it."""
     from sarah_data.body import BodyModel
 
     try:
         model = BodyModel.from_file(body_model, device="cpu")
     except Exception as error:  # noqa: BLE001 - any unreadable model file is one line
         raise ExportError(body_model, f"cannot load as a SMPL-X model ({error})") from None
-    betas = np.zeros(model.num_betas)
-    source = f"neutral zero betas of {model.name}" + (f" ({why})" if why else "")
-    return BodyShape(betas, model.rest_joints(betas), model.gender, source)
+    given = np.zeros(0) if betas is None else np.asarray(betas, dtype=np.float64).reshape(-1)
+    if len(given) > model.num_betas or not np.isfinite(given).all():
+        raise ExportError(body_model, f"{len(given)} betas for a model of {model.num_betas} shape "
+                                      f"components (finite numbers, at most that many)")
+    full = np.zeros(model.num_betas)
+    full[:len(given)] = given
+    kind = "neutral zero betas" if not given.any() else f"betas {np.round(given, 3).tolist()}"
+    source = f"{kind} of {model.name}" + (f" ({why})" if why else "")
+    return BodyShape(full, model.rest_joints(full), model.gender, source)
 
 
 def motion_from_file(path: str | Path) -> ExportMotion:

@@ -78,24 +78,27 @@ def load_run(run: str | Path, checkpoint: str | Path | None = None,
 
 # Whose bones the decoding puts the generated motion on (``sampling.decoding.stream_decoding``).
 SKELETONS = {
-    "agent": "the agent's own where the input has a person (a shard window's rest skeleton), so "
-             "that the motion is the body its export poses; else the training data's",
+    "agent": "the agent's own: --body-model's, else a shard window's person's rest skeleton, so "
+             "that the motion is the body its export poses; else (raw inputs) the training data's",
     "training": "the training data's mean bone lengths, whoever the agent is (what sarah-eval "
                 "scores)",
 }
 
 
-def skeleton_of(models: LoadedModels, inputs: Inputs, skeleton: str) -> tuple[np.ndarray | None, str]:
+def skeleton_of(models: LoadedModels, inputs: Inputs, skeleton: str,
+                avatar=None) -> tuple[np.ndarray | None, str]:
     """The agent's bone lengths the decoding takes (None: the training data's) and a phrase
-    saying whose bones the motion is on."""
+    saying whose bones the motion is on: ``avatar``'s (a ``BodyShape``: --body-model) where
+    given, else the input's person's."""
     if not takes_bone_lengths(models.vae):
         return None, "the decoder's own bones (this model's decoding keeps no bone lengths)"
-    rest = (inputs.body_shape or {}).get("rest_joints")
+    rest = avatar.rest_joints if avatar is not None else (inputs.body_shape or {}).get("rest_joints")
     if skeleton == "training" or rest is None:
         why = "" if skeleton == "training" else " (the input has no person's body)"
         return None, "the training data's mean bone lengths" + why
-    layout = MotionLayout.from_width(models.vae.motion_dim)
-    return layout.rest_bone_lengths(rest), "the agent's own (its rest skeleton in the shards)"
+    whose = (f"the avatar's ({avatar.source})" if avatar is not None
+             else "the agent's own (its rest skeleton in the shards)")
+    return MotionLayout.from_width(models.vae.motion_dim).rest_bone_lengths(rest), whose
 
 
 def generate(models: LoadedModels, inputs: Inputs, config: StreamConfig, offline: bool = False,
@@ -170,14 +173,16 @@ def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
         agent_start: tuple[float, float, float] = (0.0, 0.0, 0.0),
         feature_options: dict[str, Any] | None = None, offline: bool = False, pad: bool = False,
         animation: bool = True, speed: str = "fp32", threads: int | None = None,
-        skeleton: str = "agent", echo: Callable[[str], None] = print) -> Summary:
+        skeleton: str = "agent", body_model: str | Path | None = None, betas=None,
+        echo: Callable[[str], None] = print) -> Summary:
     """Everything ``sarah-generate`` does: load, read inputs, generate, write, plot.
 
     speed: the inference fast path of ``accel.optimize_for_inference`` ("fp32" is exact; "int8"
     stays within 1 mm of it and is the real-time setting on a CPU; "none" the plain models).
     threads: intra-op threads on a CPU; None picks them from the cores other processes leave
     free (``accel.ThreadPolicy``), re-measured while streaming. skeleton: whose bones the motion
-    is on (``SKELETONS``)."""
+    is on (``SKELETONS``). body_model, betas: the agent is that SMPL-X body (an avatar's) in
+    place of the input's person (``sarah_data.export.motion.avatar_shape``)."""
     from ..accel import ThreadPolicy, optimize_for_inference
     from ..accel.threads import stream_probe
     from .plots import animate_skeleton, plot_topview
@@ -188,6 +193,11 @@ def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
         raise GenerateError(str(exc)) from None
     if skeleton not in SKELETONS:
         raise GenerateError(f"unknown skeleton {skeleton!r}; choose from {', '.join(SKELETONS)}")
+    avatar = None
+    if body_model is not None:  # read before any generating work: a bad file is one line now
+        from sarah_data.export.motion import avatar_shape
+
+        avatar = avatar_shape(body_model, betas, "sarah-generate --body-model")
     models, ckpt = load_run(run_dir, checkpoint, device)
     if speed != "none":
         models = optimize_for_inference(models, mode=speed, stream_config=config)
@@ -210,6 +220,9 @@ def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
         for warning in warnings:
             echo(f"warning: {warning}")
         extractor = make_extractor(models.features, feature_options)
+    if avatar is not None:
+        inputs.body_shape = {"betas": avatar.betas, "rest_joints": avatar.rest_joints,
+                             "gender": avatar.gender, "body_shape_source": avatar.source}
     where = (f"{inputs.source['sequence']} (agent {inputs.source['agent']}, from frame "
              f"{inputs.source['start']})" if shards is not None else "raw files")
     policy, on = None, str(next(models.flow.parameters()).device)
@@ -218,7 +231,7 @@ def run(run_dir: str | Path, out: str | Path, config: StreamConfig, *,
         if not offline:
             policy.calibrate(stream_probe(models, config))
         on = f"cpu, threads {policy.describe()}"
-    bone_lengths, bones = skeleton_of(models, inputs, skeleton)
+    bone_lengths, bones = skeleton_of(models, inputs, skeleton, avatar)
     echo(f"checkpoint {ckpt} (step {models.step}, features {models.features!r}) on "
          f"{on}; {inputs.frames} frames of {where}; skeleton: {bones}")
     result = generate(models, inputs, config, offline, extractor, policy, bone_lengths)
