@@ -86,7 +86,8 @@ def avatar_shape(body_model: str | Path, betas=None, why: str = "") -> BodyShape
                                       f"components (finite numbers, at most that many)")
     full = np.zeros(model.num_betas)
     full[:len(given)] = given
-    kind = "neutral zero betas" if not given.any() else f"betas {np.round(given, 3).tolist()}"
+    shown = ", ".join(f"{b:.4g}" for b in given[:4]) + (", ..." if len(given) > 4 else "")
+    kind = "neutral zero betas" if not given.any() else f"betas [{shown}]"
     source = f"{kind} of {model.name}" + (f" ({why})" if why else "")
     return BodyShape(full, model.rest_joints(full), model.gender, source)
 
