@@ -21,7 +21,7 @@ from sarah_data.gaze import FACING_AXIS
 from sarah_data.skeleton import HEAD, MotionLayout
 
 from ..config import StreamConfig, check_gaze
-from ..sampling.decoding import takes_bone_lengths
+from ..sampling.decoding import body_bone_lengths, takes_bone_lengths
 from ..sampling.stream import StreamingGenerator, StreamingSession, offline_with_latents
 from ..training.checkpoint import LoadedModels, load_models
 from ..training.model_file import MODEL_FILE, flow_source, load_model_file
@@ -98,7 +98,7 @@ def skeleton_of(models: LoadedModels, inputs: Inputs, skeleton: str,
         return None, "the training data's mean bone lengths" + why
     whose = (f"the avatar's ({avatar.source})" if avatar is not None
              else "the agent's own (its rest skeleton in the shards)")
-    return MotionLayout.from_width(models.vae.motion_dim).rest_bone_lengths(rest), whose
+    return body_bone_lengths(models.vae, rest), whose
 
 
 def generate(models: LoadedModels, inputs: Inputs, config: StreamConfig, offline: bool = False,

@@ -89,6 +89,15 @@ def takes_bone_lengths(vae) -> bool:
     return bool(vae.config.rigid_bones)
 
 
+def body_bone_lengths(vae, rest_joints) -> np.ndarray | None:
+    """The bone lengths this VAE's decoding takes for a body whose rest joints (55, 3) are
+    ``rest_joints`` (an avatar's, a shard person's): ``stream_decoding``'s ``bone_lengths``; None
+    where the decoding keeps no lengths (``takes_bone_lengths``)."""
+    if not takes_bone_lengths(vae):
+        return None
+    return MotionLayout.from_width(vae.motion_dim).rest_bone_lengths(rest_joints)
+
+
 def skeleton_lengths(normalizer) -> np.ndarray:
     """The training data's bone lengths the model carries (metres, ``MotionLayout.bones``
     order); ValueError when it carries none."""
@@ -103,7 +112,7 @@ def skeleton_lengths(normalizer) -> np.ndarray:
 def stream_decoding(vae, normalizer, bone_lengths=None) -> StreamDecoding:
     """A new stream's decoding for this VAE's output (its normalizer carries the training data's
     skeleton). ``bone_lengths``: the agent's own (metres, ``MotionLayout.bones`` order:
-    ``MotionLayout.rest_bone_lengths`` of an avatar's rest joints, ``MotionLayout.motion_bone_lengths``
+    ``body_bone_lengths`` of an avatar's rest joints, ``MotionLayout.motion_bone_lengths``
     of a captured person's motion), which the rigid skeleton and the foot lock put the motion on in
     place of the training data's, the body lowered or raised by its legs' length
     (``rigid_skeleton.leg_height_change``); None: the training data's. Only a chain that puts

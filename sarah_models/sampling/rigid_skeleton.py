@@ -67,14 +67,13 @@ def leg_height_change(layout: MotionLayout, lengths, reference) -> float:
     part of a standing body's height its legs hold (the hip bones point two thirds down: taken
     whole, they leave a smaller body's knees a few millimetres more bent rather than its ankles
     short of the decoder's); 0 for a layout without legs or a pelvis."""
-    if not legs(layout, lengths) or ROOT not in layout.joint_names:
+    if ROOT not in layout.joint_names:
         return 0.0
     root, index = layout.joint(ROOT), {bone: i for i, bone in enumerate(layout.bones)}
-    change = []
-    for hip, knee, ankle, *_ in legs(layout, lengths):
-        chain = [index[(hip, root)], index[(knee, hip)], index[(ankle, knee)]]
-        change.append(np.sum(np.asarray(lengths)[chain]) - np.sum(np.asarray(reference)[chain]))
-    return float(np.mean(change))
+    difference = np.asarray(lengths) - np.asarray(reference)
+    change = [difference[[index[(hip, root)], index[(knee, hip)], index[(ankle, knee)]]].sum()
+              for hip, knee, ankle, *_ in legs(layout, lengths)]
+    return float(np.mean(change)) if change else 0.0
 
 
 class RigidSkeleton:

@@ -61,6 +61,7 @@ from .decoding import (StreamDecoding, decoded_stance, decoder_frames, reads_sta
                        stream_decoding)
 from .guidance import branches_run, combine, drop_masks, scale_at
 from .path import velocity_from_x1
+from .rigid_skeleton import check_lengths
 from .solver import imputer, integrate, replayer, token_noise
 
 IDENTITY = WindowTransform(0.0, 0.0, 0.0)
@@ -143,11 +144,12 @@ class _Models:
         if "latent" not in normalizer.keys:
             raise ValueError("the normalizer has no 'latent' statistics: generation needs a "
                              "flow-stage checkpoint")
-        MotionLayout.from_width(vae.motion_dim)  # ValueError naming the width if it is not ours
+        layout = MotionLayout.from_width(vae.motion_dim)  # ValueError naming a width not ours
         self.vae, self.flow, self.normalizer, self.config = vae, flow, normalizer, config
         self.anchor = IDENTITY if anchor is None else anchor
         self.bone_lengths = bone_lengths  # the agent's own skeleton, or None: the training data's
-        stream_decoding(vae, normalizer, bone_lengths)  # ValueError now, not at the first block
+        if bone_lengths is not None:  # ValueError now, not after an offline solve
+            check_lengths(layout, bone_lengths, "the agent's ")
         self.device = next(flow.parameters()).device
         self.stride, self.audio_dim = vae.stride, flow.audio_dim
         self.audio_keys = {k: normalizer.stats_key(k) for k in ("agent_audio", "user_audio")}

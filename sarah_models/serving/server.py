@@ -32,7 +32,7 @@ from ..accel.threads import ThreadPolicy, stream_probe
 from ..config import StreamConfig
 from ..generation.inputs import agent_anchor, make_extractor
 from ..generation.outputs import head_gaze
-from ..sampling.decoding import takes_bone_lengths
+from ..sampling.decoding import body_bone_lengths
 from ..sampling.stream import StreamingGenerator, StreamingSession, push_together
 from .protocol import (AUDIO_FORMATS, MAX_CHUNK_FRAMES, VERSION, Chunk, OpenRequest, ProtocolError,
                        pack, parse_chunk, parse_gaze, parse_open, parse_text)
@@ -81,9 +81,7 @@ class LiveSession:
         self.request = request
         # A server with a body (--body-model) animates that body: the motion is decoded on its
         # bones, the ones its SMPL-X parameters pose, whether or not this client asks for them.
-        bones = None
-        if body is not None and takes_bone_lengths(models.vae):
-            bones = MotionLayout.from_width(models.vae.motion_dim).rest_bone_lengths(body.rest_joints)
+        bones = None if body is None else body_bone_lengths(models.vae, body.rest_joints)
         generator = StreamingGenerator(models.vae, models.flow, models.normalizer, config,
                                        agent_anchor(request.agent_start), bones)
         self.stream = StreamingSession(generator, extractor, keep_features=False)
