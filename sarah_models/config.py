@@ -248,6 +248,13 @@ class VAEConfig:
     # training data's length along its decoded direction (``sampling.rigid_skeleton``); the
     # decoder alone stretches bones by ~30 % (docs/results.md, seventeenth run).
     rigid_bones: bool = False
+    # Not in the paper: with ``rigid_bones``, the head, the jaw and the eyes placed along the
+    # direction their parent's decoded rotation gives their bone, not along the decoded one
+    # (``sampling.rigid_skeleton.SKULL``): decoded, these 3-12 cm bones pointed 65-90 degrees
+    # off on the demo's clip, the head jutting from the neck and the eyes around the head
+    # (docs/results.md, ninety-ninth run). False: every bone along its decoded direction, as
+    # until then.
+    rigid_skull: bool = True
     # Not in the paper (0 = off): lock planted feet, stepping when the decoded foot has moved
     # this many metres away (``sampling.foot_lock``); decoded feet glide and jitter.
     foot_lock: float = 0.0
@@ -532,7 +539,7 @@ class FlowConfig:
 # Config fields that change how a model decodes, not its weights: a model file may be written
 # again with other values, nothing trained (``sarah-train --stage model``), and a fine-tune may
 # change them.
-DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "seam_mode", "rigid_bones",
+DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "seam_mode", "rigid_bones", "rigid_skull",
                            "foot_lock", "foot_swing_frames", "foot_lock_reads", "stance_reach",
                            "foot_step",
                            "root_hold", "root_hold_reads", "root_hold_turn", "limb_lowpass")}

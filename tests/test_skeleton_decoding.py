@@ -15,7 +15,8 @@ from sarah_data.stats import load_stats
 from sarah_models.evaluation.metrics import foot_slide
 from sarah_models.sampling.foot_lock import (FREE_HEIGHT, LIFT, RELEASE, STANCE_LIFT,
                                              STANCE_SWING_FRAMES, SWING_FRAMES, FootLock)
-from sarah_models.sampling.rigid_skeleton import RigidSkeleton, ShellFollow
+from sarah_data.icosahedron import decode
+from sarah_models.sampling.rigid_skeleton import SKULL, RigidSkeleton, ShellFollow, skull_directions
 
 FEET = [JOINT["left_foot"], JOINT["right_foot"]]
 
@@ -201,6 +202,87 @@ def test_a_forearm_put_back_at_its_length_carries_the_hand_no_further_than_the_w
     assert past_wrist.sum() >= 3
     np.testing.assert_allclose(moved[:, past_wrist],
                                np.repeat(correction[:, wrist, None], past_wrist.sum(), 1), atol=1e-9)
+
+
+def skull_in_parent_frames(motion: np.ndarray, layout: MotionLayout) -> dict[int, np.ndarray]:
+    """Each skull joint's bone in its parent's decoded frame, (T, 3) per child joint."""
+    positions, rotations = decode(layout.split(np.asarray(motion, np.float64))[0])
+    return {child: np.einsum("tji,tj->ti", rotations[:, parent],
+                             positions[:, child] - positions[:, parent])
+            for child, parent in layout.bones if layout.joint_names[child] in SKULL}
+
+
+def test_the_skulls_directions_come_from_the_mean_motion_root_relative_or_not(windows, prepared_shards):
+    # A body is rigid: averaged over any frames, its mean vertices give back its bones in their
+    # parents' frames. The training data's mean (stats.h5) gives its persons' skull.
+    layout = MotionLayout.from_width(windows.motion_dim)
+    motion = windows[1]["motion"].numpy().astype(np.float64)
+    found = skull_directions(layout, motion.mean(axis=0))
+    truth = skull_in_parent_frames(motion, layout)
+    assert sorted(found) == sorted(JOINT[name] for name in SKULL)
+    for child, bone in truth.items():
+        np.testing.assert_allclose(found[child], bone[0] / np.linalg.norm(bone[0]), atol=1e-5)  # float32
+    # Root-relative statistics (Normalizer.set_root_relative) move every point but the root's by
+    # the root's floor place: the skull's bones stay.
+    points = motion.reshape(len(motion), -1, 3).copy()
+    root = layout.split(motion)[0][:, layout.joint("pelvis")].mean(axis=-2) * [1.0, 0.0, 1.0]
+    others = np.ones(points.shape[1], bool)
+    others[layout.joint_slice("pelvis").start // 3:layout.joint_slice("pelvis").stop // 3] = False
+    points[:, others] -= root[:, None]
+    relative = skull_directions(layout, points.reshape(len(motion), -1).mean(axis=0))
+    for child in found:
+        np.testing.assert_allclose(relative[child], found[child], atol=1e-9)
+    mean = load_stats(prepared_shards)["motion/mean"]
+    for child, direction in skull_directions(layout, mean).items():
+        assert np.degrees(np.arccos(np.clip(direction @ found[child], -1, 1))) < 2.0
+
+
+def test_the_skull_sits_where_its_parents_rotation_puts_it(windows):
+    # Decoded, the head sat 65 degrees off where the neck's rotation carries it and the eyes
+    # 75 around the head (the demo's clip). Here the head is moved 5 cm and the jaw and the
+    # eyes 4 cm each, their icosahedra's rotations left as they were: the skeleton puts them back.
+    layout = MotionLayout.from_width(windows.motion_dim)
+    motion = windows[3]["motion"].numpy().astype(np.float64)
+    lengths = layout.motion_bone_lengths(motion)
+    shifts = np.zeros((len(motion), 55, 3))
+    rng = np.random.default_rng(1)
+    shifts[:, JOINT["head"]] = [0.0, -0.03, 0.04]
+    for name in ("jaw", "left_eye_smplhf", "right_eye_smplhf"):
+        shifts[:, JOINT[name]] = rng.normal(size=3) * 0.04 / np.sqrt(3)
+    noisy = shift_joints(motion, layout, shifts)
+    skull = skull_directions(layout, motion.mean(axis=0))
+    placed = joints_of(RigidSkeleton(layout, lengths, skull=skull)(noisy), layout)
+    truth = joints_of(motion, layout)
+    for name in SKULL:
+        np.testing.assert_allclose(placed[:, JOINT[name]], truth[:, JOINT[name]], atol=1e-6)
+    # Without the skull's directions, the decoded ones: the head stays off by centimetres.
+    along_decoded = joints_of(RigidSkeleton(layout, lengths)(noisy), layout)
+    assert np.linalg.norm(along_decoded[:, JOINT["head"]] - truth[:, JOINT["head"]], axis=-1).min() > 0.02
+
+
+def test_the_heads_points_move_with_the_head_and_do_not_turn_with_its_bone(windows):
+    # The skull's bones turn onto their parent's rotation, not because the pose changed: the
+    # face the decoder drew around the head goes where the head goes. Turned with the neck's
+    # bone, the demo's head points came 14 cm from the person's head shape, carried 5.5.
+    layout = MotionLayout.from_width(windows.motion_dim)
+    motion = windows[1]["motion"].numpy().astype(np.float64)[:3]
+    icosahedra, shell = layout.split(motion)
+    joints = icosahedra.mean(axis=-2)
+    head, neck = JOINT["head"], JOINT["neck"]
+    correction = np.zeros_like(joints)
+    bone = joints[:, head] - joints[:, neck]
+    sideways = np.cross(bone, [1.0, 0.0, 0.0])
+    correction[:, head] = 0.05 * sideways / np.linalg.norm(sideways, axis=-1, keepdims=True)
+    carried, turned = ShellFollow(layout, carried=(head,)), ShellFollow(layout)
+    moved = carried(shell, joints, correction)
+    on_head = np.all(carried.bones[carried.segment] == (head, neck), axis=-1)
+    past_head = on_head & (np.einsum("pc,c->p", shell[0] - joints[0, neck], bone[0]) > bone[0] @ bone[0])
+    assert past_head.sum() >= 3
+    np.testing.assert_allclose(moved[:, past_head],
+                               np.repeat(correction[:, head, None], past_head.sum(), 1), atol=1e-12)
+    swung = turned(shell, joints, correction)
+    assert np.linalg.norm(swung[:, past_head] - moved[:, past_head], axis=-1).max() > 0.02
+    np.testing.assert_allclose(moved[:, ~on_head], swung[:, ~on_head], atol=1e-12)
 
 
 def test_a_planted_foot_stays_put_while_the_decoder_jitters_and_the_leg_keeps_its_bones(windows, skeleton):

@@ -24,7 +24,7 @@ from ..nn.vae import detail_generator
 from .continuity import SeamInertia
 from .foot_lock import FootLock
 from .limb_lowpass import LimbLowpass
-from .rigid_skeleton import RigidSkeleton, check_lengths
+from .rigid_skeleton import RigidSkeleton, check_lengths, skull_directions
 from .root_hold import RootHold
 
 
@@ -132,7 +132,9 @@ def stream_decoding(vae, normalizer, bone_lengths=None) -> StreamDecoding:
         if bone_lengths is not None and cfg.rigid_bones:
             lengths = check_lengths(layout, bone_lengths, "the agent's ")
         if cfg.rigid_bones:
-            filters.append(RigidSkeleton(layout, lengths, reference))
+            skull = (skull_directions(layout, normalizer.motion_mean.detach().double().cpu().numpy())
+                     if cfg.rigid_skull else None)
+            filters.append(RigidSkeleton(layout, lengths, reference, skull))
         if cfg.foot_lock:
             if reads_stance(vae) and getattr(vae, "stance", None) is None:
                 raise ValueError("vae.foot_lock_reads='stance' needs the VAE's stance head, and "

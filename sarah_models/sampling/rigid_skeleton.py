@@ -15,7 +15,13 @@ legs are than the training data's (``leg_height_change``), so that its knees ben
 ones do over feet where the decoder put them. The legs are the exception: their
 ankles stay where the decoder put them, as far as the legs reach (two-bone inverse kinematics
 on the hips, bending the way the decoded knees bend), and the foot joints at the decoded
-feet's height (``foot_at_its_height``), so that feet stay on the floor. Shell
+feet's height (``foot_at_its_height``), so that feet stay on the floor. The skull is the
+other (``SKULL``, given the training data's mean motion): the head, the jaw and the eyes sit
+3-12 cm from their parents, too near for the decoder's points to say which way, and decoded
+they lay 65-90 degrees around the head from where their parent's decoded rotation puts them
+(the demo's clip; the fingers 10-30, the limbs 6-13), so they are placed as a body places
+them: at their bone's length along the direction that rotation carries the bone to
+(``skull_directions``; docs/results.md, ninety-ninth run). Shell
 points ride their bones (``ShellFollow``): each is carried and turned with the body bone
 nearest it in the stream's first frame, as a skinned mesh's vertices are.
 
@@ -28,11 +34,39 @@ import numpy as np
 
 from sarah_data.bone_turns import shortest_rotation
 from sarah_data.constants import BODY_JOINTS, JOINT_NAMES
+from sarah_data.icosahedron import DEFAULT_RADIUS, axis, decode
 from sarah_data.skeleton import ROOT, MotionLayout
 from sarah_data.two_bone_ik import two_bone_ik
 
 LEGS = (("left_hip", "left_knee", "left_ankle", "left_foot"),
         ("right_hip", "right_knee", "right_ankle", "right_foot"))
+# Joints placed along their bone's direction in their parent's rotation rather than along the
+# decoded one: the head on the neck, the jaw and the eyes on the head (module docstring).
+SKULL = ("head", "jaw", "left_eye_smplhf", "right_eye_smplhf")
+
+
+def skull_directions(layout: MotionLayout, mean_motion) -> dict[int, np.ndarray]:
+    """The training data's bone directions of the skull in their parents' frames, from its mean
+    motion vector (the normalizer's ``motion`` mean): ``{child joint: (3,) unit vector}`` for
+    each of ``SKULL`` whose parent is in ``layout``.
+
+    A joint's icosahedron axes are linear in its vertices (``icosahedron.axis``), so the mean
+    vertices give M, the mean of the parent's rotation over the frames, and the mean bone is M
+    times the bone in the parent's frame: solved for it, exact for a rigid body whatever poses
+    the frames hold (the fixtures' training persons' mean rest skeleton to 0.1 mm, ninety-ninth
+    run). The skull's parents are not the root, so a root-relative mean (``Normalizer
+    .set_root_relative``: every other point less the root's floor place) gives the same bones."""
+    mean = np.asarray(mean_motion, dtype=np.float64)
+    icosahedra, _ = layout.split(mean)
+    centres = icosahedra.mean(axis=-2)
+    out = {}
+    for child, parent in layout.bones:
+        if layout.joint_names[child] not in SKULL or layout.joint_names[parent] == ROOT:
+            continue
+        rotation = np.stack([axis(icosahedra[parent], c) for c in range(3)], axis=-1) / DEFAULT_RADIUS
+        bone = np.linalg.solve(rotation, centres[child] - centres[parent])
+        out[child] = bone / np.linalg.norm(bone)
+    return out
 
 
 def legs(layout: MotionLayout, lengths) -> list[tuple]:
@@ -82,9 +116,12 @@ class RigidSkeleton:
     another stream): each shell point rides the bone nearest it in the first frame.
     ``reference``: the lengths of the body the decoder's motion was made for (the training
     data's) where ``lengths`` are another body's (an agent's own): the body moves up or down by
-    ``leg_height_change`` from it; None: ``lengths`` are that body's."""
+    ``leg_height_change`` from it; None: ``lengths`` are that body's. ``skull``:
+    ``skull_directions``, which places those joints by their parent's decoded rotation; None:
+    along their decoded directions, as every other bone."""
 
-    def __init__(self, layout: MotionLayout, lengths, reference=None) -> None:
+    def __init__(self, layout: MotionLayout, lengths, reference=None,
+                 skull: dict[int, np.ndarray] | None = None) -> None:
         lengths = check_lengths(layout, lengths)
         self.layout, self.lengths = layout, lengths
         self.root = layout.joint(ROOT) if ROOT in layout.joint_names else None
@@ -95,12 +132,17 @@ class RigidSkeleton:
         for child, parent in layout.bones:
             depth[child] = depth.get(parent, 0) + 1
         self._levels = []
+        skull = skull or {}
+        # The skull's parents, whose rotations are decoded for it, and each skull joint's row there.
+        self._skull_parents = sorted({parent for child, parent in layout.bones if child in skull})
         for level in sorted(set(depth.values())):
             rows = [i for i, (child, _) in enumerate(layout.bones) if depth[child] == level]
             bones = np.array([layout.bones[i] for i in rows])
-            self._levels.append((bones[:, 0], bones[:, 1], lengths[rows, None]))
+            turned = [(column, self._skull_parents.index(parent), skull[child])
+                      for column, (child, parent) in enumerate(bones) if child in skull]
+            self._levels.append((bones[:, 0], bones[:, 1], lengths[rows, None], turned))
         self.legs = legs(layout, lengths)
-        self.shell = ShellFollow(layout)
+        self.shell = ShellFollow(layout, carried=tuple(skull))
 
     def reset(self) -> None:
         self.shell.reset()
@@ -113,8 +155,12 @@ class RigidSkeleton:
         placed = joints.copy()
         if self.lift:
             placed[:, self.root, 1] += self.lift
-        for child, parent, length in self._levels:
+        if self._skull_parents:
+            _, rotations = decode(icosahedra[:, self._skull_parents])
+        for child, parent, length, turned in self._levels:
             direction = joints[:, child] - joints[:, parent]
+            for column, row, bone in turned:
+                direction[:, column] = rotations[:, row] @ bone
             norm = np.linalg.norm(direction, axis=-1, keepdims=True)
             # A bone the decoder collapsed to a point has no direction to keep: leave it.
             scale = np.divide(length, norm, out=np.ones_like(norm), where=norm > 1e-9)
@@ -177,12 +223,19 @@ class ShellFollow:
     point moves with the bone's parent joint, turns about it by the shortest rotation from the
     bone's old direction to its new one (no twist: a joint correction says nothing of it), and
     keeps its share along the bone when the bone's length changes (a lengthened forearm carries
-    the hand's points out with the wrist; a point past the bone's end moves with that end)."""
+    the hand's points out with the wrist; a point past the bone's end moves with that end).
 
-    def __init__(self, layout: MotionLayout) -> None:
+    ``carried``: child joints whose bone moves its points without turning them. The skull's
+    (``SKULL``) are turned onto their parent's rotation, not by the pose changing: the head's
+    own rotation stays the decoder's, and so does the face the decoder drew around it. Turned
+    with the neck's bone on the demo's clip, the head's points came 14 cm from the person's head
+    shape on average, carried 5.5 cm, and left where they were 9.7 (ninety-ninth run)."""
+
+    def __init__(self, layout: MotionLayout, carried: tuple[int, ...] = ()) -> None:
         body = set(JOINT_NAMES[:BODY_JOINTS])
         self.bones = np.array([bone for bone in layout.bones if layout.joint_names[bone[0]] in body],
                               dtype=np.int64).reshape(-1, 2)  # (child, parent)
+        self.carried = np.isin(self.bones[:, 0], list(carried))
         self.reset()
 
     def reset(self) -> None:
@@ -207,7 +260,9 @@ class ShellFollow:
         corrected = joints + correction
         bone_before = joints[:, child] - joints[:, parent]  # (T, B, 3)
         bone_after = corrected[:, child] - corrected[:, parent]
-        turn = shortest_rotation(bone_before, bone_after)[:, self.segment]  # (T, P, 3, 3)
+        turns = shortest_rotation(bone_before, bone_after)
+        turns[:, self.carried] = np.eye(3)
+        turn = turns[:, self.segment]  # (T, P, 3, 3)
         before, after = bone_before[:, self.segment], bone_after[:, self.segment]
         anchor = parent[self.segment]  # each point's bone's parent joint
         # Where along the segment the point lies, 0 at the parent, 1 at the child: that share
