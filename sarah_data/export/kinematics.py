@@ -33,13 +33,14 @@ LIMBS = (("left_hip", "left_knee", "left_ankle"), ("right_hip", "right_knee", "r
 # Joints whose rotation the fit keeps as the motion has it, their children following: the head,
 # whose facing is the agent's gaze (what the gaze score and eye contact read), and the neck that
 # carries it. The head's children are the face's jaw and eyes, points 3-12 cm from it that the
-# decoder places loosely, and the decoded head joint sits off where the neck's rotation puts it
+# decoder placed loosely, and the decoded head joint sat off where the neck's rotation puts it
 # (on one window of the shipped model's: the eyes ~40 degrees around the head from where its
 # rotation puts them, the jaw pointing backward, a neck swung to reach the head bent 56 degrees
 # from the spine where the data's bends 18). Turned onto them, over 68 clips of the shipped
 # model, the file's head faced ~100 degrees from the motion's and its gaze score fell 0.87 below
-# the motion's. Kept, the file's head is ~6 cm from the motion's head joint and faces as it
-# faces (docs/results.md, ninety-eighth run).
+# the motion's. Kept, the file's head faces as the motion's faces (docs/results.md, ninety-eighth
+# run). A motion decoded with ``vae.rigid_skull`` (the default since the ninety-ninth run) has
+# its skull where these rotations put it, and the file's head sits within a centimetre of its.
 KEEP_ROTATION = ("neck", "head")
 # m: the most the fit lowers the pelvis for legs too short to reach the motion's ankles (the
 # shipped model's clips needed up to 3.4 cm: its bones are the training data's mean lengths, the
