@@ -235,6 +235,8 @@ def test_the_skulls_directions_come_from_the_mean_motion_root_relative_or_not(wi
     mean = load_stats(prepared_shards)["motion/mean"]
     for child, direction in skull_directions(layout, mean).items():
         assert np.degrees(np.arccos(np.clip(direction @ found[child], -1, 1))) < 2.0
+    # A mean of no body holds no rotation: no directions, and the skull keeps its decoded ones.
+    assert skull_directions(layout, np.zeros(windows.motion_dim)) == {}
 
 
 def test_the_skull_sits_where_its_parents_rotation_puts_it(windows):
