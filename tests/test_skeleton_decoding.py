@@ -48,6 +48,14 @@ def shift_joints(motion: np.ndarray, layout: MotionLayout, shifts: np.ndarray) -
     return np.concatenate([icosahedra.reshape(len(motion), -1), shell.reshape(len(motion), -1)], 1)
 
 
+def first_frames(windows, frames: int):
+    """The layout, shell points (T, P, 3) and joints (T, J, 3) of a window's first frames."""
+    layout = MotionLayout.from_width(windows.motion_dim)
+    motion = windows[1]["motion"].numpy().astype(np.float64)[:frames]
+    icosahedra, shell = layout.split(motion)
+    return layout, shell, icosahedra.mean(axis=-2)
+
+
 def test_stats_carry_every_bones_training_length(prepared_shards, windows, skeleton):
     layout = MotionLayout.from_width(windows.motion_dim)
     assert skeleton.shape == (len(layout.bones),) == (54,)
@@ -150,10 +158,7 @@ def test_shell_points_turn_with_a_bent_shin_as_a_skinned_mesh_does(windows):
     # and foot's points turn with them (each keeps its distances to knee and ankle), the thigh's
     # and the other leg's stay; a blend of joint translations moved the mid-shin points along the
     # chord, nearer the knee.
-    layout = MotionLayout.from_width(windows.motion_dim)
-    motion = windows[1]["motion"].numpy().astype(np.float64)[:3]
-    icosahedra, shell = layout.split(motion)
-    joints = icosahedra.mean(axis=-2)
+    layout, shell, joints = first_frames(windows, 3)
     knee, ankle = joints[:, JOINT["left_knee"]], joints[:, JOINT["left_ankle"]]
     angle = np.deg2rad(40.0)
     turn = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(angle), -np.sin(angle)],
@@ -182,10 +187,7 @@ def test_a_forearm_put_back_at_its_length_carries_the_hand_no_further_than_the_w
     # The decoder can shrink a forearm to a few centimetres while the hand's shell points stay
     # where the hand is; the skeleton puts the wrist back. Points past the wrist move with it;
     # stretched with the 3 cm bone, a hand point once flew 8 m.
-    layout = MotionLayout.from_width(windows.motion_dim)
-    motion = windows[1]["motion"].numpy().astype(np.float64)[:2]
-    icosahedra, shell = layout.split(motion)
-    joints = icosahedra.mean(axis=-2)
+    layout, shell, joints = first_frames(windows, 2)
     elbow, wrist = JOINT["left_elbow"], JOINT["left_wrist"]
     shrunk = joints.copy()
     shrunk[:, wrist] = joints[:, elbow] + 0.03 * (joints[:, wrist] - joints[:, elbow]) / np.linalg.norm(
@@ -265,11 +267,8 @@ def test_the_skull_sits_where_its_parents_rotation_puts_it(windows):
 def test_the_heads_points_move_with_the_head_and_do_not_turn_with_its_bone(windows):
     # The skull's bones turn onto their parent's rotation, not because the pose changed: the
     # face the decoder drew around the head goes where the head goes. Turned with the neck's
-    # bone, the demo's head points came 14 cm from the person's head shape, carried 5.5.
-    layout = MotionLayout.from_width(windows.motion_dim)
-    motion = windows[1]["motion"].numpy().astype(np.float64)[:3]
-    icosahedra, shell = layout.split(motion)
-    joints = icosahedra.mean(axis=-2)
+    # bone, the demo's head points came 14 cm from the person's head shape, carried 6.1.
+    layout, shell, joints = first_frames(windows, 3)
     head, neck = JOINT["head"], JOINT["neck"]
     correction = np.zeros_like(joints)
     bone = joints[:, head] - joints[:, neck]
