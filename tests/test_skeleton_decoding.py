@@ -10,12 +10,13 @@ import pytest
 
 from sarah_data.constants import FLOOR_HEIGHT, JOINT
 from sarah_data.dataset import WindowDataset
+from sarah_data.export.kinematics import rest_offsets_from_motion
+from sarah_data.icosahedron import decode
 from sarah_data.skeleton import MotionLayout, bone_lengths
 from sarah_data.stats import load_stats
 from sarah_models.evaluation.metrics import foot_slide
 from sarah_models.sampling.foot_lock import (FREE_HEIGHT, LIFT, RELEASE, STANCE_LIFT,
                                              STANCE_SWING_FRAMES, SWING_FRAMES, FootLock)
-from sarah_data.icosahedron import decode
 from sarah_models.sampling.rigid_skeleton import SKULL, RigidSkeleton, ShellFollow, skull_directions
 
 FEET = [JOINT["left_foot"], JOINT["right_foot"]]
@@ -206,24 +207,18 @@ def test_a_forearm_put_back_at_its_length_carries_the_hand_no_further_than_the_w
                                np.repeat(correction[:, wrist, None], past_wrist.sum(), 1), atol=1e-9)
 
 
-def skull_in_parent_frames(motion: np.ndarray, layout: MotionLayout) -> dict[int, np.ndarray]:
-    """Each skull joint's bone in its parent's decoded frame, (T, 3) per child joint."""
-    positions, rotations = decode(layout.split(np.asarray(motion, np.float64))[0])
-    return {child: np.einsum("tji,tj->ti", rotations[:, parent],
-                             positions[:, child] - positions[:, parent])
-            for child, parent in layout.bones if layout.joint_names[child] in SKULL}
-
-
 def test_the_skulls_directions_come_from_the_mean_motion_root_relative_or_not(windows, prepared_shards):
     # A body is rigid: averaged over any frames, its mean vertices give back its bones in their
     # parents' frames. The training data's mean (stats.h5) gives its persons' skull.
     layout = MotionLayout.from_width(windows.motion_dim)
     motion = windows[1]["motion"].numpy().astype(np.float64)
     found = skull_directions(layout, motion.mean(axis=0))
-    truth = skull_in_parent_frames(motion, layout)
+    rest = rest_offsets_from_motion(*decode(layout.split(motion)[0]))  # the person's own skeleton
     assert sorted(found) == sorted(JOINT[name] for name in SKULL)
-    for child, bone in truth.items():
-        np.testing.assert_allclose(found[child], bone[0] / np.linalg.norm(bone[0]), atol=1e-5)  # float32
+    for child, parent in layout.bones:
+        if child in found:
+            bone = rest[child] - rest[parent]
+            np.testing.assert_allclose(found[child], bone / np.linalg.norm(bone), atol=1e-5)  # float32
     # Root-relative statistics (Normalizer.set_root_relative) move every point but the root's by
     # the root's floor place: the skull's bones stay.
     points = motion.reshape(len(motion), -1, 3).copy()
