@@ -14,7 +14,10 @@
 # the sixty-fourth run in an hour when that VM ran at 0.6 of that speed, 27.0 timed whole by the
 # sixty-fifth run on a 2-core Intel Xeon with AMX, 32.4 timed whole by the seventy-third run on
 # a 2-core AMD EPYC with AVX-512 (family 25 model 17) without train.compile and 25.5 with it, the
-# same model to the last digit of every metric; the values are the variables below): the VAE
+# same model to the last digit of every metric; the ninetieth run's recipe, the one below, 26.2
+# on that AVX-512 EPYC, 42.6 on an AVX2-only EPYC (family 25 model 1; the ninety-ninth run) and
+# 23.5 on an Intel Xeon without AMX (family 6 model 207; the hundredth run); the values are the
+# variables below): the VAE
 # root-relative with its loss in metres and its root channels down-weighted, on 100-frame
 # windows then 400; its decoder alone on noised latents (the encoder, so the latents, frozen),
 # made stochastic (per-token draws, the energy score of its accelerations); the flow on those
