@@ -21,12 +21,10 @@ other (``SKULL``, given the training data's mean motion): the head, the jaw and 
 they lay 65-90 degrees around the head from where their parent's decoded rotation puts them
 (the demo's clip; the fingers 10-30, the limbs 6-13), so they are placed as a body places
 them: at their bone's length along the direction that rotation carries the bone to
-(``skull_directions``; docs/results.md, ninety-ninth run). Checked against the ground truth
-on the VAE's reconstructions of 296 test windows, the skull so placed lies nearer the data's
-(from the neck: 3 mm for the fixture benchmark's model, 41 for the shipped one), and the fingers
-are the other way about: bones along their parents' rotations would put them 2-5 mm further from
-the data's (from the wrist) than their decoded directions do, with the training data's finger
-bones or the person's own, so the fingers keep their decoded directions (hundredth run). Shell
+(``skull_directions``; docs/results.md, ninety-ninth run). The fingers keep their decoded
+directions: against the ground truth (the VAE's reconstructions) their parents' rotations would
+put them further from the data's, where the skull so placed comes nearer (docs/models.md has the
+figures). Shell
 points ride their bones (``ShellFollow``): each is carried and turned with the body bone
 nearest it in the stream's first frame, as a skinned mesh's vertices are.
 
