@@ -255,6 +255,11 @@ class VAEConfig:
     # (docs/results.md, ninety-ninth run). False: every bone along its decoded direction, as
     # until then.
     rigid_skull: bool = True
+    # Not in the paper: with ``rigid_bones``, the hips placed with the pelvis as one piece and each
+    # leg moved with its hip (``sampling.rigid_skeleton.HIPS``), not each hip along its decoded
+    # direction: decoded, the two came within centimetres of each other and the knees crossed
+    # (docs/models.md; docs/results.md, hundred-and-first run). False: as until then.
+    rigid_hips: bool = True
     # Not in the paper (0 = off): lock planted feet, stepping when the decoded foot has moved
     # this many metres away (``sampling.foot_lock``); decoded feet glide and jitter.
     foot_lock: float = 0.0
@@ -540,6 +545,7 @@ class FlowConfig:
 # again with other values, nothing trained (``sarah-train --stage model``), and a fine-tune may
 # change them.
 DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "seam_mode", "rigid_bones", "rigid_skull",
+                           "rigid_hips",
                            "foot_lock", "foot_swing_frames", "foot_lock_reads", "stance_reach",
                            "foot_step",
                            "root_hold", "root_hold_reads", "root_hold_turn", "limb_lowpass")}

@@ -17,7 +17,8 @@ from sarah_data.stats import load_stats
 from sarah_models.evaluation.metrics import foot_slide
 from sarah_models.sampling.foot_lock import (FREE_HEIGHT, LIFT, RELEASE, STANCE_LIFT,
                                              STANCE_SWING_FRAMES, SWING_FRAMES, FootLock)
-from sarah_models.sampling.rigid_skeleton import SKULL, RigidSkeleton, ShellFollow, skull_directions
+from sarah_models.sampling.rigid_skeleton import (HIPS, SKULL, RigidSkeleton, ShellFollow,
+                                                  hip_directions, skull_directions)
 
 FEET = [JOINT["left_foot"], JOINT["right_foot"]]
 
@@ -221,12 +222,7 @@ def test_the_skulls_directions_come_from_the_mean_motion_root_relative_or_not(wi
             np.testing.assert_allclose(found[child], bone / np.linalg.norm(bone), atol=1e-5)  # float32
     # Root-relative statistics (Normalizer.set_root_relative) move every point but the root's by
     # the root's floor place: the skull's bones stay.
-    points = motion.reshape(len(motion), -1, 3).copy()
-    root = layout.split(motion)[0][:, layout.joint("pelvis")].mean(axis=-2) * [1.0, 0.0, 1.0]
-    others = np.ones(points.shape[1], bool)
-    others[layout.joint_slice("pelvis").start // 3:layout.joint_slice("pelvis").stop // 3] = False
-    points[:, others] -= root[:, None]
-    relative = skull_directions(layout, points.reshape(len(motion), -1).mean(axis=0))
+    relative = skull_directions(layout, root_relative_mean(motion, layout))
     for child in found:
         np.testing.assert_allclose(relative[child], found[child], atol=1e-9)
     mean = load_stats(prepared_shards)["motion/mean"]
@@ -257,6 +253,94 @@ def test_the_skull_sits_where_its_parents_rotation_puts_it(windows):
     # Without the skull's directions, the decoded ones: the head stays off by centimetres.
     along_decoded = joints_of(RigidSkeleton(layout, lengths)(noisy), layout)
     assert np.linalg.norm(along_decoded[:, JOINT["head"]] - truth[:, JOINT["head"]], axis=-1).min() > 0.02
+
+
+def root_relative_mean(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
+    """The mean of ``motion`` as root-relative statistics hold it (Normalizer.set_root_relative):
+    every point but the root's own less the root's floor place."""
+    points = motion.reshape(len(motion), -1, 3).copy()
+    root = layout.split(motion)[0][:, layout.joint("pelvis")].mean(axis=-2) * [1.0, 0.0, 1.0]
+    others = np.ones(points.shape[1], bool)
+    others[layout.joint_slice("pelvis").start // 3:layout.joint_slice("pelvis").stop // 3] = False
+    points[:, others] -= root[:, None]
+    return points.reshape(len(motion), -1).mean(axis=0)
+
+
+def test_the_hips_directions_come_from_the_mean_motion_root_relative_or_not(windows):
+    layout = MotionLayout.from_width(windows.motion_dim)
+    motion = windows[1]["motion"].numpy().astype(np.float64)
+    found = hip_directions(layout, motion.mean(axis=0))
+    rest = rest_offsets_from_motion(*decode(layout.split(motion)[0]))  # the person's own skeleton
+    for side, name in enumerate(HIPS):
+        bone = rest[JOINT[name]] - rest[JOINT["pelvis"]]
+        np.testing.assert_allclose(found[side], bone / np.linalg.norm(bone), atol=1e-5)  # float32
+    # Root-relative statistics leave the root's own points where they were: its height is
+    # what a hip's mean point is taken from.
+    np.testing.assert_allclose(hip_directions(layout, root_relative_mean(motion, layout), True),
+                               found, atol=1e-9)
+    # A root that holds its floor steps, or a mean of no body, holds no rotation to solve with.
+    assert hip_directions(layout, motion.mean(axis=0), root_steps=True) is None
+    assert hip_directions(layout, np.zeros(windows.motion_dim)) is None
+
+
+def pinched(motion: np.ndarray, layout: MotionLayout, frames: slice, by: float) -> np.ndarray:
+    """Both hip bones swung ``by`` of the way from their direction to straight down in ``frames``
+    (ramped in and out over 4 frames each), each leg moving with its hip: the model's narrow
+    pelvis (the demo's clip: its hips 3 cm apart, both bones at their length nearly straight
+    down)."""
+    joints = joints_of(motion, layout)
+    weight = np.zeros(len(motion))
+    weight[frames] = by
+    weight = np.convolve(weight, np.ones(5) / 5, mode="same")[:, None]
+    shifts = np.zeros((len(motion), 55, 3))
+    for side in ("left", "right"):
+        bone = joints[:, JOINT[f"{side}_hip"]] - joints[:, JOINT["pelvis"]]
+        length = np.linalg.norm(bone, axis=-1, keepdims=True)
+        swung = (1 - weight) * bone / length + weight * np.array([0.0, -1.0, 0.0])
+        shift = length * swung / np.linalg.norm(swung, axis=-1, keepdims=True) - bone
+        for name in ("hip", "knee", "ankle", "foot"):
+            shifts[:, JOINT[f"{side}_{name}"]] = shift
+    return shift_joints(motion, layout, shifts)
+
+
+def test_the_pelvis_keeps_its_hips_and_a_leg_moves_with_its_hip(windows):
+    # Decoded, the model's hips came as near as 3 cm and its knees crossed. Here the hip bones
+    # swing 80 % of the way to straight down for 20 frames, the legs with them: the pelvis keeps
+    # its width, and each leg comes back with its hip to within millimetres of where it was.
+    layout = MotionLayout.from_width(windows.motion_dim)
+    motion = windows[3]["motion"].numpy().astype(np.float64)
+    lengths = layout.motion_bone_lengths(motion)
+    hips = hip_directions(layout, motion.mean(axis=0))
+    narrow = pinched(motion, layout, slice(20, 40), 0.8)
+    truth = joints_of(motion, layout)
+    width = np.linalg.norm(truth[:, JOINT["left_hip"]] - truth[:, JOINT["right_hip"]], axis=-1)
+    decoded = joints_of(narrow, layout)
+    assert np.linalg.norm(decoded[:, JOINT["left_hip"]] - decoded[:, JOINT["right_hip"]], axis=-1).min() < 0.4 * width.min()
+    placed = joints_of(RigidSkeleton(layout, lengths, hips=hips)(narrow), layout)
+    placed_width = np.linalg.norm(placed[:, JOINT["left_hip"]] - placed[:, JOINT["right_hip"]], axis=-1)
+    np.testing.assert_allclose(placed_width, placed_width[0], rtol=1e-12)  # one piece in every frame
+    np.testing.assert_allclose(placed_width, width, rtol=1e-5)  # the mean's directions: float32
+    for name in ("left_hip", "right_hip", "left_knee", "left_ankle", "right_knee", "right_ankle"):
+        assert np.linalg.norm(placed[:, JOINT[name]] - truth[:, JOINT[name]], axis=-1).max() < 0.01, name
+    # Along their decoded directions the hips pinch, and the leg stays where it was decoded.
+    along = joints_of(RigidSkeleton(layout, lengths)(narrow), layout)
+    assert np.linalg.norm(along[:, JOINT["left_hip"]] - along[:, JOINT["right_hip"]], axis=-1).min() < 0.5 * width.min()
+    assert np.linalg.norm(along[:, JOINT["left_ankle"]] - truth[:, JOINT["left_ankle"]], axis=-1).max() > 0.05
+
+
+def test_a_pelvis_streamed_block_by_block_is_the_pelvis_decoded_at_once(windows):
+    # The pelvis's sideways axis leans on the frame before, across a stream's blocks as within
+    # one; ``reset`` starts a new stream.
+    layout = MotionLayout.from_width(windows.motion_dim)
+    motion = pinched(windows[3]["motion"].numpy().astype(np.float64), layout, slice(6, 30), 0.9)
+    lengths = layout.motion_bone_lengths(windows[3]["motion"].numpy().astype(np.float64))
+    skeleton = RigidSkeleton(layout, lengths, hips=hip_directions(layout, motion.mean(axis=0)))
+    at_once = skeleton(motion)
+    skeleton.reset()
+    blocks = np.concatenate([skeleton(motion[t:t + 4]) for t in range(0, len(motion), 4)])
+    np.testing.assert_array_equal(blocks, at_once)
+    skeleton.reset()
+    np.testing.assert_array_equal(skeleton(motion), at_once)
 
 
 def test_the_heads_points_move_with_the_head_and_do_not_turn_with_its_bone(windows):

@@ -24,7 +24,7 @@ from ..nn.vae import detail_generator
 from .continuity import SeamInertia
 from .foot_lock import FootLock
 from .limb_lowpass import LimbLowpass
-from .rigid_skeleton import RigidSkeleton, check_lengths, skull_directions
+from .rigid_skeleton import RigidSkeleton, check_lengths, hip_directions, skull_directions
 from .root_hold import RootHold
 
 
@@ -132,9 +132,11 @@ def stream_decoding(vae, normalizer, bone_lengths=None) -> StreamDecoding:
         if bone_lengths is not None and cfg.rigid_bones:
             lengths = check_lengths(layout, bone_lengths, "the agent's ")
         if cfg.rigid_bones:
-            skull = (skull_directions(layout, normalizer.motion_mean.detach().double().cpu().numpy())
-                     if cfg.rigid_skull else None)
-            filters.append(RigidSkeleton(layout, lengths, reference, skull))
+            mean = normalizer.motion_mean.detach().double().cpu().numpy()
+            skull = skull_directions(layout, mean) if cfg.rigid_skull else None
+            hips = (hip_directions(layout, mean, normalizer.root_relative, normalizer.root_steps)
+                    if cfg.rigid_hips else None)
+            filters.append(RigidSkeleton(layout, lengths, reference, skull, hips))
         if cfg.foot_lock:
             if reads_stance(vae) and getattr(vae, "stance", None) is None:
                 raise ValueError("vae.foot_lock_reads='stance' needs the VAE's stance head, and "

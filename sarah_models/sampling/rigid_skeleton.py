@@ -21,10 +21,13 @@ other (``SKULL``, given the training data's mean motion): the head, the jaw and 
 they lay 65-90 degrees around the head from where their parent's decoded rotation puts them
 (the demo's clip; the fingers 10-30, the limbs 6-13), so they are placed as a body places
 them: at their bone's length along the direction that rotation carries the bone to
-(``skull_directions``; docs/results.md, ninety-ninth run). The fingers keep their decoded
+(``skull_directions``; docs/results.md, ninety-ninth run). The hips are the third (``HIPS``,
+given ``hip_directions``): each sits 10 cm from the pelvis, and decoded each on its own the two
+came within centimetres of each other and the knees crossed, so the pelvis is placed as one
+piece (``pelvis_frames``) and each leg moves with its hip. The fingers keep their decoded
 directions: against the ground truth (the VAE's reconstructions) their parents' rotations would
-put them further from the data's, where the skull so placed comes nearer (docs/models.md has the
-figures). Shell
+put them further from the data's, where the skull and the pelvis so placed come nearer
+(docs/models.md has the figures). Shell
 points ride their bones (``ShellFollow``): each is carried and turned with the body bone
 nearest it in the stream's first frame, as a skinned mesh's vertices are.
 
@@ -46,6 +49,22 @@ LEGS = (("left_hip", "left_knee", "left_ankle", "left_foot"),
 # Joints placed along their bone's direction in their parent's rotation rather than along the
 # decoded one: the head on the neck, the jaw and the eyes on the head (module docstring).
 SKULL = ("head", "jaw", "left_eye_smplhf", "right_eye_smplhf")
+# The pelvis's two hip bones, placed as one rigid piece (``pelvis_frames``).
+HIPS = ("left_hip", "right_hip")
+# How far the pelvis's sideways axis leans on the last frame's, in hip widths against the decoded
+# hips' line: where the decoded hips come together their line points anywhere, and a pelvis
+# turned by it alone swung the legs about; leaning more, it lags a turn (docs/models.md).
+HIP_LINE_MEMORY = 0.5
+
+
+def _mean_rotation(icosahedra: np.ndarray, joint: int) -> np.ndarray | None:
+    """The mean over the frames of ``joint``'s rotation, from a mean motion's icosahedra (its
+    axes are linear in the vertices: ``icosahedron.axis``); None where it holds no rotation to
+    solve with: a mean of no body (a normalizer fitted to no motion: zeros). The fixtures' neck
+    and head: |det| 0.11-0.17, the turns about the vertical averaging out, condition number 2-3;
+    the pelvis: 0.10 and 3.2."""
+    rotation = np.stack([axis(icosahedra[joint], c) for c in range(3)], axis=-1) / DEFAULT_RADIUS
+    return None if abs(np.linalg.det(rotation)) < 1e-3 else rotation
 
 
 def skull_directions(layout: MotionLayout, mean_motion) -> dict[int, np.ndarray]:
@@ -67,15 +86,84 @@ def skull_directions(layout: MotionLayout, mean_motion) -> dict[int, np.ndarray]
     for child, parent in layout.bones:
         if layout.joint_names[child] not in SKULL or layout.joint_names[parent] == ROOT:
             continue
-        rotation = np.stack([axis(icosahedra[parent], c) for c in range(3)], axis=-1) / DEFAULT_RADIUS
-        # A mean of no body (a normalizer fitted to no motion: zeros) holds no rotation to solve
-        # with; that bone keeps its decoded direction (the fixtures' neck and head: |det| 0.11-0.17,
-        # the turns about the vertical averaging out, condition number 2-3).
-        if abs(np.linalg.det(rotation)) < 1e-3:
+        rotation = _mean_rotation(icosahedra, parent)
+        if rotation is None:  # that bone keeps its decoded direction
             continue
         bone = np.linalg.solve(rotation, centres[child] - centres[parent])
         out[child] = bone / np.linalg.norm(bone)
     return out
+
+
+def hip_directions(layout: MotionLayout, mean_motion, root_relative: bool = False,
+                   root_steps: bool = False) -> np.ndarray | None:
+    """The training data's two hip bones (``HIPS``) in the pelvis's frame, (2, 3) unit vectors,
+    from its mean motion vector as ``skull_directions`` solves the skull's; None where the
+    layout lacks them or the mean holds no rotation. ``root_relative``: the mean is of
+    root-relative motion (``Normalizer.set_root_relative``), every point but the root's own less
+    the root's floor place, so a hip's mean bone is its point less the root's height alone.
+    ``root_steps``: the root's own points hold their floor steps, whose mean holds no rotation
+    (None: the hips keep their decoded directions); so does a mean whose two hip bones point
+    the same way (a normalizer fitted to no body, or to a made-up one)."""
+    if root_steps or ROOT not in layout.joint_names or not all(n in layout.joint_names for n in HIPS):
+        return None
+    icosahedra, _ = layout.split(np.asarray(mean_motion, dtype=np.float64))
+    centres = icosahedra.mean(axis=-2)
+    root = layout.joint(ROOT)
+    rotation = _mean_rotation(icosahedra, root)
+    if rotation is None:
+        return None
+    origin = centres[root] * (np.array([0.0, 1.0, 0.0]) if root_relative else 1.0)
+    bones = np.linalg.solve(rotation, (centres[[layout.joint(n) for n in HIPS]] - origin).T).T
+    bones = bones / np.linalg.norm(bones, axis=-1, keepdims=True)
+    return None if _frame(bones[0] - bones[1], _downs(bones[0], bones[1])) is None else bones
+
+
+def _downs(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """(..., 3) pairs of bones -> the (..., 3) unit mean of their directions; straight down where
+    a bone or their sum vanishes."""
+    def unit(v):
+        norm = np.linalg.norm(v, axis=-1, keepdims=True)
+        return np.divide(v, norm, out=np.zeros_like(v), where=norm > 1e-9)
+    down = unit(unit(left) + unit(right))
+    down[np.linalg.norm(down, axis=-1) < 0.5] = (0.0, -1.0, 0.0)
+    return down
+
+
+def _frame(line: np.ndarray, down: np.ndarray) -> np.ndarray | None:
+    """Columns: ``line`` made square to ``down`` (sideways), ``down``, and forward; None where
+    ``line`` runs along ``down``."""
+    side = line - down * (line @ down)
+    norm = np.sqrt(side @ side)
+    if norm <= 1e-9:
+        return None
+    side = side / norm
+    return np.stack([side, down, np.cross(side, down)], axis=-1)
+
+
+def pelvis_frames(left: np.ndarray, right: np.ndarray, rest: np.ndarray,
+                  sideways: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The pelvis as one rigid piece: its rotation in each frame from the decoded hips' bones
+    ``left`` and ``right`` ((T, 3): each hip less the pelvis) and their ``rest`` bones ((2, 3) in
+    the pelvis's frame, metres: ``hip_directions`` at the bones' lengths). Down is the mean of
+    the two bones' directions, which stays put when both swing in together (a pelvis folded on
+    one side tilts with it); sideways is the hips' line, leaning on the frame
+    before's by ``HIP_LINE_MEMORY`` hip widths. ``sideways``: the last frame's axis before these
+    frames (None at a stream's start). -> (rotations (T, 3, 3) taking the rest bones to this
+    frame's, the last frame's sideways axis)."""
+    rest_frame = _frame(rest[0] - rest[1], _downs(rest[0], rest[1]))
+    lean = HIP_LINE_MEMORY * float(np.linalg.norm(rest[0] - rest[1]))
+    downs, lines = _downs(left, right), left - right
+    out = np.empty((len(left), 3, 3))
+    for t in range(len(left)):
+        line = lines[t] if sideways is None else lines[t] + lean * sideways
+        frame = _frame(line, downs[t])
+        if frame is None:  # the hips on one point at a stream's start: any sideways will do
+            frame = _frame(np.array([1.0, 0.0, 0.0]), downs[t])
+            if frame is None:
+                frame = _frame(np.array([0.0, 0.0, 1.0]), downs[t])
+        sideways = frame[:, 0]
+        out[t] = frame @ rest_frame.T
+    return out, sideways
 
 
 def legs(layout: MotionLayout, lengths) -> list[tuple]:
@@ -127,10 +215,12 @@ class RigidSkeleton:
     data's) where ``lengths`` are another body's (an agent's own): the body moves up or down by
     ``leg_height_change`` from it; None: ``lengths`` are that body's. ``skull``:
     ``skull_directions``, which places those joints by their parent's decoded rotation; None:
-    along their decoded directions, as every other bone."""
+    along their decoded directions, as every other bone. ``hips``: ``hip_directions``, which
+    places the hips as one piece with the pelvis (``pelvis_frames``), each leg moved with its
+    hip; None: along their decoded directions."""
 
     def __init__(self, layout: MotionLayout, lengths, reference=None,
-                 skull: dict[int, np.ndarray] | None = None) -> None:
+                 skull: dict[int, np.ndarray] | None = None, hips: np.ndarray | None = None) -> None:
         lengths = check_lengths(layout, lengths)
         self.layout, self.lengths = layout, lengths
         self.root = layout.joint(ROOT) if ROOT in layout.joint_names else None
@@ -144,17 +234,25 @@ class RigidSkeleton:
         skull = skull or {}
         # The skull's parents, whose rotations are decoded for it, and each skull joint's row there.
         self._skull_parents = sorted({parent for child, parent in layout.bones if child in skull})
+        # The hips (on the pelvis's piece: ``pelvis_frames``) and their rest bones at their lengths.
+        self._hips = [] if hips is None else [layout.joint(name) for name in HIPS]
+        self._hip_rest = None if hips is None else np.asarray(hips, dtype=np.float64).reshape(2, 3) * [
+            [lengths[layout.bones.index((hip, self.root))]] for hip in self._hips]
         for level in sorted(set(depth.values())):
             rows = [i for i, (child, _) in enumerate(layout.bones) if depth[child] == level]
             bones = np.array([layout.bones[i] for i in rows])
             turned = [(column, self._skull_parents.index(parent), skull[child])
                       for column, (child, parent) in enumerate(bones) if child in skull]
-            self._levels.append((bones[:, 0], bones[:, 1], lengths[rows, None], turned))
+            framed = [(column, self._hips.index(child)) for column, (child, _) in enumerate(bones)
+                      if child in self._hips]
+            self._levels.append((bones[:, 0], bones[:, 1], lengths[rows, None], turned, framed))
         self.legs = legs(layout, lengths)
-        self.shell = ShellFollow(layout, carried=tuple(skull))
+        self.shell = ShellFollow(layout, carried=tuple(skull) + tuple(self._hips))
+        self.reset()
 
     def reset(self) -> None:
         self.shell.reset()
+        self._sideways = None  # the pelvis's last sideways axis (``pelvis_frames``)
 
     def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None,
                  user: np.ndarray | None = None) -> np.ndarray:
@@ -166,7 +264,12 @@ class RigidSkeleton:
             placed[:, self.root, 1] += self.lift
         if self._skull_parents:
             _, rotations = decode(icosahedra[:, self._skull_parents])
-        for child, parent, length, turned in self._levels:
+        moved = np.zeros_like(joints)  # by how much the pelvis's piece moved each hip
+        if self._hips:
+            bones = joints[:, self._hips] - joints[:, [self.root]]
+            pelvis, self._sideways = pelvis_frames(bones[:, 0], bones[:, 1], self._hip_rest,
+                                                   self._sideways)
+        for child, parent, length, turned, framed in self._levels:
             direction = joints[:, child] - joints[:, parent]
             for column, row, bone in turned:
                 direction[:, column] = rotations[:, row] @ bone
@@ -174,14 +277,21 @@ class RigidSkeleton:
             # A bone the decoder collapsed to a point has no direction to keep: leave it.
             scale = np.divide(length, norm, out=np.ones_like(norm), where=norm > 1e-9)
             placed[:, child] = placed[:, parent] + direction * scale
+            for column, side in framed:
+                hip = child[column]
+                on_pelvis = placed[:, parent[column]] + pelvis @ self._hip_rest[side]
+                moved[:, hip] = on_pelvis - placed[:, hip]
+                placed[:, hip] = on_pelvis
         # The feet stay where the decoder put them, as far as the legs reach: the skeleton's legs
         # are longer or shorter than the decoded ones, and lengthened from the hips down the feet
-        # went through the floor.
+        # went through the floor. A leg whose hip the pelvis's piece moved moves with it: held
+        # to its decoded ankle, it swung in to it, the knees together (docs/models.md).
         for hip, knee, ankle, foot, thigh, shin, foot_bone in self.legs:
-            placed[:, knee], placed[:, ankle] = two_bone_ik(placed[:, hip], joints[:, knee],
-                                                            joints[:, ankle], thigh, shin)
-            placed[:, foot] = foot_at_its_height(placed[:, ankle], joints[:, ankle],
-                                                 joints[:, foot], foot_bone)
+            shift = moved[:, hip]
+            placed[:, knee], placed[:, ankle] = two_bone_ik(placed[:, hip], joints[:, knee] + shift,
+                                                            joints[:, ankle] + shift, thigh, shin)
+            placed[:, foot] = foot_at_its_height(placed[:, ankle], joints[:, ankle] + shift,
+                                                 joints[:, foot] + shift, foot_bone)
         correction = placed - joints
         return finish(motion, icosahedra, shell, correction, self.shell(shell, joints, correction))
 
