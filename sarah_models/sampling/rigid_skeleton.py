@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sarah_data.bone_turns import shortest_rotation
+from sarah_data.bone_turns import shortest_rotation, unit
 from sarah_data.constants import BODY_JOINTS, JOINT_NAMES
 from sarah_data.icosahedron import DEFAULT_RADIUS, axis, decode
 from sarah_data.skeleton import ROOT, MotionLayout
@@ -121,12 +121,7 @@ def hip_directions(layout: MotionLayout, mean_motion, root_relative: bool = Fals
 def _downs(left: np.ndarray, right: np.ndarray) -> np.ndarray:
     """(..., 3) pairs of bones -> the (..., 3) unit mean of their directions; straight down where
     a bone or their sum vanishes."""
-    def unit(v):
-        norm = np.linalg.norm(v, axis=-1, keepdims=True)
-        return np.divide(v, norm, out=np.zeros_like(v), where=norm > 1e-9)
-    down = unit(unit(left) + unit(right))
-    down[np.linalg.norm(down, axis=-1) < 0.5] = (0.0, -1.0, 0.0)
-    return down
+    return unit(unit(left) + unit(right), fallback=np.array([0.0, -1.0, 0.0]))
 
 
 def _frame(line: np.ndarray, down: np.ndarray) -> np.ndarray | None:
@@ -164,6 +159,13 @@ def pelvis_frames(left: np.ndarray, right: np.ndarray, rest: np.ndarray,
         sideways = frame[:, 0]
         out[t] = frame @ rest_frame.T
     return out, sideways
+
+
+def at_length(direction: np.ndarray, length: np.ndarray) -> np.ndarray:
+    """(T, B, 3) bone directions -> the bones at ``length`` (B, 1) along them. A bone the decoder
+    collapsed to a point has no direction to keep: it is left as it is."""
+    norm = np.linalg.norm(direction, axis=-1, keepdims=True)
+    return direction * np.divide(length, norm, out=np.ones_like(norm), where=norm > 1e-9)
 
 
 def legs(layout: MotionLayout, lengths) -> list[tuple]:
@@ -232,22 +234,30 @@ class RigidSkeleton:
             depth[child] = depth.get(parent, 0) + 1
         self._levels = []
         skull = skull or {}
-        # The skull's parents, whose rotations are decoded for it, and each skull joint's row there.
+        # Bones turned onto a rotation rather than along their decoded direction: the skull's onto
+        # its parents' decoded rotations, the hips onto the pelvis's piece (``pelvis_frames``, the
+        # last row of the rotations); each such bone's row there and its direction in that frame.
         self._skull_parents = sorted({parent for child, parent in layout.bones if child in skull})
-        # The hips (on the pelvis's piece: ``pelvis_frames``) and their rest bones at their lengths.
-        self._hips = [] if hips is None else [layout.joint(name) for name in HIPS]
-        self._hip_rest = None if hips is None else np.asarray(hips, dtype=np.float64).reshape(2, 3) * [
-            [lengths[layout.bones.index((hip, self.root))]] for hip in self._hips]
+        hip_joints = [] if hips is None else [layout.joint(name) for name in HIPS]
+        onto = {child: (self._skull_parents.index(parent), skull[child])
+                for child, parent in layout.bones if child in skull}
+        if hips is not None:
+            directions = np.asarray(hips, dtype=np.float64).reshape(2, 3)
+            onto.update({hip: (len(self._skull_parents), directions[side])
+                         for side, hip in enumerate(hip_joints)})
+            # The rest hip bones at their lengths: the pelvis's shape, which ``pelvis_frames``
+            # turns.
+            self._hip_rest = directions * [[lengths[layout.bones.index((hip, self.root))]]
+                                           for hip in hip_joints]
+        self._hips = hip_joints
         for level in sorted(set(depth.values())):
             rows = [i for i, (child, _) in enumerate(layout.bones) if depth[child] == level]
             bones = np.array([layout.bones[i] for i in rows])
-            turned = [(column, self._skull_parents.index(parent), skull[child])
-                      for column, (child, parent) in enumerate(bones) if child in skull]
-            framed = [(column, self._hips.index(child)) for column, (child, _) in enumerate(bones)
-                      if child in self._hips]
-            self._levels.append((bones[:, 0], bones[:, 1], lengths[rows, None], turned, framed))
+            turned = [(column, *onto[child]) for column, child in enumerate(bones[:, 0])
+                      if child in onto]
+            self._levels.append((bones[:, 0], bones[:, 1], lengths[rows, None], turned))
         self.legs = legs(layout, lengths)
-        self.shell = ShellFollow(layout, carried=tuple(skull) + tuple(self._hips))
+        self.shell = ShellFollow(layout, carried=tuple(onto))
         self.reset()
 
     def reset(self) -> None:
@@ -262,26 +272,26 @@ class RigidSkeleton:
         placed = joints.copy()
         if self.lift:
             placed[:, self.root, 1] += self.lift
+        rotations = np.empty((len(x), 0, 3, 3))
         if self._skull_parents:
             _, rotations = decode(icosahedra[:, self._skull_parents])
-        moved = np.zeros_like(joints)  # by how much the pelvis's piece moved each hip
         if self._hips:
             bones = joints[:, self._hips] - joints[:, [self.root]]
             pelvis, self._sideways = pelvis_frames(bones[:, 0], bones[:, 1], self._hip_rest,
                                                    self._sideways)
-        for child, parent, length, turned, framed in self._levels:
+            rotations = np.concatenate([rotations, pelvis[:, None]], axis=1)
+        moved = np.zeros_like(joints)  # how far a turned bone moved its joint from its decoded way
+        for child, parent, length, turned in self._levels:
             direction = joints[:, child] - joints[:, parent]
-            for column, row, bone in turned:
-                direction[:, column] = rotations[:, row] @ bone
-            norm = np.linalg.norm(direction, axis=-1, keepdims=True)
-            # A bone the decoder collapsed to a point has no direction to keep: leave it.
-            scale = np.divide(length, norm, out=np.ones_like(norm), where=norm > 1e-9)
-            placed[:, child] = placed[:, parent] + direction * scale
-            for column, side in framed:
-                hip = child[column]
-                on_pelvis = placed[:, parent[column]] + pelvis @ self._hip_rest[side]
-                moved[:, hip] = on_pelvis - placed[:, hip]
-                placed[:, hip] = on_pelvis
+            if turned:
+                columns = [column for column, _, _ in turned]
+                decoded_way = placed[:, parent[columns]] + at_length(direction[:, columns],
+                                                                     length[columns])
+                for column, row, bone in turned:
+                    direction[:, column] = rotations[:, row] @ bone
+            placed[:, child] = placed[:, parent] + at_length(direction, length)
+            if turned:
+                moved[:, child[columns]] = placed[:, child[columns]] - decoded_way
         # The feet stay where the decoder put them, as far as the legs reach: the skeleton's legs
         # are longer or shorter than the decoded ones, and lengthened from the hips down the feet
         # went through the floor. A leg whose hip the pelvis's piece moved moves with it: held
