@@ -260,6 +260,11 @@ class VAEConfig:
     # direction: decoded, the two came within centimetres of each other and the knees crossed
     # (docs/models.md; docs/results.md, hundred-and-first run). False: as until then.
     rigid_hips: bool = True
+    # Not in the paper: with ``rigid_bones``, the collars placed with the chest as one piece, each
+    # arm with its collar (``sampling.rigid_skeleton.COLLARS``), as the hips with the pelvis:
+    # decoded each along its own direction they folded as the hips did (docs/models.md;
+    # docs/results.md, hundred-and-second run). False: as until then.
+    rigid_collars: bool = True
     # Not in the paper (0 = off): lock planted feet, stepping when the decoded foot has moved
     # this many metres away (``sampling.foot_lock``); decoded feet glide and jitter.
     foot_lock: float = 0.0
@@ -545,7 +550,7 @@ class FlowConfig:
 # again with other values, nothing trained (``sarah-train --stage model``), and a fine-tune may
 # change them.
 DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "seam_mode", "rigid_bones", "rigid_skull",
-                           "rigid_hips",
+                           "rigid_hips", "rigid_collars",
                            "foot_lock", "foot_swing_frames", "foot_lock_reads", "stance_reach",
                            "foot_step",
                            "root_hold", "root_hold_reads", "root_hold_turn", "limb_lowpass")}

@@ -17,8 +17,8 @@ from sarah_data.stats import load_stats
 from sarah_models.evaluation.metrics import foot_slide
 from sarah_models.sampling.foot_lock import (FREE_HEIGHT, LIFT, RELEASE, STANCE_LIFT,
                                              STANCE_SWING_FRAMES, SWING_FRAMES, FootLock)
-from sarah_models.sampling.rigid_skeleton import (HIPS, SKULL, RigidSkeleton, ShellFollow,
-                                                  hip_directions, skull_directions)
+from sarah_models.sampling.rigid_skeleton import (COLLARS, HIPS, SKULL, RigidSkeleton, ShellFollow,
+                                                  piece_directions, skull_directions)
 
 FEET = [JOINT["left_foot"], JOINT["right_foot"]]
 
@@ -269,37 +269,53 @@ def root_relative_mean(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
 def test_the_hips_directions_come_from_the_mean_motion_root_relative_or_not(windows):
     layout = MotionLayout.from_width(windows.motion_dim)
     motion = windows[1]["motion"].numpy().astype(np.float64)
-    found = hip_directions(layout, motion.mean(axis=0))
+    found = piece_directions(layout, motion.mean(axis=0))
     rest = rest_offsets_from_motion(*decode(layout.split(motion)[0]))  # the person's own skeleton
     for side, name in enumerate(HIPS):
         bone = rest[JOINT[name]] - rest[JOINT["pelvis"]]
         np.testing.assert_allclose(found[side], bone / np.linalg.norm(bone), atol=1e-5)  # float32
     # Root-relative statistics leave the root's own points where they were: its height is
     # what a hip's mean point is taken from.
-    np.testing.assert_allclose(hip_directions(layout, root_relative_mean(motion, layout), True),
+    np.testing.assert_allclose(piece_directions(layout, root_relative_mean(motion, layout), HIPS, True),
                                found, atol=1e-9)
     # A root that holds its floor steps, or a mean of no body, holds no rotation to solve with.
-    assert hip_directions(layout, motion.mean(axis=0), root_steps=True) is None
-    assert hip_directions(layout, np.zeros(windows.motion_dim)) is None
+    assert piece_directions(layout, motion.mean(axis=0), root_steps=True) is None
+    assert piece_directions(layout, np.zeros(windows.motion_dim)) is None
 
 
-def pinched(motion: np.ndarray, layout: MotionLayout, frames: slice, by: float) -> np.ndarray:
-    """Both hip bones swung ``by`` of the way from their direction to straight down in ``frames``
-    (ramped in and out over 4 frames each), each leg moving with its hip: the model's narrow
-    pelvis (the demo's clip: its hips 3 cm apart, both bones at their length nearly straight
-    down)."""
+def descendants(layout: MotionLayout, joint: int) -> list[int]:
+    """``joint`` and every joint below it in ``layout``'s skeleton."""
+    out = [joint]
+    for child, parent in layout.bones:  # parents come before their children
+        if parent in out:
+            out.append(child)
+    return out
+
+
+def pinched(motion: np.ndarray, layout: MotionLayout, frames: slice, by: float,
+            pair: tuple[str, str] = HIPS, toward=(0.0, -1.0, 0.0)) -> np.ndarray:
+    """Both bones of ``pair`` swung ``by`` of the way from their direction to ``toward`` in
+    ``frames`` (ramped in and out over 4 frames each), every joint below each moving with it: the
+    model's narrow pelvis (the demo's clip: its hips 3 cm apart, both bones at their length
+    nearly straight down). ``toward`` None: the mean of the two bones' directions in each frame,
+    a fold that leaves the piece's middle where it was."""
     joints = joints_of(motion, layout)
     weight = np.zeros(len(motion))
     weight[frames] = by
     weight = np.convolve(weight, np.ones(5) / 5, mode="same")[:, None]
     shifts = np.zeros((len(motion), 55, 3))
-    for side in ("left", "right"):
-        bone = joints[:, JOINT[f"{side}_hip"]] - joints[:, JOINT["pelvis"]]
+    parent_of = dict(layout.bones)
+    bones = {name: joints[:, JOINT[name]] - joints[:, parent_of[JOINT[name]]] for name in pair}
+    if toward is None:
+        toward = sum(bone / np.linalg.norm(bone, axis=-1, keepdims=True) for bone in bones.values())
+        toward = toward / np.linalg.norm(toward, axis=-1, keepdims=True)
+    for name in pair:
+        child, bone = JOINT[name], bones[name]
         length = np.linalg.norm(bone, axis=-1, keepdims=True)
-        swung = (1 - weight) * bone / length + weight * np.array([0.0, -1.0, 0.0])
+        swung = (1 - weight) * bone / length + weight * np.asarray(toward)
         shift = length * swung / np.linalg.norm(swung, axis=-1, keepdims=True) - bone
-        for name in ("hip", "knee", "ankle", "foot"):
-            shifts[:, JOINT[f"{side}_{name}"]] = shift
+        for joint in descendants(layout, child):
+            shifts[:, joint] = shift
     return shift_joints(motion, layout, shifts)
 
 
@@ -310,13 +326,13 @@ def test_the_pelvis_keeps_its_hips_and_a_leg_moves_with_its_hip(windows):
     layout = MotionLayout.from_width(windows.motion_dim)
     motion = windows[3]["motion"].numpy().astype(np.float64)
     lengths = layout.motion_bone_lengths(motion)
-    hips = hip_directions(layout, motion.mean(axis=0))
+    hips = piece_directions(layout, motion.mean(axis=0))
     narrow = pinched(motion, layout, slice(20, 40), 0.8)
     truth = joints_of(motion, layout)
     width = np.linalg.norm(truth[:, JOINT["left_hip"]] - truth[:, JOINT["right_hip"]], axis=-1)
     decoded = joints_of(narrow, layout)
     assert np.linalg.norm(decoded[:, JOINT["left_hip"]] - decoded[:, JOINT["right_hip"]], axis=-1).min() < 0.4 * width.min()
-    placed = joints_of(RigidSkeleton(layout, lengths, hips=hips)(narrow), layout)
+    placed = joints_of(RigidSkeleton(layout, lengths, pieces={HIPS: hips})(narrow), layout)
     placed_width = np.linalg.norm(placed[:, JOINT["left_hip"]] - placed[:, JOINT["right_hip"]], axis=-1)
     np.testing.assert_allclose(placed_width, placed_width[0], rtol=1e-12)  # one piece in every frame
     np.testing.assert_allclose(placed_width, width, rtol=1e-5)  # the mean's directions: float32
@@ -328,13 +344,61 @@ def test_the_pelvis_keeps_its_hips_and_a_leg_moves_with_its_hip(windows):
     assert np.linalg.norm(along[:, JOINT["left_ankle"]] - truth[:, JOINT["left_ankle"]], axis=-1).max() > 0.05
 
 
-def test_a_pelvis_streamed_block_by_block_is_the_pelvis_decoded_at_once(windows):
-    # The pelvis's sideways axis leans on the frame before, across a stream's blocks as within
-    # one; ``reset`` starts a new stream.
+def test_the_collars_directions_come_from_the_mean_motion_root_relative_or_not(windows):
     layout = MotionLayout.from_width(windows.motion_dim)
-    motion = pinched(windows[3]["motion"].numpy().astype(np.float64), layout, slice(6, 30), 0.9)
-    lengths = layout.motion_bone_lengths(windows[3]["motion"].numpy().astype(np.float64))
-    skeleton = RigidSkeleton(layout, lengths, hips=hip_directions(layout, motion.mean(axis=0)))
+    motion = windows[1]["motion"].numpy().astype(np.float64)
+    found = piece_directions(layout, motion.mean(axis=0), COLLARS)
+    rest = rest_offsets_from_motion(*decode(layout.split(motion)[0]))
+    for side, name in enumerate(COLLARS):
+        bone = rest[JOINT[name]] - rest[JOINT["spine3"]]
+        np.testing.assert_allclose(found[side], bone / np.linalg.norm(bone), atol=1e-5)
+    # The chest is not the root: root-relative statistics, or a root holding its steps, change
+    # nothing.
+    np.testing.assert_allclose(piece_directions(layout, root_relative_mean(motion, layout), COLLARS,
+                                                True, True), found, atol=1e-9)
+
+
+def test_the_chest_keeps_its_collars_and_an_arm_moves_with_its_collar(windows):
+    # Decoded each along its own direction, the model's collars folded as its hips did (under
+    # 80 % of their width in 16 % of frames), the shoulders with them. Here both collar bones
+    # swing 80 % of the way to their middle for 20 frames, the arms with them: the chest keeps its
+    # width, and each arm comes back with its collar to within a centimetre of where it was (the
+    # person's collars move about their mean's: the piece holds the mean's), the pelvis and
+    # the legs untouched. (Folded toward straight up instead, which the collars' middle leans
+    # forward of, the chest tilts with the fold: ``piece_frames``.)
+    layout = MotionLayout.from_width(windows.motion_dim)
+    motion = windows[3]["motion"].numpy().astype(np.float64)
+    lengths = layout.motion_bone_lengths(motion)
+    pieces = {pair: piece_directions(layout, motion.mean(axis=0), pair) for pair in (HIPS, COLLARS)}
+    narrow = pinched(motion, layout, slice(20, 40), 0.8, COLLARS, None)
+    truth, decoded = joints_of(motion, layout), joints_of(narrow, layout)
+
+    def width(joints, pair):
+        return np.linalg.norm(joints[:, JOINT[pair[0]]] - joints[:, JOINT[pair[1]]], axis=-1)
+
+    assert width(decoded, COLLARS).min() < 0.4 * width(truth, COLLARS).min()
+    placed = joints_of(RigidSkeleton(layout, lengths, pieces=pieces)(narrow), layout)
+    np.testing.assert_allclose(width(placed, COLLARS), width(truth, COLLARS), rtol=1e-5)
+    for side in ("left", "right"):
+        for name in ("collar", "shoulder", "elbow", "wrist", "hip", "knee", "ankle"):
+            error = np.linalg.norm(placed[:, JOINT[f"{side}_{name}"]] - truth[:, JOINT[f"{side}_{name}"]], axis=-1)
+            assert error.max() < 0.01, (side, name)
+    # Along their decoded directions the collars pinch and the shoulders with them.
+    along = joints_of(RigidSkeleton(layout, lengths, pieces={HIPS: pieces[HIPS]})(narrow), layout)
+    shoulders = ("left_shoulder", "right_shoulder")
+    assert width(along, shoulders).min() < 0.8 * width(truth, shoulders).min()
+
+
+def test_pieces_streamed_block_by_block_are_the_pieces_decoded_at_once(windows):
+    # Each piece's sideways axis leans on its own frame before, across a stream's blocks as
+    # within one; ``reset`` starts a new stream.
+    layout = MotionLayout.from_width(windows.motion_dim)
+    truth = windows[3]["motion"].numpy().astype(np.float64)
+    motion = pinched(pinched(truth, layout, slice(6, 30), 0.9), layout, slice(10, 50), 0.9,
+                     COLLARS, None)
+    lengths = layout.motion_bone_lengths(truth)
+    skeleton = RigidSkeleton(layout, lengths, pieces={
+        pair: piece_directions(layout, truth.mean(axis=0), pair) for pair in (HIPS, COLLARS)})
     at_once = skeleton(motion)
     skeleton.reset()
     blocks = np.concatenate([skeleton(motion[t:t + 4]) for t in range(0, len(motion), 4)])

@@ -24,7 +24,8 @@ from ..nn.vae import detail_generator
 from .continuity import SeamInertia
 from .foot_lock import FootLock
 from .limb_lowpass import LimbLowpass
-from .rigid_skeleton import RigidSkeleton, check_lengths, hip_directions, skull_directions
+from .rigid_skeleton import (COLLARS, HIPS, RigidSkeleton, check_lengths, piece_directions,
+                             skull_directions)
 from .root_hold import RootHold
 
 
@@ -134,9 +135,12 @@ def stream_decoding(vae, normalizer, bone_lengths=None) -> StreamDecoding:
         if cfg.rigid_bones:
             mean = normalizer.motion_mean.detach().double().cpu().numpy()
             skull = skull_directions(layout, mean) if cfg.rigid_skull else None
-            hips = (hip_directions(layout, mean, normalizer.root_relative, normalizer.root_steps)
-                    if cfg.rigid_hips else None)
-            filters.append(RigidSkeleton(layout, lengths, reference, skull, hips))
+            pairs = [pair for pair, wanted in ((HIPS, cfg.rigid_hips), (COLLARS, cfg.rigid_collars))
+                     if wanted]
+            pieces = {pair: piece_directions(layout, mean, pair, normalizer.root_relative,
+                                             normalizer.root_steps) for pair in pairs}
+            pieces = {pair: rest for pair, rest in pieces.items() if rest is not None}
+            filters.append(RigidSkeleton(layout, lengths, reference, skull, pieces))
         if cfg.foot_lock:
             if reads_stance(vae) and getattr(vae, "stance", None) is None:
                 raise ValueError("vae.foot_lock_reads='stance' needs the VAE's stance head, and "

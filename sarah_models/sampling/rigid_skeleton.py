@@ -22,9 +22,11 @@ they lay 65-90 degrees around the head from where their parent's decoded rotatio
 (the demo's clip; the fingers 10-30, the limbs 6-13), so they are placed as a body places
 them: at their bone's length along the direction that rotation carries the bone to
 (``skull_directions``; docs/results.md, ninety-ninth run). The hips are the third (``HIPS``,
-given ``hip_directions``): each sits 10 cm from the pelvis, and decoded each on its own the two
+given ``piece_directions``): each sits 10 cm from the pelvis, and decoded each on its own the two
 came within centimetres of each other and the knees crossed, so the pelvis is placed as one
-piece (``pelvis_frames``) and each leg moves with its hip. The fingers keep their decoded
+piece (``piece_frames``) and each leg moves with its hip; the collars likewise with the chest
+(``COLLARS``: decoded, they folded as the hips did, and the shoulders with them), and each arm
+moves with its collar, as every child moves with its parent. The fingers keep their decoded
 directions: against the ground truth (the VAE's reconstructions) their parents' rotations would
 put them further from the data's, where the skull and the pelvis so placed come nearer
 (docs/models.md has the figures). Shell
@@ -49,11 +51,13 @@ LEGS = (("left_hip", "left_knee", "left_ankle", "left_foot"),
 # Joints placed along their bone's direction in their parent's rotation rather than along the
 # decoded one: the head on the neck, the jaw and the eyes on the head (module docstring).
 SKULL = ("head", "jaw", "left_eye_smplhf", "right_eye_smplhf")
-# The pelvis's two hip bones, placed as one rigid piece (``pelvis_frames``).
+# Pairs of bones placed with their common parent as one rigid piece (``piece_frames``): the
+# pelvis's two hip bones and the chest's two collar bones.
 HIPS = ("left_hip", "right_hip")
-# How far the pelvis's sideways axis leans on the last frame's, in hip widths against the decoded
-# hips' line: where the decoded hips come together their line points anywhere, and a pelvis
-# turned by it alone swung the legs about; leaning more, it lags a turn (docs/models.md).
+COLLARS = ("left_collar", "right_collar")
+# How far a piece's sideways axis leans on the last frame's, in its pair's widths against the
+# decoded pair's line: where the decoded hips come together their line points anywhere, and a
+# pelvis turned by it alone swung the legs about; leaning more, it lags a turn (docs/models.md).
 HIP_LINE_MEMORY = 0.5
 
 
@@ -94,68 +98,77 @@ def skull_directions(layout: MotionLayout, mean_motion) -> dict[int, np.ndarray]
     return out
 
 
-def hip_directions(layout: MotionLayout, mean_motion, root_relative: bool = False,
-                   root_steps: bool = False) -> np.ndarray | None:
-    """The training data's two hip bones (``HIPS``) in the pelvis's frame, (2, 3) unit vectors,
-    from its mean motion vector as ``skull_directions`` solves the skull's; None where the
-    layout lacks them or the mean holds no rotation. ``root_relative``: the mean is of
-    root-relative motion (``Normalizer.set_root_relative``), every point but the root's own less
-    the root's floor place, so a hip's mean bone is its point less the root's height alone.
+def piece_directions(layout: MotionLayout, mean_motion, pair: tuple[str, str] = HIPS,
+                     root_relative: bool = False, root_steps: bool = False) -> np.ndarray | None:
+    """The training data's two bones of ``pair`` (``HIPS``, ``COLLARS``) in their common parent's
+    frame, (2, 3) unit vectors, from its mean motion vector as ``skull_directions`` solves the
+    skull's; None where the layout lacks them or the mean holds no rotation. ``root_relative``:
+    the mean is of root-relative motion (``Normalizer.set_root_relative``), every point but the
+    root's own less the root's floor place, so the hips' mean bones from the root are their
+    points less the root's height alone (the collars' parent is not the root: no matter).
     ``root_steps``: the root's own points hold their floor steps, whose mean holds no rotation
-    (None: the hips keep their decoded directions); so does a mean whose two hip bones point
-    the same way (a normalizer fitted to no body, or to a made-up one)."""
-    if root_steps or ROOT not in layout.joint_names or not all(n in layout.joint_names for n in HIPS):
+    (None for a pair on the root: the hips keep their decoded directions); so does a mean whose
+    two bones point the same way (a normalizer fitted to no body, or to a made-up one)."""
+    if not all(n in layout.joint_names for n in pair):
+        return None
+    children = [layout.joint(n) for n in pair]
+    parent_of = {child: parent for child, parent in layout.bones}
+    parent = parent_of.get(children[0])
+    if parent is None or parent_of.get(children[1]) != parent:
+        return None
+    on_root = layout.joint_names[parent] == ROOT
+    if on_root and root_steps:
         return None
     icosahedra, _ = layout.split(np.asarray(mean_motion, dtype=np.float64))
     centres = icosahedra.mean(axis=-2)
-    root = layout.joint(ROOT)
-    rotation = _mean_rotation(icosahedra, root)
+    rotation = _mean_rotation(icosahedra, parent)
     if rotation is None:
         return None
-    origin = centres[root] * (np.array([0.0, 1.0, 0.0]) if root_relative else 1.0)
-    bones = np.linalg.solve(rotation, (centres[[layout.joint(n) for n in HIPS]] - origin).T).T
+    origin = centres[parent] * (np.array([0.0, 1.0, 0.0]) if on_root and root_relative else 1.0)
+    bones = np.linalg.solve(rotation, (centres[children] - origin).T).T
     bones = bones / np.linalg.norm(bones, axis=-1, keepdims=True)
-    return None if _frame(bones[0] - bones[1], _downs(bones[0], bones[1])) is None else bones
+    return None if _frame(bones[0] - bones[1], _middles(bones[0], bones[1])) is None else bones
 
 
-def _downs(left: np.ndarray, right: np.ndarray) -> np.ndarray:
+def _middles(left: np.ndarray, right: np.ndarray) -> np.ndarray:
     """(..., 3) pairs of bones -> the (..., 3) unit mean of their directions; straight down where
-    a bone or their sum vanishes."""
+    a bone or their sum vanishes (a pair of opposite bones points no way in between)."""
     return unit(unit(left) + unit(right), fallback=np.array([0.0, -1.0, 0.0]))
 
 
-def _frame(line: np.ndarray, down: np.ndarray) -> np.ndarray | None:
-    """Columns: ``line`` made square to ``down`` (sideways), ``down``, and forward; None where
-    ``line`` runs along ``down``."""
-    side = line - down * (line @ down)
+def _frame(line: np.ndarray, middle: np.ndarray) -> np.ndarray | None:
+    """Columns: ``line`` made square to ``middle`` (sideways), ``middle``, and their cross product;
+    None where ``line`` runs along ``middle``."""
+    side = line - middle * (line @ middle)
     norm = np.sqrt(side @ side)
     if norm <= 1e-9:
         return None
     side = side / norm
-    return np.stack([side, down, np.cross(side, down)], axis=-1)
+    return np.stack([side, middle, np.cross(side, middle)], axis=-1)
 
 
-def pelvis_frames(left: np.ndarray, right: np.ndarray, rest: np.ndarray,
-                  sideways: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
-    """The pelvis as one rigid piece: its rotation in each frame from the decoded hips' bones
-    ``left`` and ``right`` ((T, 3): each hip less the pelvis) and their ``rest`` bones ((2, 3) in
-    the pelvis's frame, metres: ``hip_directions`` at the bones' lengths). Down is the mean of
-    the two bones' directions, which stays put when both swing in together (a pelvis folded on
-    one side tilts with it); sideways is the hips' line, leaning on the frame
-    before's by ``HIP_LINE_MEMORY`` hip widths. ``sideways``: the last frame's axis before these
-    frames (None at a stream's start). -> (rotations (T, 3, 3) taking the rest bones to this
-    frame's, the last frame's sideways axis)."""
-    rest_frame = _frame(rest[0] - rest[1], _downs(rest[0], rest[1]))
+def piece_frames(left: np.ndarray, right: np.ndarray, rest: np.ndarray,
+                 sideways: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """A pair of bones and their parent as one rigid piece (the pelvis and its hips, the chest and
+    its collars): its rotation in each frame from the pair's decoded bones ``left`` and ``right``
+    ((T, 3): each child less the parent) and their ``rest`` bones ((2, 3) in the parent's frame,
+    metres: ``piece_directions`` at the bones' lengths). The piece's middle is the mean of the
+    two bones' directions (the hips': down; the collars': up), which stays put when both swing
+    in together (a piece folded on one side tilts with it); sideways is the pair's line,
+    leaning on the frame before's by ``HIP_LINE_MEMORY`` of the pair's widths. ``sideways``: the
+    last frame's axis before these frames (None at a stream's start). -> (rotations (T, 3, 3)
+    taking the rest bones to this frame's, the last frame's sideways axis)."""
+    rest_frame = _frame(rest[0] - rest[1], _middles(rest[0], rest[1]))
     lean = HIP_LINE_MEMORY * float(np.linalg.norm(rest[0] - rest[1]))
-    downs, lines = _downs(left, right), left - right
+    middles, lines = _middles(left, right), left - right
     out = np.empty((len(left), 3, 3))
     for t in range(len(left)):
         line = lines[t] if sideways is None else lines[t] + lean * sideways
-        frame = _frame(line, downs[t])
-        if frame is None:  # the hips on one point at a stream's start: any sideways will do
-            frame = _frame(np.array([1.0, 0.0, 0.0]), downs[t])
+        frame = _frame(line, middles[t])
+        if frame is None:  # the pair on one point at a stream's start: any sideways will do
+            frame = _frame(np.array([1.0, 0.0, 0.0]), middles[t])
             if frame is None:
-                frame = _frame(np.array([0.0, 0.0, 1.0]), downs[t])
+                frame = _frame(np.array([0.0, 0.0, 1.0]), middles[t])
         sideways = frame[:, 0]
         out[t] = frame @ rest_frame.T
     return out, sideways
@@ -217,12 +230,14 @@ class RigidSkeleton:
     data's) where ``lengths`` are another body's (an agent's own): the body moves up or down by
     ``leg_height_change`` from it; None: ``lengths`` are that body's. ``skull``:
     ``skull_directions``, which places those joints by their parent's decoded rotation; None:
-    along their decoded directions, as every other bone. ``hips``: ``hip_directions``, which
-    places the hips as one piece with the pelvis (``pelvis_frames``), each leg moved with its
-    hip; None: along their decoded directions."""
+    along their decoded directions, as every other bone. ``pieces``: ``{pair: its
+    piece_directions}`` (``HIPS``, ``COLLARS``), which places each pair with its parent as one
+    piece (``piece_frames``), each leg moved with its hip and each arm with its collar; a pair
+    left out: along their decoded directions."""
 
     def __init__(self, layout: MotionLayout, lengths, reference=None,
-                 skull: dict[int, np.ndarray] | None = None, hips: np.ndarray | None = None) -> None:
+                 skull: dict[int, np.ndarray] | None = None,
+                 pieces: dict[tuple[str, str], np.ndarray] | None = None) -> None:
         lengths = check_lengths(layout, lengths)
         self.layout, self.lengths = layout, lengths
         self.root = layout.joint(ROOT) if ROOT in layout.joint_names else None
@@ -234,22 +249,25 @@ class RigidSkeleton:
             depth[child] = depth.get(parent, 0) + 1
         self._levels = []
         skull = skull or {}
+        parent_of = dict(layout.bones)
         # Bones turned onto a rotation rather than along their decoded direction: the skull's onto
-        # its parents' decoded rotations, the hips onto the pelvis's piece (``pelvis_frames``, the
-        # last row of the rotations); each such bone's row there and its direction in that frame.
+        # its parents' decoded rotations, each piece's pair onto the piece's (``piece_frames``,
+        # after the skull's parents in the rotations); each such bone's row there and its
+        # direction in that frame.
         self._skull_parents = sorted({parent for child, parent in layout.bones if child in skull})
-        hip_joints = [] if hips is None else [layout.joint(name) for name in HIPS]
         onto = {child: (self._skull_parents.index(parent), skull[child])
                 for child, parent in layout.bones if child in skull}
-        if hips is not None:
-            directions = np.asarray(hips, dtype=np.float64).reshape(2, 3)
-            onto.update({hip: (len(self._skull_parents), directions[side])
-                         for side, hip in enumerate(hip_joints)})
-            # The rest hip bones at their lengths: the pelvis's shape, which ``pelvis_frames``
-            # turns.
-            self._hip_rest = directions * [[lengths[layout.bones.index((hip, self.root))]]
-                                           for hip in hip_joints]
-        self._hips = hip_joints
+        # Each piece: its parent, its pair's joints and rest bones at their lengths (the piece's
+        # shape, which ``piece_frames`` turns).
+        self._pieces = []
+        for pair, directions in (pieces or {}).items():
+            children = [layout.joint(name) for name in pair]
+            directions = np.asarray(directions, dtype=np.float64).reshape(2, 3)
+            parent = parent_of[children[0]]
+            row = len(self._skull_parents) + len(self._pieces)
+            onto.update({child: (row, directions[side]) for side, child in enumerate(children)})
+            rest = directions * [[lengths[layout.bones.index((child, parent))]] for child in children]
+            self._pieces.append((parent, children, rest))
         for level in sorted(set(depth.values())):
             rows = [i for i, (child, _) in enumerate(layout.bones) if depth[child] == level]
             bones = np.array([layout.bones[i] for i in rows])
@@ -262,7 +280,7 @@ class RigidSkeleton:
 
     def reset(self) -> None:
         self.shell.reset()
-        self._sideways = None  # the pelvis's last sideways axis (``pelvis_frames``)
+        self._sideways = [None] * len(self._pieces)  # each piece's last sideways axis
 
     def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None,
                  user: np.ndarray | None = None) -> np.ndarray:
@@ -272,14 +290,15 @@ class RigidSkeleton:
         placed = joints.copy()
         if self.lift:
             placed[:, self.root, 1] += self.lift
-        rotations = np.empty((len(x), 0, 3, 3))
+        rotations = [np.empty((len(x), 0, 3, 3))]
         if self._skull_parents:
-            _, rotations = decode(icosahedra[:, self._skull_parents])
-        if self._hips:
-            bones = joints[:, self._hips] - joints[:, [self.root]]
-            pelvis, self._sideways = pelvis_frames(bones[:, 0], bones[:, 1], self._hip_rest,
-                                                   self._sideways)
-            rotations = np.concatenate([rotations, pelvis[:, None]], axis=1)
+            rotations = [decode(icosahedra[:, self._skull_parents])[1]]
+        for i, (parent, children, rest) in enumerate(self._pieces):
+            bones = joints[:, children] - joints[:, [parent]]
+            piece, self._sideways[i] = piece_frames(bones[:, 0], bones[:, 1], rest,
+                                                    self._sideways[i])
+            rotations.append(piece[:, None])
+        rotations = np.concatenate(rotations, axis=1)
         moved = np.zeros_like(joints)  # how far a turned bone moved its joint from its decoded way
         for child, parent, length, turned in self._levels:
             direction = joints[:, child] - joints[:, parent]
