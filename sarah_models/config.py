@@ -265,6 +265,11 @@ class VAEConfig:
     # decoded each along its own direction they folded as the hips did (docs/models.md;
     # docs/results.md, hundred-and-second run). False: as until then.
     rigid_collars: bool = True
+    # Not in the paper: with ``rigid_bones``, each hand's five knuckles placed with its wrist as one
+    # piece, each finger with its knuckle (``sampling.rigid_skeleton.HANDS``): decoded each along
+    # its own direction, the palm narrowed and widened (docs/models.md; docs/results.md,
+    # hundred-and-second run). False: as until then.
+    rigid_hands: bool = True
     # Not in the paper (0 = off): lock planted feet, stepping when the decoded foot has moved
     # this many metres away (``sampling.foot_lock``); decoded feet glide and jitter.
     foot_lock: float = 0.0
@@ -550,7 +555,7 @@ class FlowConfig:
 # again with other values, nothing trained (``sarah-train --stage model``), and a fine-tune may
 # change them.
 DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "seam_mode", "rigid_bones", "rigid_skull",
-                           "rigid_hips", "rigid_collars",
+                           "rigid_hips", "rigid_collars", "rigid_hands",
                            "foot_lock", "foot_swing_frames", "foot_lock_reads", "stance_reach",
                            "foot_step",
                            "root_hold", "root_hold_reads", "root_hold_turn", "limb_lowpass")}

@@ -24,7 +24,7 @@ from ..nn.vae import detail_generator
 from .continuity import SeamInertia
 from .foot_lock import FootLock
 from .limb_lowpass import LimbLowpass
-from .rigid_skeleton import (COLLARS, HIPS, RigidSkeleton, check_lengths, piece_directions,
+from .rigid_skeleton import (COLLARS, HANDS, HIPS, RigidSkeleton, check_lengths, piece_directions,
                              skull_directions)
 from .root_hold import RootHold
 
@@ -135,11 +135,11 @@ def stream_decoding(vae, normalizer, bone_lengths=None) -> StreamDecoding:
         if cfg.rigid_bones:
             mean = normalizer.motion_mean.detach().double().cpu().numpy()
             skull = skull_directions(layout, mean) if cfg.rigid_skull else None
-            pairs = [pair for pair, wanted in ((HIPS, cfg.rigid_hips), (COLLARS, cfg.rigid_collars))
-                     if wanted]
-            pieces = {pair: piece_directions(layout, mean, pair, normalizer.root_relative,
-                                             normalizer.root_steps) for pair in pairs}
-            pieces = {pair: rest for pair, rest in pieces.items() if rest is not None}
+            wanted = ([HIPS] * cfg.rigid_hips + [COLLARS] * cfg.rigid_collars
+                      + list(HANDS) * cfg.rigid_hands)
+            pieces = {piece: piece_directions(layout, mean, piece, normalizer.root_relative,
+                                              normalizer.root_steps) for piece in wanted}
+            pieces = {piece: rest for piece, rest in pieces.items() if rest is not None}
             filters.append(RigidSkeleton(layout, lengths, reference, skull, pieces))
         if cfg.foot_lock:
             if reads_stance(vae) and getattr(vae, "stance", None) is None:

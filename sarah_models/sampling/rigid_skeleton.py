@@ -25,11 +25,14 @@ them: at their bone's length along the direction that rotation carries the bone 
 given ``piece_directions``): each sits 10 cm from the pelvis, and decoded each on its own the two
 came within centimetres of each other and the knees crossed, so the pelvis is placed as one
 piece (``piece_frames``) and each leg moves with its hip; the collars likewise with the chest
-(``COLLARS``: decoded, they folded as the hips did, and the shoulders with them), and each arm
-moves with its collar, as every child moves with its parent. The fingers keep their decoded
-directions: against the ground truth (the VAE's reconstructions) their parents' rotations would
-put them further from the data's, where the skull and the pelvis so placed come nearer
-(docs/models.md has the figures). Shell
+(``COLLARS``: decoded, they folded as the hips did, and the shoulders with them), and each
+hand's five knuckles with its wrist (``HANDS``: decoded, the palm narrowed and widened); each
+arm moves with its collar and each finger with its knuckle, as every child moves with its
+parent. Past the knuckles the fingers keep their decoded directions, and the knuckles are
+turned by the piece their decoded bones span, not by the wrist's decoded rotation: against the
+ground truth (the VAE's reconstructions) the wrist's rotation would put them further from the
+data's, where the skull so placed and the pieces come nearer (docs/models.md has the figures).
+Shell
 points ride their bones (``ShellFollow``): each is carried and turned with the body bone
 nearest it in the stream's first frame, as a skinned mesh's vertices are.
 
@@ -51,10 +54,13 @@ LEGS = (("left_hip", "left_knee", "left_ankle", "left_foot"),
 # Joints placed along their bone's direction in their parent's rotation rather than along the
 # decoded one: the head on the neck, the jaw and the eyes on the head (module docstring).
 SKULL = ("head", "jaw", "left_eye_smplhf", "right_eye_smplhf")
-# Pairs of bones placed with their common parent as one rigid piece (``piece_frames``): the
-# pelvis's two hip bones and the chest's two collar bones.
+# Pieces: bones of one parent placed with it as one rigid piece (``piece_frames``), the first two
+# spanning its frame: the pelvis's two hip bones, the chest's two collar bones, and each hand's
+# five knuckle bones (its index and its little finger across the palm).
 HIPS = ("left_hip", "right_hip")
 COLLARS = ("left_collar", "right_collar")
+HANDS = tuple(tuple(f"{side}_{finger}1" for finger in ("index", "pinky", "middle", "ring", "thumb"))
+              for side in ("left", "right"))
 # How far a piece's sideways axis leans on the last frame's, in its pair's widths against the
 # decoded pair's line: where the decoded hips come together their line points anywhere, and a
 # pelvis turned by it alone swung the legs about; leaning more, it lags a turn (docs/models.md).
@@ -98,23 +104,24 @@ def skull_directions(layout: MotionLayout, mean_motion) -> dict[int, np.ndarray]
     return out
 
 
-def piece_directions(layout: MotionLayout, mean_motion, pair: tuple[str, str] = HIPS,
+def piece_directions(layout: MotionLayout, mean_motion, piece: tuple[str, ...] = HIPS,
                      root_relative: bool = False, root_steps: bool = False) -> np.ndarray | None:
-    """The training data's two bones of ``pair`` (``HIPS``, ``COLLARS``) in their common parent's
-    frame, (2, 3) unit vectors, from its mean motion vector as ``skull_directions`` solves the
-    skull's; None where the layout lacks them or the mean holds no rotation. ``root_relative``:
+    """The training data's bones of ``piece`` (``HIPS``, ``COLLARS``, ``HANDS``) in their common
+    parent's frame, (len(piece), 3) unit vectors, from its mean motion vector as
+    ``skull_directions`` solves the skull's; None where the layout lacks them or the mean holds no
+    rotation. ``root_relative``:
     the mean is of root-relative motion (``Normalizer.set_root_relative``), every point but the
     root's own less the root's floor place, so the hips' mean bones from the root are their
     points less the root's height alone (the collars' parent is not the root: no matter).
     ``root_steps``: the root's own points hold their floor steps, whose mean holds no rotation
-    (None for a pair on the root: the hips keep their decoded directions); so does a mean whose
-    two bones point the same way (a normalizer fitted to no body, or to a made-up one)."""
-    if not all(n in layout.joint_names for n in pair):
+    (None for a piece on the root: the hips keep their decoded directions); so does a mean whose
+    first two bones point the same way (a normalizer fitted to no body, or to a made-up one)."""
+    if not all(n in layout.joint_names for n in piece):
         return None
-    children = [layout.joint(n) for n in pair]
+    children = [layout.joint(n) for n in piece]
     parent_of = {child: parent for child, parent in layout.bones}
     parent = parent_of.get(children[0])
-    if parent is None or parent_of.get(children[1]) != parent:
+    if parent is None or any(parent_of.get(child) != parent for child in children):
         return None
     on_root = layout.joint_names[parent] == ROOT
     if on_root and root_steps:
@@ -149,13 +156,14 @@ def _frame(line: np.ndarray, middle: np.ndarray) -> np.ndarray | None:
 
 def piece_frames(left: np.ndarray, right: np.ndarray, rest: np.ndarray,
                  sideways: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
-    """A pair of bones and their parent as one rigid piece (the pelvis and its hips, the chest and
-    its collars): its rotation in each frame from the pair's decoded bones ``left`` and ``right``
-    ((T, 3): each child less the parent) and their ``rest`` bones ((2, 3) in the parent's frame,
-    metres: ``piece_directions`` at the bones' lengths). The piece's middle is the mean of the
-    two bones' directions (the hips': down; the collars': up), which stays put when both swing
-    in together (a piece folded on one side tilts with it); sideways is the pair's line,
-    leaning on the frame before's by ``HIP_LINE_MEMORY`` of the pair's widths. ``sideways``: the
+    """Bones and their parent as one rigid piece (the pelvis and its hips, the chest and its
+    collars, a hand and its knuckles): its rotation in each frame from the decoded bones
+    ``left`` and ``right`` of the two that span it ((T, 3): each child less the parent) and the
+    piece's ``rest`` bones ((n, 3) in the parent's frame, metres: ``piece_directions`` at the
+    bones' lengths; the first two are those). The piece's middle is the mean of the two bones'
+    directions (the hips': down; the collars': up; the knuckles': along the hand), which stays
+    put when both swing in together (a piece folded on one side tilts with it); sideways is
+    their line, leaning on the frame before's by ``HIP_LINE_MEMORY`` of their widths. ``sideways``: the
     last frame's axis before these frames (None at a stream's start). -> (rotations (T, 3, 3)
     taking the rest bones to this frame's, the last frame's sideways axis)."""
     rest_frame = _frame(rest[0] - rest[1], _middles(rest[0], rest[1]))
@@ -230,14 +238,15 @@ class RigidSkeleton:
     data's) where ``lengths`` are another body's (an agent's own): the body moves up or down by
     ``leg_height_change`` from it; None: ``lengths`` are that body's. ``skull``:
     ``skull_directions``, which places those joints by their parent's decoded rotation; None:
-    along their decoded directions, as every other bone. ``pieces``: ``{pair: its
-    piece_directions}`` (``HIPS``, ``COLLARS``), which places each pair with its parent as one
-    piece (``piece_frames``), each leg moved with its hip and each arm with its collar; a pair
-    left out: along their decoded directions."""
+    along their decoded directions, as every other bone. ``pieces``: ``{piece: its
+    piece_directions}`` (``HIPS``, ``COLLARS``, ``HANDS``), which places each piece's bones with
+    their parent as one piece (``piece_frames``), each leg moved with its hip, each arm with its
+    collar and each finger with its knuckle; a piece left out: along their decoded
+    directions."""
 
     def __init__(self, layout: MotionLayout, lengths, reference=None,
                  skull: dict[int, np.ndarray] | None = None,
-                 pieces: dict[tuple[str, str], np.ndarray] | None = None) -> None:
+                 pieces: dict[tuple[str, ...], np.ndarray] | None = None) -> None:
         lengths = check_lengths(layout, lengths)
         self.layout, self.lengths = layout, lengths
         self.root = layout.joint(ROOT) if ROOT in layout.joint_names else None
@@ -251,18 +260,18 @@ class RigidSkeleton:
         skull = skull or {}
         parent_of = dict(layout.bones)
         # Bones turned onto a rotation rather than along their decoded direction: the skull's onto
-        # its parents' decoded rotations, each piece's pair onto the piece's (``piece_frames``,
+        # its parents' decoded rotations, each piece's bones onto the piece's (``piece_frames``,
         # after the skull's parents in the rotations); each such bone's row there and its
         # direction in that frame.
         self._skull_parents = sorted({parent for child, parent in layout.bones if child in skull})
         onto = {child: (self._skull_parents.index(parent), skull[child])
                 for child, parent in layout.bones if child in skull}
-        # Each piece: its parent, its pair's joints and rest bones at their lengths (the piece's
-        # shape, which ``piece_frames`` turns).
+        # Each piece: its parent, its joints and rest bones at their lengths (the piece's shape,
+        # which ``piece_frames`` turns).
         self._pieces = []
-        for pair, directions in (pieces or {}).items():
-            children = [layout.joint(name) for name in pair]
-            directions = np.asarray(directions, dtype=np.float64).reshape(2, 3)
+        for piece, directions in (pieces or {}).items():
+            children = [layout.joint(name) for name in piece]
+            directions = np.asarray(directions, dtype=np.float64).reshape(len(children), 3)
             parent = parent_of[children[0]]
             row = len(self._skull_parents) + len(self._pieces)
             onto.update({child: (row, directions[side]) for side, child in enumerate(children)})
