@@ -134,7 +134,7 @@ def piece_directions(layout: MotionLayout, mean_motion, piece: tuple[str, ...] =
     origin = centres[parent] * (np.array([0.0, 1.0, 0.0]) if on_root and root_relative else 1.0)
     bones = np.linalg.solve(rotation, (centres[children] - origin).T).T
     bones = bones / np.linalg.norm(bones, axis=-1, keepdims=True)
-    return None if _frame(bones[0] - bones[1], _middles(bones[0], bones[1])) is None else bones
+    return bones if _frames(bones[0] - bones[1], _middles(bones[0], bones[1]))[1] else None
 
 
 def _middles(left: np.ndarray, right: np.ndarray) -> np.ndarray:
@@ -143,42 +143,46 @@ def _middles(left: np.ndarray, right: np.ndarray) -> np.ndarray:
     return unit(unit(left) + unit(right), fallback=np.array([0.0, -1.0, 0.0]))
 
 
-def _frame(line: np.ndarray, middle: np.ndarray) -> np.ndarray | None:
-    """Columns: ``line`` made square to ``middle`` (sideways), ``middle``, and their cross product;
-    None where ``line`` runs along ``middle``."""
-    side = line - middle * (line @ middle)
-    norm = np.sqrt(side @ side)
-    if norm <= 1e-9:
-        return None
-    side = side / norm
-    return np.stack([side, middle, np.cross(side, middle)], axis=-1)
+def _frames(line: np.ndarray, middle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(..., 3) -> (..., 3, 3) frames whose columns are ``line`` made square to ``middle``
+    (sideways), ``middle``, and their cross product, and (...) whether each is one: not where
+    ``line`` runs along ``middle``."""
+    side = line - middle * np.sum(line * middle, axis=-1, keepdims=True)
+    norm = np.sqrt(np.sum(side * side, axis=-1, keepdims=True))
+    ok = norm[..., 0] > 1e-9
+    side = side / np.where(ok[..., None], norm, 1.0)
+    return np.stack([side, middle, np.cross(side, middle)], axis=-1), ok
 
 
 def piece_frames(left: np.ndarray, right: np.ndarray, rest: np.ndarray,
-                 sideways: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+                 sideways: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Bones and their parent as one rigid piece (the pelvis and its hips, the chest and its
-    collars, a hand and its knuckles): its rotation in each frame from the decoded bones
-    ``left`` and ``right`` of the two that span it ((T, 3): each child less the parent) and the
-    piece's ``rest`` bones ((n, 3) in the parent's frame, metres: ``piece_directions`` at the
-    bones' lengths; the first two are those). The piece's middle is the mean of the two bones'
+    collars, a hand and its knuckles): each piece's rotation in each frame from the decoded
+    bones ``left`` and ``right`` of the two that span it ((T, P, 3) for P pieces: each child less
+    the parent) and those two's ``rest`` bones ((P, 2, 3) in the parent's frame, metres:
+    ``piece_directions`` at the bones' lengths). A piece's middle is the mean of the two bones'
     directions (the hips': down; the collars': up; the knuckles': along the hand), which stays
     put when both swing in together (a piece folded on one side tilts with it); sideways is
-    their line, leaning on the frame before's by ``HIP_LINE_MEMORY`` of their widths. ``sideways``: the
-    last frame's axis before these frames (None at a stream's start). -> (rotations (T, 3, 3)
-    taking the rest bones to this frame's, the last frame's sideways axis)."""
-    rest_frame = _frame(rest[0] - rest[1], _middles(rest[0], rest[1]))
-    lean = HIP_LINE_MEMORY * float(np.linalg.norm(rest[0] - rest[1]))
+    their line, leaning on the frame before's by ``HIP_LINE_MEMORY`` of their widths.
+    ``sideways``: each piece's last axis before these frames ((P, 3); None at a stream's start).
+    -> (rotations (T, P, 3, 3) taking the rest bones to this frame's, the last frame's sideways
+    axes (P, 3))."""
+    rest_frames, _ = _frames(rest[:, 0] - rest[:, 1], _middles(rest[:, 0], rest[:, 1]))
+    to_rest = np.swapaxes(rest_frames, -1, -2)
+    leans = HIP_LINE_MEMORY * np.linalg.norm(rest[:, 0] - rest[:, 1], axis=-1, keepdims=True)
     middles, lines = _middles(left, right), left - right
-    out = np.empty((len(left), 3, 3))
+    out = np.empty(left.shape[:2] + (3, 3))
     for t in range(len(left)):
-        line = lines[t] if sideways is None else lines[t] + lean * sideways
-        frame = _frame(line, middles[t])
-        if frame is None:  # the pair on one point at a stream's start: any sideways will do
-            frame = _frame(np.array([1.0, 0.0, 0.0]), middles[t])
-            if frame is None:
-                frame = _frame(np.array([0.0, 0.0, 1.0]), middles[t])
-        sideways = frame[:, 0]
-        out[t] = frame @ rest_frame.T
+        line = lines[t] if sideways is None else lines[t] + leans * sideways
+        frame, ok = _frames(line, middles[t])
+        # The pair on one point at a stream's start: any sideways will do.
+        for axis in ((1.0, 0.0, 0.0), (0.0, 0.0, 1.0)):
+            if ok.all():
+                break
+            other, other_ok = _frames(np.broadcast_to(axis, line.shape), middles[t])
+            frame, ok = np.where(ok[:, None, None], frame, other), ok | other_ok
+        sideways = frame[..., 0]
+        out[t] = frame @ to_rest
     return out, sideways
 
 
@@ -266,17 +270,22 @@ class RigidSkeleton:
         self._skull_parents = sorted({parent for child, parent in layout.bones if child in skull})
         onto = {child: (self._skull_parents.index(parent), skull[child])
                 for child, parent in layout.bones if child in skull}
-        # Each piece: its parent, its joints and rest bones at their lengths (the piece's shape,
-        # which ``piece_frames`` turns).
-        self._pieces = []
+        # Each piece: its parent, the two joints that span it and their rest bones at their
+        # lengths (the piece's shape, which ``piece_frames`` turns), all pieces at once.
+        parents, spans, rests = [], [], []
         for piece, directions in (pieces or {}).items():
             children = [layout.joint(name) for name in piece]
             directions = np.asarray(directions, dtype=np.float64).reshape(len(children), 3)
             parent = parent_of[children[0]]
-            row = len(self._skull_parents) + len(self._pieces)
+            row = len(self._skull_parents) + len(parents)
             onto.update({child: (row, directions[side]) for side, child in enumerate(children)})
-            rest = directions * [[lengths[layout.bones.index((child, parent))]] for child in children]
-            self._pieces.append((parent, children, rest))
+            parents.append(parent)
+            spans.append(children[:2])
+            rests.append(directions[:2] * [[lengths[layout.bones.index((child, parent))]]
+                                           for child in children[:2]])
+        self._piece_parents = np.array(parents, dtype=np.int64)
+        self._piece_spans = np.array(spans, dtype=np.int64).reshape(-1, 2)
+        self._piece_rests = np.array(rests).reshape(-1, 2, 3)
         for level in sorted(set(depth.values())):
             rows = [i for i, (child, _) in enumerate(layout.bones) if depth[child] == level]
             bones = np.array([layout.bones[i] for i in rows])
@@ -289,7 +298,7 @@ class RigidSkeleton:
 
     def reset(self) -> None:
         self.shell.reset()
-        self._sideways = [None] * len(self._pieces)  # each piece's last sideways axis
+        self._sideways = None  # each piece's last sideways axis (``piece_frames``)
 
     def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None,
                  user: np.ndarray | None = None) -> np.ndarray:
@@ -302,11 +311,12 @@ class RigidSkeleton:
         rotations = [np.empty((len(x), 0, 3, 3))]
         if self._skull_parents:
             rotations = [decode(icosahedra[:, self._skull_parents])[1]]
-        for i, (parent, children, rest) in enumerate(self._pieces):
-            bones = joints[:, children] - joints[:, [parent]]
-            piece, self._sideways[i] = piece_frames(bones[:, 0], bones[:, 1], rest,
-                                                    self._sideways[i])
-            rotations.append(piece[:, None])
+        if len(self._piece_parents):
+            parents = joints[:, self._piece_parents]
+            pieces, self._sideways = piece_frames(
+                joints[:, self._piece_spans[:, 0]] - parents,
+                joints[:, self._piece_spans[:, 1]] - parents, self._piece_rests, self._sideways)
+            rotations.append(pieces)
         rotations = np.concatenate(rotations, axis=1)
         moved = np.zeros_like(joints)  # how far a turned bone moved its joint from its decoded way
         for child, parent, length, turned in self._levels:
