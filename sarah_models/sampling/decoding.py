@@ -135,8 +135,8 @@ def stream_decoding(vae, normalizer, bone_lengths=None) -> StreamDecoding:
         if cfg.rigid_bones:
             mean = normalizer.motion_mean.detach().double().cpu().numpy()
             skull = skull_directions(layout, mean) if cfg.rigid_skull else None
-            wanted = ([HIPS] * cfg.rigid_hips + [COLLARS] * cfg.rigid_collars
-                      + list(HANDS) * cfg.rigid_hands)
+            wanted = [piece for piece, on in ((HIPS, cfg.rigid_hips), (COLLARS, cfg.rigid_collars),
+                                              *((hand, cfg.rigid_hands) for hand in HANDS)) if on]
             pieces = {piece: piece_directions(layout, mean, piece, normalizer.root_relative,
                                               normalizer.root_steps) for piece in wanted}
             pieces = {piece: rest for piece, rest in pieces.items() if rest is not None}

@@ -64,7 +64,7 @@ HANDS = tuple(tuple(f"{side}_{finger}1" for finger in ("index", "pinky", "middle
 # How far a piece's sideways axis leans on the last frame's, in its pair's widths against the
 # decoded pair's line: where the decoded hips come together their line points anywhere, and a
 # pelvis turned by it alone swung the legs about; leaning more, it lags a turn (docs/models.md).
-HIP_LINE_MEMORY = 0.5
+LINE_MEMORY = 0.5
 
 
 def _mean_rotation(icosahedra: np.ndarray, joint: int) -> np.ndarray | None:
@@ -109,10 +109,10 @@ def piece_directions(layout: MotionLayout, mean_motion, piece: tuple[str, ...] =
     """The training data's bones of ``piece`` (``HIPS``, ``COLLARS``, ``HANDS``) in their common
     parent's frame, (len(piece), 3) unit vectors, from its mean motion vector as
     ``skull_directions`` solves the skull's; None where the layout lacks them or the mean holds no
-    rotation. ``root_relative``:
-    the mean is of root-relative motion (``Normalizer.set_root_relative``), every point but the
-    root's own less the root's floor place, so the hips' mean bones from the root are their
-    points less the root's height alone (the collars' parent is not the root: no matter).
+    rotation. ``root_relative``: the mean is of root-relative motion
+    (``Normalizer.set_root_relative``), every point but the root's own less the root's floor
+    place, so the hips' mean bones from the root are their points less the root's height alone
+    (the other pieces' parents are not the root: no matter).
     ``root_steps``: the root's own points hold their floor steps, whose mean holds no rotation
     (None for a piece on the root: the hips keep their decoded directions); so does a mean whose
     first two bones point the same way (a normalizer fitted to no body, or to a made-up one)."""
@@ -163,13 +163,13 @@ def piece_frames(left: np.ndarray, right: np.ndarray, rest: np.ndarray,
     ``piece_directions`` at the bones' lengths). A piece's middle is the mean of the two bones'
     directions (the hips': down; the collars': up; the knuckles': along the hand), which stays
     put when both swing in together (a piece folded on one side tilts with it); sideways is
-    their line, leaning on the frame before's by ``HIP_LINE_MEMORY`` of their widths.
+    their line, leaning on the frame before's by ``LINE_MEMORY`` of their widths.
     ``sideways``: each piece's last axis before these frames ((P, 3); None at a stream's start).
     -> (rotations (T, P, 3, 3) taking the rest bones to this frame's, the last frame's sideways
     axes (P, 3))."""
     rest_frames, _ = _frames(rest[:, 0] - rest[:, 1], _middles(rest[:, 0], rest[:, 1]))
     to_rest = np.swapaxes(rest_frames, -1, -2)
-    leans = HIP_LINE_MEMORY * np.linalg.norm(rest[:, 0] - rest[:, 1], axis=-1, keepdims=True)
+    leans = LINE_MEMORY * np.linalg.norm(rest[:, 0] - rest[:, 1], axis=-1, keepdims=True)
     middles, lines = _middles(left, right), left - right
     out = np.empty(left.shape[:2] + (3, 3))
     for t in range(len(left)):
