@@ -77,6 +77,18 @@ def _mean_rotation(icosahedra: np.ndarray, joint: int) -> np.ndarray | None:
     return None if abs(np.linalg.det(rotation)) < 1e-3 else rotation
 
 
+def _mean_bones(icosahedra: np.ndarray, parent: int, children: list[int],
+                origin: np.ndarray) -> np.ndarray | None:
+    """(len(children), 3) unit directions of ``children``'s mean bones from ``origin`` (the
+    parent's mean point) in ``parent``'s frame, solved against its mean rotation
+    (``skull_directions`` says why that is exact); None where the mean holds no rotation."""
+    rotation = _mean_rotation(icosahedra, parent)
+    if rotation is None:
+        return None
+    bones = np.linalg.solve(rotation, (icosahedra[children].mean(axis=-2) - origin).T).T
+    return bones / np.linalg.norm(bones, axis=-1, keepdims=True)
+
+
 def skull_directions(layout: MotionLayout, mean_motion) -> dict[int, np.ndarray]:
     """The training data's bone directions of the skull in their parents' frames, from its mean
     motion vector (the normalizer's ``motion`` mean): ``{child joint: (3,) unit vector}`` for
@@ -96,11 +108,9 @@ def skull_directions(layout: MotionLayout, mean_motion) -> dict[int, np.ndarray]
     for child, parent in layout.bones:
         if layout.joint_names[child] not in SKULL or layout.joint_names[parent] == ROOT:
             continue
-        rotation = _mean_rotation(icosahedra, parent)
-        if rotation is None:  # that bone keeps its decoded direction
-            continue
-        bone = np.linalg.solve(rotation, centres[child] - centres[parent])
-        out[child] = bone / np.linalg.norm(bone)
+        bone = _mean_bones(icosahedra, parent, [child], centres[parent])
+        if bone is not None:  # else that bone keeps its decoded direction
+            out[child] = bone[0]
     return out
 
 
@@ -127,14 +137,13 @@ def piece_directions(layout: MotionLayout, mean_motion, piece: tuple[str, ...] =
     if on_root and root_steps:
         return None
     icosahedra, _ = layout.split(np.asarray(mean_motion, dtype=np.float64))
-    centres = icosahedra.mean(axis=-2)
-    rotation = _mean_rotation(icosahedra, parent)
-    if rotation is None:
+    origin = icosahedra[parent].mean(axis=-2)
+    if on_root and root_relative:
+        origin = origin * np.array([0.0, 1.0, 0.0])
+    bones = _mean_bones(icosahedra, parent, children, origin)
+    if bones is None or not _frames(bones[0] - bones[1], _middles(bones[0], bones[1]))[1]:
         return None
-    origin = centres[parent] * (np.array([0.0, 1.0, 0.0]) if on_root and root_relative else 1.0)
-    bones = np.linalg.solve(rotation, (centres[children] - origin).T).T
-    bones = bones / np.linalg.norm(bones, axis=-1, keepdims=True)
-    return bones if _frames(bones[0] - bones[1], _middles(bones[0], bones[1]))[1] else None
+    return bones
 
 
 def _middles(left: np.ndarray, right: np.ndarray) -> np.ndarray:
