@@ -304,6 +304,13 @@ class VAEConfig:
     # fixture benchmark's 96 tuning windows "data" took the shipped model's streamed FGD_acc from
     # 1,121 to 823 and the benchmark recipe's model's from 516 to 380 (docs/results.md).
     foot_step: str = "data"
+    # Not in the paper (0 = off): metres along the hips' line that a held foot keeps from the
+    # other foot (``sampling.foot_lock``): nearer, it steps toward its decoded place where that is
+    # wider. The data's ankles come nearer along that line in 0.1 % of frames (13.1 cm; min 8.2,
+    # never crossed; 93,113 frames of the fixture benchmark's training corpus); held until the
+    # decoded foot drifted ``stance_reach`` away, the lock's came within 10 cm in 2.7 % of frames
+    # and crossed in 3.0 % (docs/results.md, hundred-and-second and hundred-and-third runs).
+    foot_gap: float = 0.13
     # Not in the paper (0 = off): the body holds its place on the floor until the decoded pelvis
     # has moved this many metres away, then follows, no faster than the data's people walk
     # (``sampling.root_hold``); the decoded pelvis wanders where people stand.
@@ -354,6 +361,8 @@ class VAEConfig:
         if self.foot_lock_reads not in LOCK_READS:
             raise ValueError(f"VAEConfig.foot_lock_reads must be one of {LOCK_READS}, got "
                              f"{self.foot_lock_reads!r}")
+        if not self.foot_gap >= 0:
+            raise ValueError(f"VAEConfig.foot_gap (metres) must be >= 0 (0: off), got {self.foot_gap}")
         if not self.stance_reach > 0:
             raise ValueError(f"VAEConfig.stance_reach must be > 0, got {self.stance_reach}")
         if self.foot_lock_reads == "stance" and not self.stance_weight > 0:
@@ -557,7 +566,7 @@ class FlowConfig:
 DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "seam_mode", "rigid_bones", "rigid_skull",
                            "rigid_hips", "rigid_collars", "rigid_hands",
                            "foot_lock", "foot_swing_frames", "foot_lock_reads", "stance_reach",
-                           "foot_step",
+                           "foot_step", "foot_gap",
                            "root_hold", "root_hold_reads", "root_hold_turn", "limb_lowpass")}
 
 

@@ -14,7 +14,7 @@ from sarah_data.skeleton import MotionLayout, bone_lengths
 from sarah_models.config import StreamConfig, VAEConfig
 from sarah_models.nn.stance import RECEPTIVE_TOKENS, STANCE_SPEED, StanceHead, stance_of
 from sarah_models.sampling.foot_lock import (STANCE_LIFT, STANCE_REACH, STANCE_SWING_FRAMES,
-                                             STEP_SHARE, FootLock)
+                                             STEP_SHARE, SWING_FRAMES, FootLock)
 from sarah_models.sampling.decoding import stream_decoding
 from sarah_models.sampling.stream import StreamingGenerator, offline_with_latents
 from sarah_models.testing import random_models
@@ -153,7 +153,9 @@ def test_a_foot_steps_where_its_stance_lifts_along_the_datas_step(gliding):
     for side, starts in lifts.items():
         for start in starts:
             stance[start:start + STANCE_SWING_FRAMES, side] = False
-    lock = FootLock(layout, lengths, radius=0.1)  # the body glides less than STANCE_REACH per step
+    # the body glides less than STANCE_REACH per step; sideways (x is its hips' line), so a held
+    # left foot comes within the lock's gap of the right one and steps early: not kept apart here
+    lock = FootLock(layout, lengths, radius=0.1, gap=0.0)
     out = lock(decoded, stance)
     feet = joints_of(out, layout)[:, FEET]
     dragged = joints_of(decoded, layout)[:, FEET]
@@ -225,6 +227,76 @@ def test_a_foot_whose_stance_stays_planted_steps_by_drift_along_the_datas_step(g
     assert not np.allclose(arc_x, x)
 
 
+def turning(layout, body, rate: float, start: int) -> np.ndarray:
+    """``body``'s frames turned about the vertical through its pelvis at ``rate`` degrees a
+    second (positive: toward its left) from frame ``start`` on, feet and all."""
+    pelvis = joints_of(body[:1], layout)[0, JOINT["pelvis"]]
+    points = body.reshape(len(body), -1, 3).copy()
+    angle = np.deg2rad(rate) / FPS * np.maximum(np.arange(len(body)) - start, 0)[:, None]
+    x, z = points[..., 0] - pelvis[0], points[..., 2] - pelvis[2]
+    points[..., 0] = pelvis[0] + np.cos(angle) * x + np.sin(angle) * z
+    points[..., 2] = pelvis[2] - np.sin(angle) * x + np.cos(angle) * z
+    return points.reshape(len(body), -1)
+
+
+def lateral_gap(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
+    """The left ankle's floor offset from the right along the hips' line, per frame (m)."""
+    joints = joints_of(motion, layout)
+    across = (joints[:, JOINT["left_hip"]] - joints[:, JOINT["right_hip"]]) * [1, 0, 1]
+    across /= np.linalg.norm(across, axis=-1, keepdims=True)
+    return np.sum((joints[:, JOINT["left_ankle"]] - joints[:, JOINT["right_ankle"]]) * across, -1)
+
+
+def foot_moves(motion: np.ndarray, layout: MotionLayout) -> np.ndarray:
+    """(frames - 1, 2) whether each foot moves on the floor from one frame to the next."""
+    feet = joints_of(motion, layout)[:, FEET]
+    return np.linalg.norm(np.diff(feet[..., [0, 2]], axis=0), axis=-1) > 1e-9
+
+
+@pytest.mark.parametrize("rate", [90.0, -90.0])
+def test_a_held_foot_steps_before_it_comes_under_the_other(gliding, rate):
+    """Both stances planted and a far reach, the body turning on the spot: held where they stand,
+    the feet come under and across each other along the turned hips' line; with ``gap`` a held
+    foot steps (to its decoded place) when the feet come within ``gap``, so they never come much
+    nearer (the turn narrows them by under 2 cm a frame). Turning toward its left, the feet take
+    turns, as people turning on the spot do. Gliding the way it faces, the feet keep their width
+    and the gap changes nothing. Streamed block by block as at once."""
+    layout, body, lengths = gliding
+    body = body[:1].repeat(72, axis=0)
+    # the body stands while the lock plants its feet (its right foot, raised, comes down by
+    # SWING_FRAMES), then turns
+    still = SWING_FRAMES + 1
+    turned = turning(layout, body, rate, still)
+    stance = np.ones((len(body), 2), bool)
+    gap = 0.13
+    assert lateral_gap(turned, layout).min() > gap + 0.05  # the decoded feet stand wide
+    crossing = FootLock(layout, lengths, radius=0.1, stance_reach=0.6, gap=0.0)(turned, stance)
+    assert lateral_gap(crossing, layout).min() < -0.2
+    lock = FootLock(layout, lengths, radius=0.1, stance_reach=0.6, gap=gap)
+    apart = lock(turned, stance)
+    assert lateral_gap(apart, layout).min() > gap - 0.02
+    if rate > 0:
+        moves = foot_moves(apart, layout)
+        assert not moves[:still - 1].any()
+        stepping = [int(np.flatnonzero(moves[t])[0]) for t in range(len(moves)) if moves[t].any()]
+        assert not moves.all(axis=1).any()  # one foot at a time
+        changes = np.flatnonzero(np.diff(stepping)) + 1
+        runs = np.diff(np.concatenate([[0], changes, [len(stepping)]]))
+        assert len(runs) >= 6 and np.all(runs[:-1] == STANCE_SWING_FRAMES)  # in turns, each the data's step
+    lock.reset()
+    blocks = np.concatenate([lock(turned[i:i + 4], stance[i:i + 4]) for i in range(0, len(body), 4)])
+    np.testing.assert_array_equal(blocks, apart)
+    glide = np.zeros((len(body), layout.width // 3, 3))
+    glide[:, :, 2] = 0.5 / FPS * np.maximum(np.arange(len(body)) - still, 0)[:, None]
+    forward = body + glide.reshape(len(body), -1)  # z: the way the fixture body faces
+    wide = [FootLock(layout, lengths, radius=0.1, stance_reach=0.3, gap=g)(forward, stance)
+            for g in (0.0, gap)]
+    np.testing.assert_array_equal(wide[0], wide[1])
+    assert np.abs(wide[0] - forward).max() > 0.05  # the lock held the feet there too
+    with pytest.raises(ValueError, match="gap must be >= 0"):
+        FootLock(layout, lengths, radius=0.1, gap=-0.1)
+
+
 def stance_models():
     """Tiny random models whose decoding steps by their stance head, feet near the floor."""
     vae, flow, normalizer = random_models("tiny", 8, SHELL, 0, motion_std=0.02, init_std=0.05,
@@ -272,6 +344,11 @@ def test_a_stream_steps_by_its_stance_as_the_offline_solve_does():
     assert [lock.stance_reach for lock in locks] == [0.35]
     with pytest.raises(ValueError, match="stance_reach must be > 0"):
         dataclasses.replace(vae.config, stance_reach=0.0)
+    # and its vae.foot_gap the gap its lock keeps between the feet
+    vae.config = dataclasses.replace(vae.config, foot_gap=0.1)
+    assert [f.gap for f in stream_decoding(vae, models[2]).filters if isinstance(f, FootLock)] == [0.1]
+    with pytest.raises(ValueError, match="foot_gap .* must be >= 0"):
+        dataclasses.replace(vae.config, foot_gap=-0.1)
 
 
 def test_a_recipe_with_a_stance_head_trains_writes_its_model_file_and_generates(prepared_shards,

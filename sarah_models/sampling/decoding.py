@@ -146,5 +146,6 @@ def stream_decoding(vae, normalizer, bone_lengths=None) -> StreamDecoding:
                 raise ValueError("vae.foot_lock_reads='stance' needs the VAE's stance head, and "
                                  "this VAE has none")
             filters.append(FootLock(layout, lengths, cfg.foot_lock, cfg.foot_swing_frames,
-                                    step=cfg.foot_step, stance_reach=cfg.stance_reach))
+                                    step=cfg.foot_step, stance_reach=cfg.stance_reach,
+                                    gap=cfg.foot_gap))
     return StreamDecoding(filters)
