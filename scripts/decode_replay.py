@@ -29,7 +29,11 @@ more than in the energy (eighty-third run). ``--gait`` says how the body walks: 
 moves on the floor (how many a window, how long, how far, how fast), the frames in which both
 feet step, and where the pelvis's acceleration falls against the feet's steps: the data's
 people stand still and step in moves of a fraction of a second, the model's pelvis creeps, and
-``--gait-plot`` draws the pelvis's speed frame by frame in three windows (eighty-fourth run):
+``--gait-plot`` draws the pelvis's speed frame by frame in three windows (eighty-fourth run).
+``--feet`` says how far apart the feet stand: how often the ankles come within ``NEAR`` of each
+other, their gap along the hips' line (below the foot lock's ``vae.foot_gap``, below 0: crossed)
+and its percentiles; the data's never cross, a lock that holds a foot while the body turns over
+it lets them (hundred-and-third run):
 
     python scripts/decode_replay.py --run MODEL --shards test_shards --split train --windows 96 \\
         --noise-scale 0.3 --cfg 4.5 --guide user_head --guidance-interval 0,0.75 \\
@@ -40,6 +44,7 @@ people stand still and step in moves of a fraction of a second, the model's pelv
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --legs
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --covariance
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --gait-plot gait.png
+    python scripts/decode_replay.py --run MODEL --replay decodes.npz --feet --try vae.foot_gap=0
 """
 
 from __future__ import annotations
@@ -70,7 +75,7 @@ from sarah_models.evaluation.metrics.table import bootstrap_interval, paired_com
 from sarah_models.evaluation.runner import EvalConfig
 from sarah_models.sampling.decoding import reads_stance, stream_decoding
 # how long the fixtures' feet travel in a step, which the foot lock's data steps copy
-from sarah_models.sampling.foot_lock import STANCE_SWING_FRAMES
+from sarah_models.sampling.foot_lock import GAP, STANCE_SWING_FRAMES
 
 BATCH = 16  # clips per batch of the per-batch column, as sarah-eval's default
 # The anatomy's time scales: the accelerations of the motion averaged over BAND_FRAMES frames (a
@@ -552,6 +557,37 @@ def plot_gait(path: Path, traces: list[tuple[str, str, np.ndarray]], windows: li
     return save_figure(fig, path)
 
 
+NEAR = 0.1  # m: ankles nearer than this on the floor stand on each other's feet
+FEET_COLUMNS = (f"ankles < {NEAR * 100:g} cm (95 %)", f"gap < {GAP * 100:g} cm (95 %)",
+                "crossed (95 %)", "gap p1 / p5 / p50, cm")
+
+
+def feet_apart(motion: np.ndarray, layout: MotionLayout) -> dict[str, np.ndarray]:
+    """How far apart the feet stand: per window, the shares of frames whose ankles come within
+    ``NEAR`` on the floor, whose gap along the hips' line (the left ankle's offset from the right
+    along the line from the right hip to the left) is below ``GAP``, the foot lock's default
+    ``vae.foot_gap``, and below 0 (crossed); and ``gap``, every frame's (metres)."""
+    names = ("left_hip", "right_hip", "left_ankle", "right_ankle")
+    joints = np.stack([layout.joint_positions(np.asarray(x, dtype=np.float64), list(names))
+                       for x in motion]) * np.array([1.0, 0.0, 1.0])
+    across = joints[:, :, 0] - joints[:, :, 1]
+    across /= np.linalg.norm(across, axis=-1, keepdims=True)
+    between = joints[:, :, 2] - joints[:, :, 3]
+    gap = np.sum(between * across, axis=-1)
+    return {"near": np.mean(np.linalg.norm(between, axis=-1) < NEAR, axis=1),
+            "narrow": np.mean(gap < GAP, axis=1), "crossed": np.mean(gap < 0, axis=1), "gap": gap}
+
+
+def feet_row(label: str, decoding: str, found: dict[str, np.ndarray]) -> str:
+    """A row of the feet table (``FEET_COLUMNS``): the shares in % of frames with their 95 %
+    bootstrap interval over windows, and the gap's percentiles over every frame."""
+    cells = ["{:.2f} % ({:.2f}-{:.2f})".format(*(100 * np.array([found[key].mean(),
+                                                                *bootstrap_interval(found[key])])))
+             for key in ("near", "narrow", "crossed")]
+    cells.append(" / ".join(f"{100 * q:.1f}" for q in np.percentile(found["gap"], [1, 5, 50])))
+    return f"| {label} | {decoding} | " + " | ".join(cells) + " |"
+
+
 def steps(motion: np.ndarray, layout: MotionLayout, stance: np.ndarray | None) -> dict[str, float]:
     """The feet's steps a window, the share lasting the data's step, and the stance's lifts a
     window (when the decoding steps by a stance)."""
@@ -662,6 +698,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--gait-plot", type=Path, metavar="PNG",
                         help=f"also draw the pelvis's speed on the floor, frame by frame, in "
                              f"{GAIT_PLOT_WINDOWS} windows, to this PNG (implies --gait)")
+    parser.add_argument("--feet", action="store_true",
+                        help=f"also print how far apart the feet stand: the shares of frames whose "
+                             f"ankles come within {NEAR * 100:g} cm, whose gap along the hips' "
+                             f"line is below {GAP * 100:g} cm (the foot lock's vae.foot_gap) and "
+                             f"below 0 (crossed), and the gap's percentiles")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     add_sampling_arguments(parser, EvalConfig())
     parser.add_argument("--seed", type=int, default=EvalConfig().seed, help="sarah-eval's --seed")
@@ -727,6 +768,8 @@ def main(argv: list[str] | None = None) -> int:
         drawn = sorted({int(w) for w in np.linspace(0, len(truth) - 1, GAIT_PLOT_WINDOWS).round()})
         walked = gait(truth, layout)
         gaits, traces = [gait_row("ground truth", "-", walked)], [("ground truth", "-", walked["paths"][drawn])]
+    if args.feet:
+        feet = [feet_row("ground truth", "-", feet_apart(truth, layout))]
     if args.legs:
         groups = leg_groups(ico, shell, layout)
         legs = [legs_row("ground truth" if halves is None else "real floor", "-",
@@ -758,6 +801,8 @@ def main(argv: list[str] | None = None) -> int:
                 walked = gait(motion, layout)
                 gaits.append(gait_row(label, decoding, walked))
                 traces.append((label, decoding, walked["paths"][drawn]))
+            if args.feet:
+                feet.append(feet_row(label, decoding, feet_apart(motion, layout)))
             if args.legs:
                 legs.append(legs_row(label, decoding, leg_distances(acc, real, groups),
                                      leg_correlations(motion, layout)))
@@ -815,6 +860,14 @@ def main(argv: list[str] | None = None) -> int:
         print("| motion | decoding | " + " | ".join(("shell", *parts))
               + " |\n|---|---|" + "---|" * (len(parts) + 1))
         print("\n".join(covariances))
+    if args.feet:
+        print(f"\nHow far apart the feet stand: frames whose ankles come within {NEAR * 100:g} cm "
+              f"on the floor, whose gap along the hips' line (left ankle from right) is below "
+              f"{GAP * 100:g} cm and below 0 (crossed), in % of frames with 95 % bootstrap "
+              f"intervals over the {len(truth)} windows; the gap's percentiles over every frame\n")
+        print("| motion | decoding | " + " | ".join(FEET_COLUMNS) + " |\n|---|---|"
+              + "---|" * len(FEET_COLUMNS))
+        print("\n".join(feet))
     if args.stages:
         print(f"\nBy stage of the decoding chain: the decoder's frames, then the motion after each "
               f"filter in turn; the shell's FGD_acc per batch of {BATCH} (95 % bootstrap over "

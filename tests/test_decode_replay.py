@@ -414,3 +414,38 @@ def test_the_gait_table_tells_a_body_that_steps_from_one_that_creeps(tiny, tmp_p
     drawn = tmp_path / "two.png"  # windows 0 and 40 of a recording, drawn from their two paths
     assert replay.plot_gait(drawn, [("ground truth", "-", pelvis), ("model", "x", pelvis)], [0, 40]) == drawn
     assert matplotlib.image.imread(drawn).ndim == 3
+
+
+def test_the_feet_table_tells_feet_that_cross(tiny, tmp_path, capsys):
+    """--feet: a standing body's feet read as wide apart; with its left ankle put 5 cm past the
+    right one along the hips' line in half of a window's frames, that window reads half its frames
+    crossed, narrow and near, and the gap -5 cm there."""
+    from sarah_data.dataset import WindowDataset
+    from sarah_data.skeleton import MotionLayout
+
+    dataset = WindowDataset.sliding(tiny["shards"], "test", extractor="logmel", window=WINDOW)
+    frame = dataset[0]["motion"].numpy().astype(np.float64)[0]
+    layout = MotionLayout.from_width(len(frame))
+    motion = np.tile(frame, (2, 10, 1))
+    standing = replay.feet_apart(motion, layout)
+    assert np.all(standing["gap"] > replay.GAP) and np.all(standing["gap"] < 0.4)
+    assert standing["near"].tolist() == standing["narrow"].tolist() == standing["crossed"].tolist() == [0, 0]
+    hips, ankles = (layout.joint_positions(frame[None], [f"left_{j}", f"right_{j}"])[0]
+                    for j in ("hip", "ankle"))
+    across = (hips[0] - hips[1]) * [1, 0, 1]
+    across /= np.linalg.norm(across)
+    move = (ankles[1] - ankles[0]) * [1, 0, 1] - 0.05 * across
+    motion[1, 5:, layout.joint_slice("left_ankle")] += np.tile(move, 12)  # its 12 points
+    found = replay.feet_apart(motion, layout)
+    for key in ("near", "narrow", "crossed"):
+        assert found[key].tolist() == [0.0, 0.5]
+    np.testing.assert_allclose(found["gap"][1, 5:], -0.05, atol=1e-9)
+    np.testing.assert_array_equal(found["gap"][0], standing["gap"][0])
+    line = replay.feet_row("model", "x", found)
+    assert line.startswith("| model | x | 25.00 % (") and line.count(" | ") == 1 + len(replay.FEET_COLUMNS)
+    # the command line: the data's row, then a row per motion and decoding
+    _, rows = printed_table(tiny, tmp_path, capsys, "--feet", "How far apart the feet stand")
+    assert len(rows[0]) == len(replay.FEET_COLUMNS) + 2
+    assert [r[:2] for r in rows[1:]] == [["| ground truth", "-"], ["| model", "the model's"],
+                                         ["| vae", "the model's"]]
+    assert all(len(r) == len(rows[0]) for r in rows)
