@@ -308,8 +308,9 @@ class VAEConfig:
     # other foot (``sampling.foot_lock``): nearer, it steps toward its decoded place where that is
     # wider. The data's ankles come nearer along that line in 0.1 % of frames (13.1 cm; min 8.2,
     # never crossed; 93,113 frames of the fixture benchmark's training corpus); held until the
-    # decoded foot drifted ``stance_reach`` away, the lock's came within 10 cm in 2.7 % of frames
-    # and crossed in 3.0 % (docs/results.md, hundred-and-second and hundred-and-third runs).
+    # decoded foot drifted ``stance_reach`` away, the recipe model's came within 10 cm in 2.8 % of
+    # frames and crossed in 3.0 %, with 0.13 m in 0.7 % and 0.4 %, its pose (FGD_local) 0.93x
+    # nearer the data (docs/results.md, hundred-and-second and hundred-and-third runs).
     foot_gap: float = 0.13
     # Not in the paper (0 = off): the body holds its place on the floor until the decoded pelvis
     # has moved this many metres away, then follows, no faster than the data's people walk
