@@ -31,6 +31,14 @@ def printed_table(tiny, tmp_path, capsys, flag: str, heading: str) -> tuple[str,
                    if line.startswith("| ") and "---" not in line]
 
 
+def assert_data_then_decodings(rows: list[list[str]], columns) -> None:
+    """A table of ``columns`` with the data's row, then the model's and the VAE's decodings."""
+    assert len(rows[0]) == len(columns) + 2
+    assert [r[:2] for r in rows[1:]] == [["| ground truth", "-"], ["| model", "the model's"],
+                                         ["| vae", "the model's"]]
+    assert all(len(r) == len(rows[0]) for r in rows)
+
+
 def test_records_the_model_row_and_replays_other_decodings(tiny, tmp_path, capsys):
     import torch
 
@@ -395,10 +403,7 @@ def test_the_gait_table_tells_a_body_that_steps_from_one_that_creeps(tiny, tmp_p
     assert line.startswith("| model | x | 2.0 (2.0-2.0) | ") and line.count(" | ") == 1 + len(replay.GAIT_COLUMNS)
     # the command line: the data's row, then a row per motion and decoding
     _, rows = printed_table(tiny, tmp_path, capsys, "--gait", "How the body walks")
-    assert len(rows[0]) == len(replay.GAIT_COLUMNS) + 2
-    assert [r[:2] for r in rows[1:]] == [["| ground truth", "-"], ["| model", "the model's"],
-                                         ["| vae", "the model's"]]
-    assert all(len(r) == len(rows[0]) for r in rows)
+    assert_data_then_decodings(rows, replay.GAIT_COLUMNS)
     # --gait-plot: the same table, and the pelvis's speed drawn
     import matplotlib.image
 
@@ -445,7 +450,4 @@ def test_the_feet_table_tells_feet_that_cross(tiny, tmp_path, capsys):
     assert line.startswith("| model | x | 25.00 % (") and line.count(" | ") == 1 + len(replay.FEET_COLUMNS)
     # the command line: the data's row, then a row per motion and decoding
     _, rows = printed_table(tiny, tmp_path, capsys, "--feet", "How far apart the feet stand")
-    assert len(rows[0]) == len(replay.FEET_COLUMNS) + 2
-    assert [r[:2] for r in rows[1:]] == [["| ground truth", "-"], ["| model", "the model's"],
-                                         ["| vae", "the model's"]]
-    assert all(len(r) == len(rows[0]) for r in rows)
+    assert_data_then_decodings(rows, replay.FEET_COLUMNS)
