@@ -33,7 +33,8 @@ people stand still and step in moves of a fraction of a second, the model's pelv
 ``--feet`` says how far apart the feet stand: how often the ankles come within ``NEAR`` of each
 other, their gap along the hips' line (below the foot lock's ``vae.foot_gap``, below 0: crossed)
 and its percentiles; the data's never cross, a lock that holds a foot while the body turns over
-it lets them (hundred-and-third run):
+it lets them, and ``--feet-plot`` draws that gap frame by frame in the three windows where the
+decodings' feet come nearest (hundred-and-third run):
 
     python scripts/decode_replay.py --run MODEL --shards test_shards --split train --windows 96 \\
         --noise-scale 0.3 --cfg 4.5 --guide user_head --guidance-interval 0,0.75 \\
@@ -45,6 +46,7 @@ it lets them (hundred-and-third run):
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --covariance
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --gait-plot gait.png
     python scripts/decode_replay.py --run MODEL --replay decodes.npz --feet --try vae.foot_gap=0
+    python scripts/decode_replay.py --run MODEL --replay decodes.npz --feet-plot feet.png --try vae.foot_gap=0
 """
 
 from __future__ import annotations
@@ -588,6 +590,47 @@ def feet_row(label: str, decoding: str, found: dict[str, np.ndarray]) -> str:
     return f"| {label} | {decoding} | " + " | ".join(cells) + " |"
 
 
+FEET_PLOT_WINDOWS = 3  # windows --feet-plot draws: those where the decodings' feet come nearest
+
+
+def nearest_windows(gaps: list[np.ndarray], count: int = FEET_PLOT_WINDOWS) -> list[int]:
+    """The ``count`` windows whose feet come nearest (the lowest gap of any of ``gaps``, each a
+    decoding's (windows, T) gaps), in window order."""
+    lowest = np.min([gap.min(axis=1) for gap in gaps], axis=0)
+    return sorted(int(w) for w in np.argsort(lowest, kind="stable")[:count])
+
+
+def plot_feet(path: Path, traces: list[tuple[str, str, np.ndarray]], windows: list[int]) -> Path:
+    """The feet's gap along the hips' line, frame by frame, in ``windows`` (a panel each, named
+    by the window's index): a line per motion and decoding (``traces``: label, decoding and the
+    (len(windows), T) gaps there, ``feet_apart``'s), the ground truth's first and black, the
+    foot lock's default gap dashed and 0 (crossed) dotted."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sarah_models.generation.plots import save_figure
+
+    fig, axes = plt.subplots(len(windows), 1, figsize=(11, 2.6 * len(windows)), squeeze=False,
+                             sharex=True)
+    for row, (ax, window) in enumerate(zip(axes[:, 0], windows)):
+        for k, (label, decoding, gaps) in enumerate(traces):
+            name = label if decoding in ("-", "the model's") else f"{label}, {decoding}"
+            ax.plot(np.arange(gaps.shape[1]) / FPS, 100 * gaps[row], label=name,
+                    linewidth=1.6 if k == 0 else 1.0, color="black" if k == 0 else None,
+                    zorder=3 if k == 0 else 2)
+        ax.axhline(100 * GAP, color="grey", linestyle="--", linewidth=1)
+        ax.axhline(0.0, color="grey", linestyle=":", linewidth=1)
+        ax.set_ylabel(f"window {window}: cm")
+    axes[-1, 0].set_xlabel("seconds")
+    axes[0, 0].legend(fontsize=8, loc="upper right")
+    fig.suptitle(f"The left ankle's gap from the right along the hips' line (dashed: "
+                 f"{100 * GAP:g} cm, the foot lock's vae.foot_gap; dotted: crossed)", fontsize=10)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
 def steps(motion: np.ndarray, layout: MotionLayout, stance: np.ndarray | None) -> dict[str, float]:
     """The feet's steps a window, the share lasting the data's step, and the stance's lifts a
     window (when the decoding steps by a stance)."""
@@ -703,6 +746,9 @@ def main(argv: list[str] | None = None) -> int:
                              f"ankles come within {NEAR * 100:g} cm, whose gap along the hips' "
                              f"line is below {GAP * 100:g} cm (the foot lock's vae.foot_gap) and "
                              f"below 0 (crossed), and the gap's percentiles")
+    parser.add_argument("--feet-plot", type=Path, metavar="PNG",
+                        help=f"also draw that gap frame by frame in the {FEET_PLOT_WINDOWS} windows "
+                             f"where the decodings' feet come nearest, to this PNG (implies --feet)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     add_sampling_arguments(parser, EvalConfig())
     parser.add_argument("--seed", type=int, default=EvalConfig().seed, help="sarah-eval's --seed")
@@ -718,13 +764,15 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(exc))
     tries = [[s.strip() for s in t.split(",") if s.strip()] for t in args.tries]
     check_tries(parser, tries, models.config)
-    for flag, picture in (("--stages-plot", args.stages_plot), ("--gait-plot", args.gait_plot)):
+    for flag, picture in (("--stages-plot", args.stages_plot), ("--gait-plot", args.gait_plot),
+                          ("--feet-plot", args.feet_plot)):
         if picture is not None and picture.suffix.lower() != ".png":
             parser.error(f"{flag} {picture}: the figure is a PNG (name it .png)")
         if picture is not None and not picture.parent.is_dir():
             parser.error(f"{flag} {picture}: no such folder {picture.parent}")
     args.stages |= args.stages_plot is not None
     args.gait |= args.gait_plot is not None
+    args.feet |= args.feet_plot is not None
     if args.record is not None and args.shards is None:
         parser.error("--record needs --shards")
     if args.replay is not None and not args.replay.is_file():
@@ -769,7 +817,8 @@ def main(argv: list[str] | None = None) -> int:
         walked = gait(truth, layout)
         gaits, traces = [gait_row("ground truth", "-", walked)], [("ground truth", "-", walked["paths"][drawn])]
     if args.feet:
-        feet = [feet_row("ground truth", "-", feet_apart(truth, layout))]
+        apart = feet_apart(truth, layout)
+        feet, gaps = [feet_row("ground truth", "-", apart)], [("ground truth", "-", apart["gap"])]
     if args.legs:
         groups = leg_groups(ico, shell, layout)
         legs = [legs_row("ground truth" if halves is None else "real floor", "-",
@@ -802,7 +851,9 @@ def main(argv: list[str] | None = None) -> int:
                 gaits.append(gait_row(label, decoding, walked))
                 traces.append((label, decoding, walked["paths"][drawn]))
             if args.feet:
-                feet.append(feet_row(label, decoding, feet_apart(motion, layout)))
+                apart = feet_apart(motion, layout)
+                feet.append(feet_row(label, decoding, apart))
+                gaps.append((label, decoding, apart["gap"]))
             if args.legs:
                 legs.append(legs_row(label, decoding, leg_distances(acc, real, groups),
                                      leg_correlations(motion, layout)))
@@ -868,6 +919,10 @@ def main(argv: list[str] | None = None) -> int:
         print("| motion | decoding | " + " | ".join(FEET_COLUMNS) + " |\n|---|---|"
               + "---|" * len(FEET_COLUMNS))
         print("\n".join(feet))
+        if args.feet_plot is not None:
+            drawn = nearest_windows([gap for _, _, gap in gaps[1:]])
+            print(f"\nwrote {plot_feet(args.feet_plot, [(a, b, gap[drawn]) for a, b, gap in gaps], drawn)} "
+                  f"(windows {', '.join(map(str, drawn))})")
     if args.stages:
         print(f"\nBy stage of the decoding chain: the decoder's frames, then the motion after each "
               f"filter in turn; the shell's FGD_acc per batch of {BATCH} (95 % bootstrap over "

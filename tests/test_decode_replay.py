@@ -108,6 +108,9 @@ def test_records_the_model_row_and_replays_other_decodings(tiny, tmp_path, capsy
     (["--stages-plot", "stages.svg"], "name it .png"),
     (["--gait-plot", "no-such-folder/gait.png"], "no such folder"),
     (["--gait-plot", "gait.svg"], "--gait-plot gait.svg: the figure is a PNG"),
+    (["--feet-plot", "no-such-folder/feet.png"], "no such folder"),
+    (["--feet-plot", "feet.svg"], "--feet-plot feet.svg: the figure is a PNG"),
+    (["--try", "vae.foot_gap=-0.1"], "foot_gap (metres) must be >= 0"),
 ])
 def test_bad_arguments_stop_before_any_work(tiny, tmp_path, capsys, argv, words):
     argv = ["--run", str(tiny["run"]), *argv]
@@ -451,3 +454,21 @@ def test_the_feet_table_tells_feet_that_cross(tiny, tmp_path, capsys):
     # the command line: the data's row, then a row per motion and decoding
     _, rows = printed_table(tiny, tmp_path, capsys, "--feet", "How far apart the feet stand")
     assert_data_then_decodings(rows, replay.FEET_COLUMNS)
+
+
+def test_the_feet_plot_draws_the_windows_where_the_feet_come_nearest(tiny, tmp_path, capsys):
+    """--feet-plot: the windows drawn are those whose lowest gap in any decoding is lowest, and the
+    table is printed with the figure."""
+    import matplotlib.image
+
+    gaps = [np.array([[0.2, 0.2], [0.1, 0.3], [0.3, 0.3], [0.2, -0.1]]),
+            np.array([[0.05, 0.2], [0.3, 0.3], [0.3, 0.3], [0.3, 0.3]])]
+    assert replay.nearest_windows(gaps, 3) == [0, 1, 3]
+    picture = tmp_path / "feet.png"
+    out = tmp_path / "decodes.npz"
+    assert replay.main(["--run", str(tiny["run"]), "--shards", str(tiny["shards"]), "--window",
+                        str(WINDOW), "--windows", "3", "--record", str(out), "--feet-plot",
+                        str(picture)]) == 0
+    printed = capsys.readouterr().out
+    assert "How far apart the feet stand" in printed and f"wrote {picture} (windows 0, 1, 2)" in printed
+    assert matplotlib.image.imread(picture).ndim == 3
