@@ -529,11 +529,11 @@ def gait_row(label: str, decoding: str, found: dict[str, np.ndarray]) -> str:
 GAIT_PLOT_WINDOWS = 3  # windows --gait-plot draws, evenly spaced: the first, the middle, the last
 
 
-def plot_gait(path: Path, traces: list[tuple[str, str, np.ndarray]], windows: list[int]) -> Path:
-    """The pelvis's speed on the floor, frame by frame, in ``windows`` (a panel each, named by
-    the window's index): a line per motion and decoding (``traces``: label, decoding and the
-    pelvis's (len(windows), T, 2) floor paths there, ``gait``'s), the ground truth's first and
-    black, the move speed dashed."""
+def plot_windows(path: Path, traces: list[tuple[str, str, np.ndarray]], windows: list[int],
+                 first: int, unit: str, lines: list[tuple[float, str]], title: str) -> Path:
+    """A figure of one panel per window (named by its index) with a line per motion and decoding
+    (``traces``: label, decoding and (len(windows), n) values there, frame ``first`` on), the
+    ground truth's first and black, and grey lines at (value, linestyle) ``lines``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -544,19 +544,29 @@ def plot_gait(path: Path, traces: list[tuple[str, str, np.ndarray]], windows: li
     fig, axes = plt.subplots(len(windows), 1, figsize=(11, 2.6 * len(windows)), squeeze=False,
                              sharex=True)
     for row, (ax, window) in enumerate(zip(axes[:, 0], windows)):
-        for k, (label, decoding, paths) in enumerate(traces):
-            speed = step_lengths(paths[row]) * FPS
+        for k, (label, decoding, values) in enumerate(traces):
             name = label if decoding in ("-", "the model's") else f"{label}, {decoding}"
-            ax.plot(np.arange(1, len(speed) + 1) / FPS, speed, label=name, linewidth=1.6 if k == 0 else 1.0,
-                    color="black" if k == 0 else None, zorder=3 if k == 0 else 2)
-        ax.axhline(PELVIS_MOVE_SPEED, color="grey", linestyle="--", linewidth=1)
-        ax.set_ylabel(f"window {window}: m/s")
+            ax.plot((first + np.arange(values.shape[1])) / FPS, values[row], label=name,
+                    linewidth=1.6 if k == 0 else 1.0, color="black" if k == 0 else None,
+                    zorder=3 if k == 0 else 2)
+        for value, style in lines:
+            ax.axhline(value, color="grey", linestyle=style, linewidth=1)
+        ax.set_ylabel(f"window {window}: {unit}")
     axes[-1, 0].set_xlabel("seconds")
     axes[0, 0].legend(fontsize=8, loc="upper right")
-    fig.suptitle(f"The pelvis's speed on the floor (dashed: {PELVIS_MOVE_SPEED:g} m/s, a move)",
-                 fontsize=10)
+    fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return save_figure(fig, path)
+
+
+def plot_gait(path: Path, traces: list[tuple[str, str, np.ndarray]], windows: list[int]) -> Path:
+    """The pelvis's speed on the floor, frame by frame, in ``windows`` (``plot_windows``;
+    ``traces``: label, decoding and the pelvis's (len(windows), T, 2) floor paths there,
+    ``gait``'s), the move speed dashed."""
+    speeds = [(label, decoding, np.stack([step_lengths(path) * FPS for path in paths]))
+              for label, decoding, paths in traces]
+    return plot_windows(path, speeds, windows, 1, "m/s", [(PELVIS_MOVE_SPEED, "--")],
+                        f"The pelvis's speed on the floor (dashed: {PELVIS_MOVE_SPEED:g} m/s, a move)")
 
 
 NEAR = 0.1  # m: ankles nearer than this on the floor stand on each other's feet
@@ -601,34 +611,13 @@ def nearest_windows(gaps: list[np.ndarray], count: int = FEET_PLOT_WINDOWS) -> l
 
 
 def plot_feet(path: Path, traces: list[tuple[str, str, np.ndarray]], windows: list[int]) -> Path:
-    """The feet's gap along the hips' line, frame by frame, in ``windows`` (a panel each, named
-    by the window's index): a line per motion and decoding (``traces``: label, decoding and the
-    (len(windows), T) gaps there, ``feet_apart``'s), the ground truth's first and black, the
-    foot lock's default gap dashed and 0 (crossed) dotted."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from sarah_models.generation.plots import save_figure
-
-    fig, axes = plt.subplots(len(windows), 1, figsize=(11, 2.6 * len(windows)), squeeze=False,
-                             sharex=True)
-    for row, (ax, window) in enumerate(zip(axes[:, 0], windows)):
-        for k, (label, decoding, gaps) in enumerate(traces):
-            name = label if decoding in ("-", "the model's") else f"{label}, {decoding}"
-            ax.plot(np.arange(gaps.shape[1]) / FPS, 100 * gaps[row], label=name,
-                    linewidth=1.6 if k == 0 else 1.0, color="black" if k == 0 else None,
-                    zorder=3 if k == 0 else 2)
-        ax.axhline(100 * GAP, color="grey", linestyle="--", linewidth=1)
-        ax.axhline(0.0, color="grey", linestyle=":", linewidth=1)
-        ax.set_ylabel(f"window {window}: cm")
-    axes[-1, 0].set_xlabel("seconds")
-    axes[0, 0].legend(fontsize=8, loc="upper right")
-    fig.suptitle(f"The left ankle's gap from the right along the hips' line (dashed: "
-                 f"{100 * GAP:g} cm, the foot lock's vae.foot_gap; dotted: crossed)", fontsize=10)
-    fig.tight_layout()
-    return save_figure(fig, path)
+    """The feet's gap along the hips' line, frame by frame, in ``windows`` (``plot_windows``;
+    ``traces``: label, decoding and the (len(windows), T) gaps there, ``feet_apart``'s), the foot
+    lock's default gap dashed and 0 (crossed) dotted."""
+    return plot_windows(path, [(label, decoding, 100 * gaps) for label, decoding, gaps in traces],
+                        windows, 0, "cm", [(100 * GAP, "--"), (0.0, ":")],
+                        f"The left ankle's gap from the right along the hips' line (dashed: "
+                        f"{100 * GAP:g} cm, the foot lock's vae.foot_gap; dotted: crossed)")
 
 
 def steps(motion: np.ndarray, layout: MotionLayout, stance: np.ndarray | None) -> dict[str, float]:
