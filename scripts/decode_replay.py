@@ -77,7 +77,7 @@ from sarah_models.evaluation.metrics.table import bootstrap_interval, paired_com
 from sarah_models.evaluation.runner import EvalConfig
 from sarah_models.sampling.decoding import reads_stance, stream_decoding
 # how long the fixtures' feet travel in a step, which the foot lock's data steps copy
-from sarah_models.sampling.foot_lock import GAP, STANCE_SWING_FRAMES
+from sarah_models.sampling.foot_lock import GAP, STANCE_SWING_FRAMES, hips_line
 
 BATCH = 16  # clips per batch of the per-batch column, as sarah-eval's default
 # The anatomy's time scales: the accelerations of the motion averaged over BAND_FRAMES frames (a
@@ -582,8 +582,7 @@ def feet_apart(motion: np.ndarray, layout: MotionLayout) -> dict[str, np.ndarray
     names = ("left_hip", "right_hip", "left_ankle", "right_ankle")
     joints = np.stack([layout.joint_positions(np.asarray(x, dtype=np.float64), list(names))
                        for x in motion]) * np.array([1.0, 0.0, 1.0])
-    across = joints[:, :, 0] - joints[:, :, 1]
-    across /= np.linalg.norm(across, axis=-1, keepdims=True)
+    across = hips_line(joints[:, :, 0], joints[:, :, 1])
     between = joints[:, :, 2] - joints[:, :, 3]
     gap = np.sum(between * across, axis=-1)
     return {"near": np.mean(np.linalg.norm(between, axis=-1) < NEAR, axis=1),

@@ -109,12 +109,13 @@ RELEASE = 0.02  # m above its planted height: the decoder is lifting the foot to
 RELEASE_FADE = 6  # frames over which a released foot's planted offset fades out
 
 
-def hips_line(joints: np.ndarray, legs: list[tuple]) -> np.ndarray | None:
-    """The unit floor direction from the right hip to the left (``legs``' first), from one frame's
-    (J, 3) joints; None where the hips stand one above the other."""
-    line = (joints[legs[0][0]] - joints[legs[1][0]]) * np.array([1.0, 0.0, 1.0])
-    length = np.linalg.norm(line)
-    return line / length if length > 1e-6 else None
+def hips_line(left_hip: np.ndarray, right_hip: np.ndarray) -> np.ndarray:
+    """(..., 3) hips -> (..., 3) the unit floor direction from the right hip to the left, along
+    which a foot's gap to the other is measured (the left ankle's offset from the right: ``gap``,
+    and ``scripts/decode_replay.py --feet``); zero where the hips stand one above the other."""
+    line = (left_hip - right_hip) * np.array([1.0, 0.0, 1.0])
+    length = np.linalg.norm(line, axis=-1, keepdims=True)
+    return np.divide(line, length, out=np.zeros_like(line), where=length > 1e-6)
 
 
 def floor_velocity(foot: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
@@ -175,9 +176,10 @@ class FootLock:
         joints = icosahedra.mean(axis=-2)
         correction = np.zeros_like(joints)
         targets: list[list[tuple[int, np.ndarray]]] = [[] for _ in self.legs]
+        lines = hips_line(joints[:, self.legs[0][0]], joints[:, self.legs[1][0]])
+        all_ankles = joints[:, [leg[2] for leg in self.legs]]
         for t in range(len(x)):
-            across = hips_line(joints[t], self.legs)
-            ankles = joints[t, [leg[2] for leg in self.legs]]
+            across, ankles = lines[t], all_ankles[t]
             for side, leg in enumerate(self.legs):
                 foot = joints[t, leg[3]]
                 on_floor = foot
@@ -203,7 +205,7 @@ class FootLock:
         """Where this frame puts the foot (None: where the decoder put it); advances the state.
         ``stands``: the decoded stance of this foot now, True where it is planted (None: none
         given); ``ankles`` both legs' decoded ankles now and ``across`` the hips' line
-        (``hips_line``), by which the foot is kept apart from the other (None: not kept)."""
+        (``hips_line``; zero, or None: the foot is not kept apart from the other)."""
         previous, self._previous[side] = self._previous[side], foot.copy()
         if foot[1] > FREE_HEIGHT:
             self._planted[side] = self._swing[side] = self._lifted[side] = None
