@@ -34,7 +34,9 @@ people stand still and step in moves of a fraction of a second, the model's pelv
 other, their gap along the hips' line (below the foot lock's ``vae.foot_gap``, below 0: crossed)
 and its percentiles; the data's never cross, a lock that holds a foot while the body turns over
 it lets them, and ``--feet-plot`` draws that gap frame by frame in the three windows where the
-decodings' feet come nearest (hundred-and-third run):
+decodings' feet come nearest (hundred-and-third run); and how far each ankle stands from under
+its hip, where the data's stand and a held foot is left behind, and how far the knees bend
+(hundred-and-fourth run):
 
     python scripts/decode_replay.py --run MODEL --shards test_shards --split train --windows 96 \\
         --noise-scale 0.3 --cfg 4.5 --guide user_head --guidance-interval 0,0.75 \\
@@ -571,31 +573,52 @@ def plot_gait(path: Path, traces: list[tuple[str, str, np.ndarray]], windows: li
 
 NEAR = 0.1  # m: ankles nearer than this on the floor stand on each other's feet
 FEET_COLUMNS = (f"ankles < {NEAR * 100:g} cm (95 %)", f"gap < {GAP * 100:g} cm (95 %)",
-                "crossed (95 %)", "gap p1 / p5 / p50, cm")
+                "crossed (95 %)", "gap p1 / p5 / p50, cm", "ankle from under its hip, cm (95 %)",
+                "from under its hip p90, cm", "knee angle, degrees (95 %)")
 
 
 def feet_apart(motion: np.ndarray, layout: MotionLayout) -> dict[str, np.ndarray]:
     """How far apart the feet stand: per window, the shares of frames whose ankles come within
     ``NEAR`` on the floor, whose gap along the hips' line (the left ankle's offset from the right
     along the line from the right hip to the left) is below ``GAP``, the foot lock's default
-    ``vae.foot_gap``, and below 0 (crossed); and ``gap``, every frame's (metres)."""
-    names = ("left_hip", "right_hip", "left_ankle", "right_ankle")
+    ``vae.foot_gap``, and below 0 (crossed); ``gap``, every frame's (metres); and ``under``, each
+    ankle's distance on the floor from under its hip, every frame's (windows, T, 2; metres): the
+    data's people stand on feet under their hips, a lock that holds a foot while the pelvis moves
+    on leaves it behind; and ``knee``, each knee's angle between thigh and shin, every frame's
+    (windows, T, 2; degrees, 180 straight): the data's people stand on straight legs, the
+    decoder lower (hundred-and-fourth run)."""
+    names = ("left_hip", "right_hip", "left_ankle", "right_ankle", "left_knee", "right_knee")
     joints = np.stack([layout.joint_positions(np.asarray(x, dtype=np.float64), list(names))
-                       for x in motion]) * np.array([1.0, 0.0, 1.0])
+                       for x in motion])
+    thighs, shins = joints[:, :, :2] - joints[:, :, 4:], joints[:, :, 2:4] - joints[:, :, 4:]
+    cosine = np.sum(thighs * shins, axis=-1) / np.maximum(
+        np.linalg.norm(thighs, axis=-1) * np.linalg.norm(shins, axis=-1), 1e-12)
+    joints = joints * np.array([1.0, 0.0, 1.0])
     across = hips_line(joints[:, :, 0], joints[:, :, 1])
     between = joints[:, :, 2] - joints[:, :, 3]
     gap = np.sum(between * across, axis=-1)
     return {"near": np.mean(np.linalg.norm(between, axis=-1) < NEAR, axis=1),
-            "narrow": np.mean(gap < GAP, axis=1), "crossed": np.mean(gap < 0, axis=1), "gap": gap}
+            "narrow": np.mean(gap < GAP, axis=1), "crossed": np.mean(gap < 0, axis=1), "gap": gap,
+            "under": np.linalg.norm(joints[:, :, 2:4] - joints[:, :, :2], axis=-1),
+            "knee": np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))}
 
 
 def feet_row(label: str, decoding: str, found: dict[str, np.ndarray]) -> str:
     """A row of the feet table (``FEET_COLUMNS``): the shares in % of frames with their 95 %
-    bootstrap interval over windows, and the gap's percentiles over every frame."""
+    bootstrap interval over windows, the gap's percentiles over every frame, the windows' median
+    distance of the ankles from under their hips (the mean over windows and its 95 % interval)
+    and that distance's 90th percentile over every frame, and the windows' median knee angle
+    (the mean over windows and its 95 % interval)."""
     cells = ["{:.2f} % ({:.2f}-{:.2f})".format(*(100 * np.array([found[key].mean(),
                                                                 *bootstrap_interval(found[key])])))
              for key in ("near", "narrow", "crossed")]
     cells.append(" / ".join(f"{100 * q:.1f}" for q in np.percentile(found["gap"], [1, 5, 50])))
+    under = np.median(found["under"].reshape(len(found["under"]), -1), axis=1)
+    cells.append("{:.1f} ({:.1f}-{:.1f})".format(*(100 * np.array([under.mean(),
+                                                                  *bootstrap_interval(under)]))))
+    cells.append(f"{100 * np.percentile(found['under'], 90):.1f}")
+    knee = np.median(found["knee"].reshape(len(found["knee"]), -1), axis=1)
+    cells.append("{:.1f} ({:.1f}-{:.1f})".format(knee.mean(), *bootstrap_interval(knee)))
     return f"| {label} | {decoding} | " + " | ".join(cells) + " |"
 
 
@@ -733,7 +756,8 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"also print how far apart the feet stand: the shares of frames whose "
                              f"ankles come within {NEAR * 100:g} cm, whose gap along the hips' "
                              f"line is below {GAP * 100:g} cm (the foot lock's vae.foot_gap) and "
-                             f"below 0 (crossed), and the gap's percentiles")
+                             f"below 0 (crossed), the gap's percentiles, how far the ankles "
+                             f"stand from under their hips, and the knees' angle")
     parser.add_argument("--feet-plot", type=Path, metavar="PNG",
                         help=f"also draw that gap frame by frame in the {FEET_PLOT_WINDOWS} windows "
                              f"where the decodings' feet come nearest, to this PNG (implies --feet)")
@@ -903,7 +927,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\nHow far apart the feet stand: frames whose ankles come within {NEAR * 100:g} cm "
               f"on the floor, whose gap along the hips' line (left ankle from right) is below "
               f"{GAP * 100:g} cm and below 0 (crossed), in % of frames with 95 % bootstrap "
-              f"intervals over the {len(truth)} windows; the gap's percentiles over every frame\n")
+              f"intervals over the {len(truth)} windows; the gap's percentiles over every frame; "
+              f"how far the ankles stand from under their hips (each window's median, the mean "
+              f"over windows with its 95 % interval; the 90th percentile over every frame), and "
+              f"the knees' angle (each window's median, 180 straight)\n")
         print("| motion | decoding | " + " | ".join(FEET_COLUMNS) + " |\n|---|---|"
               + "---|" * len(FEET_COLUMNS))
         print("\n".join(feet))

@@ -449,8 +449,37 @@ def test_the_feet_table_tells_feet_that_cross(tiny, tmp_path, capsys):
         assert found[key].tolist() == [0.0, 0.5]
     np.testing.assert_allclose(found["gap"][1, 5:], -0.05, atol=1e-9)
     np.testing.assert_array_equal(found["gap"][0], standing["gap"][0])
+    # each ankle from under its hip: the moved ankle by its move, the other where it stood
+    floor = np.array([1.0, 0.0, 1.0])
+    under = [np.linalg.norm((ankles[side] - hips[side]) * floor) for side in (0, 1)]
+    np.testing.assert_allclose(standing["under"], np.broadcast_to(under, (2, 10, 2)), atol=1e-9)
+    np.testing.assert_allclose(found["under"][1, 5:, 0],
+                               np.linalg.norm((ankles[0] + move - hips[0]) * floor), atol=1e-9)
+    np.testing.assert_array_equal(found["under"][1, :, 1], standing["under"][1, :, 1])
+    np.testing.assert_array_equal(found["under"][1, :5], standing["under"][1, :5])
+    # the knees: the frame's own angles; a knee whose ankle moved, the angle to the moved one
+    knees = layout.joint_positions(frame[None], ["left_knee", "right_knee"])[0]
+
+    def angle(hip, knee, ankle):
+        a, b = hip - knee, ankle - knee
+        return np.degrees(np.arccos(np.dot(a, b) / np.linalg.norm(a) / np.linalg.norm(b)))
+
+    stood = [angle(hips[side], knees[side], ankles[side]) for side in (0, 1)]
+    np.testing.assert_allclose(standing["knee"], np.broadcast_to(stood, (2, 10, 2)), atol=1e-6)
+    np.testing.assert_allclose(found["knee"][1, 5:, 0], angle(hips[0], knees[0], ankles[0] + move),
+                               atol=1e-6)
+    np.testing.assert_array_equal(found["knee"][1, :, 1], standing["knee"][1, :, 1])
     line = replay.feet_row("model", "x", found)
     assert line.startswith("| model | x | 25.00 % (") and line.count(" | ") == 1 + len(replay.FEET_COLUMNS)
+    moved = np.linalg.norm((ankles[0] + move - hips[0]) * floor)
+    window_medians = [np.median(under), np.median([*[under[0], under[1]] * 5, *[moved, under[1]] * 5])]
+    cells = line.split(" | ")
+    assert cells[-3].startswith(f"{100 * np.mean(window_medians):.1f} (")
+    assert cells[-2] == f"{100 * np.percentile(found['under'], 90):.1f}"
+    bent = angle(hips[0], knees[0], ankles[0] + move)
+    knee_medians = [np.median(stood), np.median([*stood * 5, *[bent, stood[1]] * 5])]
+    assert cells[-1].startswith(f"{np.mean(knee_medians):.1f} (") and cells[-1].endswith(") |")
+
     # the command line: the data's row, then a row per motion and decoding
     _, rows = printed_table(tiny, tmp_path, capsys, "--feet", "How far apart the feet stand")
     assert_data_then_decodings(rows, replay.FEET_COLUMNS)
