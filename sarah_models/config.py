@@ -312,6 +312,19 @@ class VAEConfig:
     # frames and crossed in 3.0 %, with 0.13 m in 0.7 % and 0.4 %, its pose (FGD_local) 0.93x
     # nearer the data (docs/results.md, hundred-and-second and hundred-and-third runs).
     foot_gap: float = 0.13
+    # Not in the paper (0 = off): metres by which the body stands higher on its legs than the
+    # decoder puts it, the feet where the decoder put them (``sampling.rigid_skeleton``, with
+    # ``rigid_bones``): a decoder stands lower than the data's people (the fixture benchmark's
+    # recipe model: the pelvis 0.7 cm lower, the ankles 1.0 cm higher), and its legs, at the
+    # data's lengths, bend at the knees (docs/results.md, hundred-and-fourth run). A constant:
+    # a lift that changes accelerates the whole body.
+    stand_lift: float = 0.0
+    # Not in the paper (0 = off): metres over which the legs' reach eases toward their full
+    # length (``two_bone_ik.soft_reach``; the rigid skeleton's and the foot lock's legs). Reaching
+    # all the way, a knee snaps straight when its foot's target passes the leg's length (the
+    # foot lock holds feet the body moves away from) and bends again a frame later
+    # (docs/results.md, hundred-and-third and hundred-and-fourth runs).
+    leg_softness: float = 0.0
     # Not in the paper (0 = off): the body holds its place on the floor until the decoded pelvis
     # has moved this many metres away, then follows, no faster than the data's people walk
     # (``sampling.root_hold``); the decoded pelvis wanders where people stand.
@@ -366,6 +379,14 @@ class VAEConfig:
             raise ValueError(f"VAEConfig.foot_gap (metres) must be >= 0 (0: off), got {self.foot_gap}")
         if not self.stance_reach > 0:
             raise ValueError(f"VAEConfig.stance_reach must be > 0, got {self.stance_reach}")
+        if not self.leg_softness >= 0:
+            raise ValueError(f"VAEConfig.leg_softness (metres) must be >= 0 (0: off), got "
+                             f"{self.leg_softness}")
+        if not math.isfinite(self.stand_lift):
+            raise ValueError(f"VAEConfig.stand_lift (metres) must be finite, got {self.stand_lift}")
+        if self.stand_lift and not self.rigid_bones:
+            raise ValueError("VAEConfig.stand_lift raises the body on the rigid skeleton's legs: "
+                             "set vae.rigid_bones too")
         if self.foot_lock_reads == "stance" and not self.stance_weight > 0:
             raise ValueError(f"VAEConfig.foot_lock_reads='stance' {NEEDS_STANCE_HEAD}")
         if not self.stance_weight >= 0:
@@ -567,7 +588,7 @@ class FlowConfig:
 DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "seam_mode", "rigid_bones", "rigid_skull",
                            "rigid_hips", "rigid_collars", "rigid_hands",
                            "foot_lock", "foot_swing_frames", "foot_lock_reads", "stance_reach",
-                           "foot_step", "foot_gap",
+                           "foot_step", "foot_gap", "stand_lift", "leg_softness",
                            "root_hold", "root_hold_reads", "root_hold_turn", "limb_lowpass")}
 
 

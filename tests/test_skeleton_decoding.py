@@ -898,3 +898,96 @@ def test_a_turn_without_a_hold_or_past_a_whole_one_is_refused():
     with pytest.raises(ValueError, match=r"root_hold_turn must be in \[0, 1\]"):
         VAEConfig(root_hold=0.5, root_hold_turn=1.5)
     assert VAEConfig(root_hold=0.5, root_hold_turn=1.0).root_hold_turn == 1.0
+
+
+def test_a_soft_reach_eases_toward_the_full_length_and_never_gets_there():
+    from sarah_data.two_bone_ik import soft_reach
+
+    distance = np.linspace(0.0, 1.2, 1201)[:, None]
+    np.testing.assert_array_equal(soft_reach(distance, 0.8, 0.0), distance)
+    eased = soft_reach(distance, 0.8, 0.02)
+    short = distance[:, 0] <= 0.78
+    np.testing.assert_array_equal(eased[short], distance[short])  # all the way until 2 cm short
+    assert np.all(np.diff(eased[:, 0]) > 0) and np.all(eased < 0.8)  # further, never straight
+    assert eased[-1, 0] == pytest.approx(0.8, abs=1e-6)
+    slopes = np.diff(eased[:, 0]) / np.diff(distance[:, 0])
+    assert np.abs(np.diff(slopes)).max() < 0.05  # no kink where the easing begins
+    assert soft_reach(np.array([0.8]), 0.8, 0.02)[0] == pytest.approx(0.8 - 0.02 / np.e)
+
+
+def test_a_soft_leg_bends_its_knee_where_a_stiff_one_locks_straight():
+    from sarah_data.two_bone_ik import two_bone_ik
+
+    hip = np.zeros((3, 3))
+    knee = np.array([[0.0, -0.4, 0.1]] * 3)
+    ankle = np.array([[0.0, -0.78, 0.0], [0.0, -0.8, 0.0], [0.0, -0.805, 0.0]])  # short, at, past
+    stiff_knee, stiff_end = two_bone_ik(hip, knee, ankle, 0.4, 0.4)
+    soft_knee, soft_end = two_bone_ik(hip, knee, ankle, 0.4, 0.4, softness=0.01)
+    np.testing.assert_allclose(soft_end[0], ankle[0], atol=1e-12)  # within reach: reached
+    np.testing.assert_allclose(np.linalg.norm(stiff_end[1:], axis=-1), 0.8, rtol=1e-5)
+    reach = np.linalg.norm(soft_end[1:], axis=-1)
+    assert np.all(reach < 0.8 - 0.002) and reach[0] < reach[1]
+    np.testing.assert_allclose(np.linalg.norm(soft_knee, axis=-1), 0.4, atol=1e-12)  # bones kept
+    np.testing.assert_allclose(np.linalg.norm(soft_end - soft_knee, axis=-1), 0.4, atol=1e-12)
+    assert np.all(np.abs(soft_knee[1:, 2]) > 0.02) and np.all(np.abs(stiff_knee[1:, 2]) < 0.002)
+
+
+def knee_angles(joints: np.ndarray) -> np.ndarray:
+    """(T, J, 3) -> (T, 2) the left and right knees' angles, degrees (180: straight)."""
+    out = []
+    for side in ("left", "right"):
+        hip, knee, ankle = (joints[:, JOINT[f"{side}_{n}"]] for n in ("hip", "knee", "ankle"))
+        a, b = hip - knee, ankle - knee
+        out.append(np.degrees(np.arccos(np.clip(np.sum(a * b, -1) / np.linalg.norm(a, axis=-1)
+                                                / np.linalg.norm(b, axis=-1), -1, 1))))
+    return np.stack(out, axis=1)
+
+
+def test_a_body_raised_on_its_legs_keeps_its_feet_and_straightens_its_knees(windows):
+    layout = MotionLayout.from_width(windows.motion_dim)
+    motion = windows[1]["motion"].numpy().astype(np.float64)
+    # thighs and shins 4 % longer than the motion's: over its ankles they bend, as the decoder's do
+    lengths = layout.motion_bone_lengths(motion)
+    for side in ("left", "right"):
+        for child, parent in (("knee", "hip"), ("ankle", "knee")):
+            lengths[layout.bones.index((JOINT[f"{side}_{child}"], JOINT[f"{side}_{parent}"]))] *= 1.04
+    base = joints_of(RigidSkeleton(layout, lengths)(motion), layout)
+    raised = joints_of(RigidSkeleton(layout, lengths, lift=0.01)(motion), layout)
+    legs = [JOINT[f"{side}_{n}"] for side in ("left", "right") for n in ("knee", "ankle", "foot")]
+    body = [j for j in range(base.shape[1]) if j not in legs]
+    np.testing.assert_allclose(raised[:, body] - base[:, body],
+                               np.broadcast_to([0.0, 0.01, 0.0], (len(base), len(body), 3)), atol=1e-12)
+    np.testing.assert_allclose(bone_lengths(raised, layout.bones), bone_lengths(base, layout.bones),
+                               atol=1e-9)
+    ankles = [JOINT["left_ankle"], JOINT["right_ankle"]]
+    reached = np.all(np.linalg.norm(raised[:, ankles] - base[:, ankles], axis=-1) < 1e-9, axis=1)
+    assert reached.mean() > 0.9  # the feet where the decoder put them, as far as the legs reach
+    np.testing.assert_allclose(raised[reached][:, [JOINT["left_foot"], JOINT["right_foot"]]],
+                               base[reached][:, [JOINT["left_foot"], JOINT["right_foot"]]], atol=1e-9)
+    straighter = knee_angles(raised)[reached] - knee_angles(base)[reached]
+    assert np.all(straighter > 0) and straighter.mean() > 1.0
+    # with an agent's skeleton the lift comes on top of the legs' own height change
+    assert RigidSkeleton(layout, lengths * 0.94, reference=lengths, lift=0.01).lift == pytest.approx(
+        RigidSkeleton(layout, lengths * 0.94, reference=lengths).lift + 0.01)
+
+
+def test_the_lift_and_the_legs_softness_reach_the_chain_and_are_checked():
+    from sarah_models.config import VAEConfig, decoding_settings
+    from sarah_models.sampling.decoding import stream_decoding
+    from sarah_models.testing import random_models
+
+    assert {"vae.stand_lift", "vae.leg_softness"} <= set(decoding_settings())
+    vae, _, normalizer = random_models("tiny")
+    normalizer.set("bone_length", np.full(54, 0.1), np.zeros(54))
+    vae.config = dataclasses.replace(vae.config, rigid_bones=True, foot_lock=0.1, stand_lift=0.007,
+                                     leg_softness=0.01)
+    _, rigid, lock = stream_decoding(vae, normalizer).filters
+    assert (rigid.lift, rigid.softness, lock.softness) == (0.007, 0.01, 0.01)
+    with pytest.raises(ValueError, match="leg_softness"):
+        VAEConfig(leg_softness=-0.01)
+    with pytest.raises(ValueError, match="stand_lift raises the body on the rigid skeleton"):
+        VAEConfig(stand_lift=0.01)
+    with pytest.raises(ValueError, match="stand_lift"):
+        VAEConfig(rigid_bones=True, stand_lift=float("nan"))
+    with pytest.raises(ValueError, match="leg softness"):
+        FootLock(MotionLayout.from_width(vae.motion_dim), np.full(54, 0.1), 0.1, softness=-1.0)

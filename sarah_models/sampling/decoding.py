@@ -140,12 +140,13 @@ def stream_decoding(vae, normalizer, bone_lengths=None) -> StreamDecoding:
             pieces = {piece: piece_directions(layout, mean, piece, normalizer.root_relative,
                                               normalizer.root_steps) for piece in wanted}
             pieces = {piece: rest for piece, rest in pieces.items() if rest is not None}
-            filters.append(RigidSkeleton(layout, lengths, reference, skull, pieces))
+            filters.append(RigidSkeleton(layout, lengths, reference, skull, pieces,
+                                         cfg.stand_lift, cfg.leg_softness))
         if cfg.foot_lock:
             if reads_stance(vae) and getattr(vae, "stance", None) is None:
                 raise ValueError("vae.foot_lock_reads='stance' needs the VAE's stance head, and "
                                  "this VAE has none")
             filters.append(FootLock(layout, lengths, cfg.foot_lock, cfg.foot_swing_frames,
                                     step=cfg.foot_step, stance_reach=cfg.stance_reach,
-                                    gap=cfg.foot_gap))
+                                    gap=cfg.foot_gap, softness=cfg.leg_softness))
     return StreamDecoding(filters)

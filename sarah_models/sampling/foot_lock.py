@@ -125,11 +125,14 @@ def floor_velocity(foot: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
 
 class FootLock:
     """Causal filter of one stream's motion, in metres with y up and the floor at y = 0; call it on
-    the stream's frames in order. ``lengths`` are the skeleton's (one per ``layout.bones``)."""
+    the stream's frames in order. ``lengths`` are the skeleton's (one per ``layout.bones``);
+    ``softness``: the legs' reach eased over their last ``softness`` metres, as the rigid
+    skeleton's (``vae.leg_softness``)."""
 
     def __init__(self, layout: MotionLayout, lengths, radius: float,
                  swing_frames: int = SWING_FRAMES, lift: float = LIFT, step: str = STEP,
-                 stance_reach: float = STANCE_REACH, gap: float = GAP) -> None:
+                 stance_reach: float = STANCE_REACH, gap: float = GAP,
+                 softness: float = 0.0) -> None:
         if not radius > 0:
             raise ValueError(f"foot lock radius must be positive, got {radius}")
         if not stance_reach > 0:
@@ -138,6 +141,9 @@ class FootLock:
         if not gap >= 0:
             raise ValueError(f"foot lock gap must be >= 0 (0: off), got {gap}")
         self.gap = gap
+        if not softness >= 0:
+            raise ValueError(f"foot lock leg softness must be >= 0 (0: off), got {softness}")
+        self.softness = softness
         if step not in FOOT_STEPS:
             raise ValueError(f"foot lock step must be one of {FOOT_STEPS}, got {step!r}")
         self.step = step
@@ -333,7 +339,8 @@ class FootLock:
         hip, knee, ankle, foot, thigh, shin, _ = leg
         correction = np.zeros_like(joints)
         knee_at, ankle_at = two_bone_ik(joints[:, hip], joints[:, knee],
-                                        joints[:, ankle] + foot_target - joints[:, foot], thigh, shin)
+                                        joints[:, ankle] + foot_target - joints[:, foot], thigh, shin,
+                                        self.softness)
         correction[:, knee] = knee_at - joints[:, knee]
         correction[:, ankle] = correction[:, foot] = ankle_at - joints[:, ankle]
         return correction

@@ -255,16 +255,21 @@ class RigidSkeleton:
     piece_directions}`` (``HIPS``, ``COLLARS``, ``HANDS``), which places each piece's bones with
     their parent as one piece (``piece_frames``), each leg moved with its hip, each arm with its
     collar and each finger with its knuckle; a piece left out: along their decoded
-    directions."""
+    directions. ``lift`` (metres): the body raised this much more on its legs, the feet where
+    the decoder put them (``vae.stand_lift``: a decoder that stands lower than the data's
+    people); ``softness``: the legs' reach eased over their last ``softness`` metres
+    (``two_bone_ik.soft_reach``, ``vae.leg_softness``)."""
 
     def __init__(self, layout: MotionLayout, lengths, reference=None,
                  skull: dict[int, np.ndarray] | None = None,
-                 pieces: dict[tuple[str, ...], np.ndarray] | None = None) -> None:
+                 pieces: dict[tuple[str, ...], np.ndarray] | None = None,
+                 lift: float = 0.0, softness: float = 0.0) -> None:
         lengths = check_lengths(layout, lengths)
-        self.layout, self.lengths = layout, lengths
+        self.layout, self.lengths, self.softness = layout, lengths, softness
         self.root = layout.joint(ROOT) if ROOT in layout.joint_names else None
-        self.lift = 0.0 if reference is None or self.root is None else leg_height_change(
-            layout, lengths, check_lengths(layout, reference, "reference "))
+        if reference is not None:
+            lift += leg_height_change(layout, lengths, check_lengths(layout, reference, "reference "))
+        self.lift = 0.0 if self.root is None else lift
         # Bones a level at a time (parents placed before their children), as index arrays.
         depth: dict[int, int] = {}
         for child, parent in layout.bones:
@@ -346,7 +351,8 @@ class RigidSkeleton:
         for hip, knee, ankle, foot, thigh, shin, foot_bone in self.legs:
             shift = moved[:, hip]
             placed[:, knee], placed[:, ankle] = two_bone_ik(placed[:, hip], joints[:, knee] + shift,
-                                                            joints[:, ankle] + shift, thigh, shin)
+                                                            joints[:, ankle] + shift, thigh, shin,
+                                                            self.softness)
             placed[:, foot] = foot_at_its_height(placed[:, ankle], joints[:, ankle] + shift,
                                                  joints[:, foot] + shift, foot_bone)
         correction = placed - joints
