@@ -104,8 +104,11 @@ FLOW_SETTINGS=${FLOW_SETTINGS-"--set flow.attention_window=17 --set flow.head_ve
 # pooled FGD 21,760 -> 6,479, the head and the sweep still on the data's; the old decoding:
 # DECODING_SETTINGS="... without the last three"). With it the tuning rule below picks noise 0.7,
 # CFG 3.5 (the hold slows the wrists at the old pick): FGD_acc 341 on the test windows, the old
-# pick's, the wrists and the pose nearer the data's (seventy-eighth run).
-DECODING_SETTINGS=${DECODING_SETTINGS-"--set vae.boundary_inertia=0 --set vae.root_inertia=0 --set vae.foot_swing_frames=8 --set vae.root_hold_reads=feet --set vae.foot_lock_reads=stance --set vae.stance_reach=0.3 --set vae.root_hold=0.7 --set vae.root_hold_turn=1"}
+# pick's, the wrists and the pose nearer the data's (seventy-eighth run). Since the
+# hundred-and-fourth run the body stands 1 cm higher on its legs, their reach eased over the
+# last centimetre (chosen on the tuning corpus; on the test windows the knees 155 -> 161 degrees,
+# the data's 166, the pose 0.97x nearer the data, FGD_acc, the wrists and the head as they were).
+DECODING_SETTINGS=${DECODING_SETTINGS-"--set vae.boundary_inertia=0 --set vae.root_inertia=0 --set vae.foot_swing_frames=8 --set vae.root_hold_reads=feet --set vae.foot_lock_reads=stance --set vae.stance_reach=0.3 --set vae.root_hold=0.7 --set vae.root_hold_turn=1 --set vae.stand_lift=0.01 --set vae.leg_softness=0.01"}
 VAE_SETTINGS=${VAE_SETTINGS-"--set vae.root_weight=0.05 --set vae.stance_weight=0.2"}  # ... and for both VAE stages
 # ... and for the decoder stage alone: a stochastic decoder (docs/models.md)
 DECODER_SETTINGS=${DECODER_SETTINGS-"--set vae.detail_dim=32 --set vae.energy_weight=10 --set vae.energy_per_point=true"}
