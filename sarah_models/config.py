@@ -318,9 +318,9 @@ class VAEConfig:
     # recipe model: its hips 0.4 cm lower, its ankles 1.6 cm higher), and its legs, at the
     # data's lengths, bend: knees at 155 degrees where the data's stand at 166 (each window's
     # median). A constant, since a lift that changes accelerates the whole body (a running one:
-    # FGD_acc 437 against 321), and with ``leg_softness``: alone, 0.7 cm left the knees straighter
-    # than the data's ever stand in 24 % of frames (the lock's held feet out of reach; 13 % before)
-    # and FGD_acc at 354, 1 cm at 398. 0.01 with
+    # FGD_acc 437 against 321), and with ``leg_softness``: alone, 0.7 cm left the left knee
+    # straighter than the data's 99.9th percentile in 24 % of frames (the lock's held feet out of
+    # reach; 13 % before) and FGD_acc at 354, 1 cm at 398. 0.01 with
     # ``leg_softness`` 0.01 in the benchmark's recipe: knees 161 degrees, the pose 0.97x nearer the
     # data, FGD_acc as it was (docs/results.md, hundred-and-fourth run); 0 in both presets.
     stand_lift: float = 0.0
