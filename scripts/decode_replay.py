@@ -35,8 +35,8 @@ other, their gap along the hips' line (below the foot lock's ``vae.foot_gap``, b
 and its percentiles; the data's never cross, a lock that holds a foot while the body turns over
 it lets them, and ``--feet-plot`` draws that gap frame by frame in the three windows where the
 decodings' feet come nearest (hundred-and-third run); and how far each ankle stands from under
-its hip, where the data's stand and a held foot is left behind, and how far the knees bend
-(hundred-and-fourth run):
+its hip, where the data's stand and a held foot is left behind, and how far the knees bend,
+which ``--knees-plot`` draws frame by frame in three windows (hundred-and-fourth run):
 
     python scripts/decode_replay.py --run MODEL --shards test_shards --split train --windows 96 \\
         --noise-scale 0.3 --cfg 4.5 --guide user_head --guidance-interval 0,0.75 \\
@@ -642,6 +642,15 @@ def plot_feet(path: Path, traces: list[tuple[str, str, np.ndarray]], windows: li
                         f"{100 * GAP:g} cm, the foot lock's vae.foot_gap; dotted: crossed)")
 
 
+def plot_knees(path: Path, traces: list[tuple[str, str, np.ndarray]], windows: list[int]) -> Path:
+    """The knees' angle frame by frame (the two legs' mean, ``feet_apart``'s), in ``windows``
+    (``plot_windows``; ``traces``: label, decoding and the (len(windows), T) angles there),
+    straight dotted."""
+    return plot_windows(path, traces, windows, 0, "degrees", [(180.0, ":")],
+                        "The knees' angle between thigh and shin, the two legs' mean "
+                        "(dotted: straight)")
+
+
 def steps(motion: np.ndarray, layout: MotionLayout, stance: np.ndarray | None) -> dict[str, float]:
     """The feet's steps a window, the share lasting the data's step, and the stance's lifts a
     window (when the decoding steps by a stance)."""
@@ -761,6 +770,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--feet-plot", type=Path, metavar="PNG",
                         help=f"also draw that gap frame by frame in the {FEET_PLOT_WINDOWS} windows "
                              f"where the decodings' feet come nearest, to this PNG (implies --feet)")
+    parser.add_argument("--knees-plot", type=Path, metavar="PNG",
+                        help=f"also draw the knees' angle frame by frame in {GAIT_PLOT_WINDOWS} "
+                             f"windows (the first, the middle, the last), to this PNG (implies "
+                             f"--feet)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     add_sampling_arguments(parser, EvalConfig())
     parser.add_argument("--seed", type=int, default=EvalConfig().seed, help="sarah-eval's --seed")
@@ -777,14 +790,14 @@ def main(argv: list[str] | None = None) -> int:
     tries = [[s.strip() for s in t.split(",") if s.strip()] for t in args.tries]
     check_tries(parser, tries, models.config)
     for flag, picture in (("--stages-plot", args.stages_plot), ("--gait-plot", args.gait_plot),
-                          ("--feet-plot", args.feet_plot)):
+                          ("--feet-plot", args.feet_plot), ("--knees-plot", args.knees_plot)):
         if picture is not None and picture.suffix.lower() != ".png":
             parser.error(f"{flag} {picture}: the figure is a PNG (name it .png)")
         if picture is not None and not picture.parent.is_dir():
             parser.error(f"{flag} {picture}: no such folder {picture.parent}")
     args.stages |= args.stages_plot is not None
     args.gait |= args.gait_plot is not None
-    args.feet |= args.feet_plot is not None
+    args.feet |= args.feet_plot is not None or args.knees_plot is not None
     if args.record is not None and args.shards is None:
         parser.error("--record needs --shards")
     if args.replay is not None and not args.replay.is_file():
@@ -831,6 +844,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.feet:
         apart = feet_apart(truth, layout)
         feet, gaps = [feet_row("ground truth", "-", apart)], [("ground truth", "-", apart["gap"])]
+        knees = [("ground truth", "-", apart["knee"].mean(axis=-1))]
     if args.legs:
         groups = leg_groups(ico, shell, layout)
         legs = [legs_row("ground truth" if halves is None else "real floor", "-",
@@ -866,6 +880,7 @@ def main(argv: list[str] | None = None) -> int:
                 apart = feet_apart(motion, layout)
                 feet.append(feet_row(label, decoding, apart))
                 gaps.append((label, decoding, apart["gap"]))
+                knees.append((label, decoding, apart["knee"].mean(axis=-1)))
             if args.legs:
                 legs.append(legs_row(label, decoding, leg_distances(acc, real, groups),
                                      leg_correlations(motion, layout)))
@@ -937,6 +952,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.feet_plot is not None:
             drawn = nearest_windows([gap for _, _, gap in gaps[1:]])
             print(f"\nwrote {plot_feet(args.feet_plot, [(a, b, gap[drawn]) for a, b, gap in gaps], drawn)} "
+                  f"(windows {', '.join(map(str, drawn))})")
+        if args.knees_plot is not None:
+            drawn = sorted({int(w) for w in np.linspace(0, len(truth) - 1, GAIT_PLOT_WINDOWS).round()})
+            print(f"\nwrote {plot_knees(args.knees_plot, [(a, b, k[drawn]) for a, b, k in knees], drawn)} "
                   f"(windows {', '.join(map(str, drawn))})")
     if args.stages:
         print(f"\nBy stage of the decoding chain: the decoder's frames, then the motion after each "

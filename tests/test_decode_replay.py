@@ -110,6 +110,8 @@ def test_records_the_model_row_and_replays_other_decodings(tiny, tmp_path, capsy
     (["--gait-plot", "gait.svg"], "--gait-plot gait.svg: the figure is a PNG"),
     (["--feet-plot", "no-such-folder/feet.png"], "no such folder"),
     (["--feet-plot", "feet.svg"], "--feet-plot feet.svg: the figure is a PNG"),
+    (["--knees-plot", "no-such-folder/knees.png"], "no such folder"),
+    (["--knees-plot", "knees.svg"], "--knees-plot knees.svg: the figure is a PNG"),
     (["--try", "vae.foot_gap=-0.1"], "foot_gap (metres) must be >= 0"),
 ])
 def test_bad_arguments_stop_before_any_work(tiny, tmp_path, capsys, argv, words):
@@ -493,11 +495,12 @@ def test_the_feet_plot_draws_the_windows_where_the_feet_come_nearest(tiny, tmp_p
     gaps = [np.array([[0.2, 0.2], [0.1, 0.3], [0.3, 0.3], [0.2, -0.1]]),
             np.array([[0.05, 0.2], [0.3, 0.3], [0.3, 0.3], [0.3, 0.3]])]
     assert replay.nearest_windows(gaps, 3) == [0, 1, 3]
-    picture = tmp_path / "feet.png"
+    picture, knees = tmp_path / "feet.png", tmp_path / "knees.png"
     out = tmp_path / "decodes.npz"
     assert replay.main(["--run", str(tiny["run"]), "--shards", str(tiny["shards"]), "--window",
                         str(WINDOW), "--windows", "3", "--record", str(out), "--feet-plot",
-                        str(picture)]) == 0
+                        str(picture), "--knees-plot", str(knees)]) == 0
     printed = capsys.readouterr().out
     assert "How far apart the feet stand" in printed and f"wrote {picture} (windows 0, 1, 2)" in printed
-    assert matplotlib.image.imread(picture).ndim == 3
+    assert f"wrote {knees} (windows 0, 1, 2)" in printed  # the first, the middle, the last
+    assert matplotlib.image.imread(picture).ndim == 3 and matplotlib.image.imread(knees).ndim == 3
