@@ -63,6 +63,7 @@ import numpy as np
 
 from sarah_cli.arguments import add_sampling_arguments, sampling_of
 from sarah_data.atomic import atomic_path
+from sarah_data.bone_turns import unit
 from sarah_data.constants import FPS
 from sarah_data.skeleton import FEET, ROOT, MotionLayout, shell_parts
 from sarah_models.config import HISTORY_WINDOW, RunConfig
@@ -531,6 +532,11 @@ def gait_row(label: str, decoding: str, found: dict[str, np.ndarray]) -> str:
 GAIT_PLOT_WINDOWS = 3  # windows --gait-plot draws, evenly spaced: the first, the middle, the last
 
 
+def evenly_spaced(windows: int, count: int = GAIT_PLOT_WINDOWS) -> list[int]:
+    """``count`` of ``windows`` window indices, evenly spaced from the first to the last."""
+    return sorted({int(w) for w in np.linspace(0, windows - 1, count).round()})
+
+
 def plot_windows(path: Path, traces: list[tuple[str, str, np.ndarray]], windows: list[int],
                  first: int, unit: str, lines: list[tuple[float, str]], title: str) -> Path:
     """A figure of one panel per window (named by its index) with a line per motion and decoding
@@ -590,9 +596,8 @@ def feet_apart(motion: np.ndarray, layout: MotionLayout) -> dict[str, np.ndarray
     names = ("left_hip", "right_hip", "left_ankle", "right_ankle", "left_knee", "right_knee")
     joints = np.stack([layout.joint_positions(np.asarray(x, dtype=np.float64), list(names))
                        for x in motion])
-    thighs, shins = joints[:, :, :2] - joints[:, :, 4:], joints[:, :, 2:4] - joints[:, :, 4:]
-    cosine = np.sum(thighs * shins, axis=-1) / np.maximum(
-        np.linalg.norm(thighs, axis=-1) * np.linalg.norm(shins, axis=-1), 1e-12)
+    cosine = np.sum(unit(joints[:, :, :2] - joints[:, :, 4:]) * unit(joints[:, :, 2:4] - joints[:, :, 4:]),
+                    axis=-1)  # thigh and shin, each from the knee
     joints = joints * np.array([1.0, 0.0, 1.0])
     across = hips_line(joints[:, :, 0], joints[:, :, 1])
     between = joints[:, :, 2] - joints[:, :, 3]
@@ -613,13 +618,17 @@ def feet_row(label: str, decoding: str, found: dict[str, np.ndarray]) -> str:
                                                                 *bootstrap_interval(found[key])])))
              for key in ("near", "narrow", "crossed")]
     cells.append(" / ".join(f"{100 * q:.1f}" for q in np.percentile(found["gap"], [1, 5, 50])))
-    under = np.median(found["under"].reshape(len(found["under"]), -1), axis=1)
-    cells.append("{:.1f} ({:.1f}-{:.1f})".format(*(100 * np.array([under.mean(),
-                                                                  *bootstrap_interval(under)]))))
+    cells.append(windows_median_cell(100 * found["under"]))
     cells.append(f"{100 * np.percentile(found['under'], 90):.1f}")
-    knee = np.median(found["knee"].reshape(len(found["knee"]), -1), axis=1)
-    cells.append("{:.1f} ({:.1f}-{:.1f})".format(knee.mean(), *bootstrap_interval(knee)))
+    cells.append(windows_median_cell(found["knee"]))
     return f"| {label} | {decoding} | " + " | ".join(cells) + " |"
+
+
+def windows_median_cell(values: np.ndarray) -> str:
+    """(windows, ...) values -> "mean (low-high)": each window's median, their mean over the
+    windows and its 95 % bootstrap interval."""
+    medians = np.median(values.reshape(len(values), -1), axis=1)
+    return "{:.1f} ({:.1f}-{:.1f})".format(medians.mean(), *bootstrap_interval(medians))
 
 
 FEET_PLOT_WINDOWS = 3  # windows --feet-plot draws: those where the decodings' feet come nearest
@@ -838,7 +847,7 @@ def main(argv: list[str] | None = None) -> int:
         covariances = [] if halves is None else [
             covariance_row("real floor", "-", covariance_terms(*halves, parts))]
     if args.gait:
-        drawn = sorted({int(w) for w in np.linspace(0, len(truth) - 1, GAIT_PLOT_WINDOWS).round()})
+        drawn = evenly_spaced(len(truth))
         walked = gait(truth, layout)
         gaits, traces = [gait_row("ground truth", "-", walked)], [("ground truth", "-", walked["paths"][drawn])]
     if args.feet:
@@ -954,7 +963,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"\nwrote {plot_feet(args.feet_plot, [(a, b, gap[drawn]) for a, b, gap in gaps], drawn)} "
                   f"(windows {', '.join(map(str, drawn))})")
         if args.knees_plot is not None:
-            drawn = sorted({int(w) for w in np.linspace(0, len(truth) - 1, GAIT_PLOT_WINDOWS).round()})
+            drawn = evenly_spaced(len(truth))
             print(f"\nwrote {plot_knees(args.knees_plot, [(a, b, k[drawn]) for a, b, k in knees], drawn)} "
                   f"(windows {', '.join(map(str, drawn))})")
     if args.stages:
