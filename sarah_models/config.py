@@ -312,6 +312,17 @@ class VAEConfig:
     # frames and crossed in 3.0 %, with 0.13 m in 0.7 % and 0.4 %, its pose (FGD_local) 0.93x
     # nearer the data (docs/results.md, hundred-and-second and hundred-and-third runs).
     foot_gap: float = 0.13
+    # Not in the paper (0 = off): metres on the floor that a held foot's ankle may stand from
+    # under its hip before it steps to its decoded place, where that stands nearer under the hip
+    # and the other foot is planted (``sampling.foot_lock``): held until the decoded foot drifted
+    # ``stance_reach`` away while the pelvis moved on, the recipe model's ankles stood 5.7 cm from
+    # under their hips (each window's median; 16.8 at the 90th percentile) where the data's stand
+    # 1.9 (10.2) and the decoder's own 2.9 (4.5). Measured and not chosen: at 0.2 / 0.15 / 0.1 /
+    # 0.08 m the ankles come to 5.3 / 4.9 / 4.2 / 3.9 cm, the feet step 24.7 / 26.2 / 29.9 / 32.4
+    # times a window (the data's 18.6, the lock's 23.5) and FGD_acc rises to 382 / 393 / 402 / 414
+    # against 374 (96 tuning windows; docs/results.md, hundred-and-fifth run): the body, not the
+    # feet, is what moves where the data's people stand. 0 in both presets.
+    foot_lean: float = 0.0
     # Not in the paper (0 = off): metres by which the body stands higher on its legs than the
     # decoder puts it, the feet where the decoder put them (``sampling.rigid_skeleton``, with
     # ``rigid_bones``). A decoder stands lower than the data's people (the fixture benchmark's
@@ -384,6 +395,8 @@ class VAEConfig:
                              f"{self.foot_lock_reads!r}")
         if not self.foot_gap >= 0:
             raise ValueError(f"VAEConfig.foot_gap (metres) must be >= 0 (0: off), got {self.foot_gap}")
+        if not self.foot_lean >= 0:
+            raise ValueError(f"VAEConfig.foot_lean (metres) must be >= 0 (0: off), got {self.foot_lean}")
         if not self.stance_reach > 0:
             raise ValueError(f"VAEConfig.stance_reach must be > 0, got {self.stance_reach}")
         if not self.leg_softness >= 0:
@@ -595,7 +608,7 @@ class FlowConfig:
 DECODING_FIELDS = {"vae": ("boundary_inertia", "root_inertia", "seam_mode", "rigid_bones", "rigid_skull",
                            "rigid_hips", "rigid_collars", "rigid_hands",
                            "foot_lock", "foot_swing_frames", "foot_lock_reads", "stance_reach",
-                           "foot_step", "foot_gap", "stand_lift", "leg_softness",
+                           "foot_step", "foot_gap", "foot_lean", "stand_lift", "leg_softness",
                            "root_hold", "root_hold_reads", "root_hold_turn", "limb_lowpass")}
 
 

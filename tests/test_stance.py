@@ -297,6 +297,51 @@ def test_a_held_foot_steps_before_it_comes_under_the_other(gliding, rate):
         FootLock(layout, lengths, radius=0.1, gap=-0.1)
 
 
+def walked_targets(lock: FootLock, frames: int, speed: float) -> np.ndarray:
+    """The lock's (frames, 2, 3) feet for a body walking ``speed`` m/s along z with its feet
+    dragged under its hips (x = +-9 cm), both stances planted, each frame as ``FootLock`` feeds
+    ``_target``."""
+    hips = np.array([[0.09, 0.9, 0.0], [-0.09, 0.9, 0.0]])
+    ankles, feet = hips * [1, 0, 1] + [0, 0.08, 0], hips * [1, 0, 1] + [0, 0.03, 0.05]
+    out = np.empty((frames, 2, 3))
+    for t in range(frames):
+        walked = np.array([0.0, 0.0, speed / FPS * t])
+        for side in range(2):
+            target = lock._target(side, feet[side] + walked, True, ankles + walked, np.zeros(3),
+                                  hips + walked)
+            held = np.zeros(3) if target is None else target - feet[side] - walked
+            lock._ankles[side] = ankles[side] + walked + held
+            out[t, side] = feet[side] + walked + held
+    return out
+
+
+def test_a_held_foot_left_behind_its_hip_steps_under_it(gliding):
+    """Both stances planted and a far reach, the body walking: held where they stand, the feet
+    trail ever further behind the hips; with ``lean`` a held ankle further than that from under
+    its hip steps (the data's step, to its decoded place under the hip) while the other foot
+    stands, so the feet take turns and never trail much further than ``lean``. Through the whole
+    filter a body standing still is left as it was, and a bad lean is refused."""
+    layout, body, lengths = gliding
+    speed, lean, frames = 0.5, 0.1, 90
+    trailing = walked_targets(FootLock(layout, lengths, radius=0.1, stance_reach=0.6, gap=0.0), frames, speed)
+    behind = speed / FPS * np.arange(frames)[:, None] + 0.05 - trailing[..., 2]
+    assert behind.max() > 0.5
+    feet = walked_targets(FootLock(layout, lengths, radius=0.1, stance_reach=0.6, gap=0.0, lean=lean),
+                          frames, speed)
+    behind = speed / FPS * np.arange(frames)[:, None] + 0.05 - feet[..., 2]
+    # a foot steps as its ankle passes lean, or waits for the other's step to land first
+    assert behind.max() < lean + (STANCE_SWING_FRAMES + 1) * speed / FPS
+    moves = np.abs(np.diff(feet[..., 2], axis=0)) > 1e-9
+    starts = moves[1:] & ~moves[:-1]
+    assert np.all(starts.sum(axis=0) >= 3)  # both feet step, again and again...
+    both = moves.all(axis=1)
+    assert not (both[1:] & both[:-1]).any()  # ...in turns: a foot lifts as the other lands
+    standing = np.repeat(body[:1], 32, axis=0)
+    still = [FootLock(layout, lengths, radius=0.1, lean=value)(standing) for value in (0.0, 0.05)]
+    np.testing.assert_array_equal(still[0], still[1])
+    with pytest.raises(ValueError, match="lean must be >= 0"):
+        FootLock(layout, lengths, radius=0.1, lean=-0.1)
+
 def stance_models():
     """Tiny random models whose decoding steps by their stance head, feet near the floor."""
     vae, flow, normalizer = random_models("tiny", 8, SHELL, 0, motion_std=0.02, init_std=0.05,
@@ -349,6 +394,11 @@ def test_a_stream_steps_by_its_stance_as_the_offline_solve_does():
     assert [f.gap for f in stream_decoding(vae, models[2]).filters if isinstance(f, FootLock)] == [0.1]
     with pytest.raises(ValueError, match="foot_gap .* must be >= 0"):
         dataclasses.replace(vae.config, foot_gap=-0.1)
+    # and its vae.foot_lean how far from under its hip a held ankle may stand
+    vae.config = dataclasses.replace(vae.config, foot_lean=0.12)
+    assert [f.lean for f in stream_decoding(vae, models[2]).filters if isinstance(f, FootLock)] == [0.12]
+    with pytest.raises(ValueError, match="foot_lean .* must be >= 0"):
+        dataclasses.replace(vae.config, foot_lean=-0.1)
 
 
 def test_a_recipe_with_a_stance_head_trains_writes_its_model_file_and_generates(prepared_shards,

@@ -148,5 +148,6 @@ def stream_decoding(vae, normalizer, bone_lengths=None) -> StreamDecoding:
                                  "this VAE has none")
             filters.append(FootLock(layout, lengths, cfg.foot_lock, cfg.foot_swing_frames,
                                     step=cfg.foot_step, stance_reach=cfg.stance_reach,
-                                    gap=cfg.foot_gap, softness=cfg.leg_softness))
+                                    gap=cfg.foot_gap, lean=cfg.foot_lean,
+                                    softness=cfg.leg_softness))
     return StreamDecoding(filters)

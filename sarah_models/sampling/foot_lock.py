@@ -43,6 +43,11 @@ does that, causally, per foot:
   0.00 %; the data: never), the lock having moved one foot 19.5 cm from the decoded one; with it
   0.74 % and 0.42 %, the pose (FGD_local) 0.93x nearer the data (docs/results.md,
   hundred-and-second and hundred-and-third runs);
+- **under the hip** (``lean``, ``vae.foot_lean``, off by default): a held foot whose ankle stands
+  further than ``lean`` on the floor from under its hip steps to its decoded place where that is
+  nearer under it and the other foot stands planted. It brings the recipe model's ankles nearer
+  under its hips by stepping more often, further from the data in FGD_acc (docs/results.md,
+  hundred-and-fifth run);
 - **free**: a decoded foot higher than ``FREE_HEIGHT`` above the floor (a raised leg) follows the
   decoder;
 - **stance** (given a decoded stance, ``vae.foot_lock_reads="stance"``): where the stance of a
@@ -105,6 +110,7 @@ STEP_SHARE = np.array([0.0, 0.02, 0.29, 0.72, 0.98, 1.0])
 STANCE_LIFT = 0.04
 STANCE_REACH = VAEConfig.stance_reach  # m a foot drifts from where its stance plants it, by default
 GAP = VAEConfig.foot_gap  # m along the hips' line a held foot keeps from the other, by default
+LEAN = VAEConfig.foot_lean  # m a held ankle may stand from under its hip, by default
 RELEASE = 0.02  # m above its planted height: the decoder is lifting the foot to step
 RELEASE_FADE = 6  # frames over which a released foot's planted offset fades out
 
@@ -131,7 +137,7 @@ class FootLock:
 
     def __init__(self, layout: MotionLayout, lengths, radius: float,
                  swing_frames: int = SWING_FRAMES, lift: float = LIFT, step: str = STEP,
-                 stance_reach: float = STANCE_REACH, gap: float = GAP,
+                 stance_reach: float = STANCE_REACH, gap: float = GAP, lean: float = LEAN,
                  softness: float = 0.0) -> None:
         if not radius > 0:
             raise ValueError(f"foot lock radius must be positive, got {radius}")
@@ -141,6 +147,9 @@ class FootLock:
         if not gap >= 0:
             raise ValueError(f"foot lock gap must be >= 0 (0: off), got {gap}")
         self.gap = gap
+        if not lean >= 0:
+            raise ValueError(f"foot lock lean must be >= 0 (0: off), got {lean}")
+        self.lean = lean
         if not softness >= 0:
             raise ValueError(f"foot lock leg softness must be >= 0 (0: off), got {softness}")
         self.softness = softness
@@ -184,6 +193,7 @@ class FootLock:
         targets: list[list[tuple[int, np.ndarray]]] = [[] for _ in self.legs]
         lines = hips_line(joints[:, self.legs[0][0]], joints[:, self.legs[1][0]])
         all_ankles = joints[:, [leg[2] for leg in self.legs]]
+        all_hips = joints[:, [leg[0] for leg in self.legs]]
         for t in range(len(x)):
             across, ankles = lines[t], all_ankles[t]
             for side, leg in enumerate(self.legs):
@@ -192,7 +202,7 @@ class FootLock:
                 if foot[1] < FLOOR_HEIGHT:  # sunk into the floor: stand (and lift off) on it
                     on_floor = np.array([foot[0], FLOOR_HEIGHT, foot[2]])
                 stands = None if stance is None else bool(stance[t, side])
-                target = self._target(side, on_floor, stands, ankles, across)
+                target = self._target(side, on_floor, stands, ankles, across, all_hips[t])
                 if target is None and on_floor is not foot:
                     target = on_floor
                 if target is not None:
@@ -206,12 +216,13 @@ class FootLock:
         return finish(motion, icosahedra, shell, correction, self.shell(shell, joints, correction))
 
     def _target(self, side: int, foot: np.ndarray, stands: bool | None = None,
-                ankles: np.ndarray | None = None, across: np.ndarray | None = None
-                ) -> np.ndarray | None:
+                ankles: np.ndarray | None = None, across: np.ndarray | None = None,
+                hips: np.ndarray | None = None) -> np.ndarray | None:
         """Where this frame puts the foot (None: where the decoder put it); advances the state.
         ``stands``: the decoded stance of this foot now, True where it is planted (None: none
         given); ``ankles`` both legs' decoded ankles now and ``across`` the hips' line
-        (``hips_line``; zero, or None: the foot is not kept apart from the other)."""
+        (``hips_line``; zero, or None: the foot is not kept apart from the other); ``hips`` both
+        legs' hips now (None: the foot may stand as far from under its hip as it drifts)."""
         previous, self._previous[side] = self._previous[side], foot.copy()
         if foot[1] > FREE_HEIGHT:
             self._planted[side] = self._swing[side] = self._lifted[side] = None
@@ -260,7 +271,8 @@ class FootLock:
         target = np.array([planted[0], foot[1], planted[2]])
         reach = self.radius if stands is None else self.stance_reach
         drifted = (np.hypot(*(foot - planted)[[0, 2]]) > reach
-                   or self._crowded(side, target - foot, ankles, across))
+                   or self._crowded(side, target - foot, ankles, across)
+                   or self._leaning(side, target - foot, ankles, hips))
         if drifted and self.step == "data":
             return self._step_as_data(side, foot, previous, stands, by_stance=False)
         if drifted:
@@ -293,6 +305,17 @@ class FootLock:
         if float(np.dot(ankles[side] + held - ankles[other], outward)) <= kept:
             return True  # the other foot's step would not widen the gap
         return np.hypot(*held[[0, 2]]) >= np.hypot(*(standing - ankles[other])[[0, 2]])
+
+    def _leaning(self, side: int, held: np.ndarray, ankles: np.ndarray | None,
+                 hips: np.ndarray | None) -> bool:
+        """Whether this planted foot, ``held`` this far from the decoded one, is to step because
+        its ankle stands further than ``lean`` on the floor from under its hip, the decoded ankle
+        stands nearer under it, and the other foot is planted (one foot steps at a time)."""
+        if not self.lean or ankles is None or hips is None or self._planted[1 - side] is None:
+            return False
+        floor = np.array([1.0, 0.0, 1.0])
+        leaning = np.linalg.norm((ankles[side] + held - hips[side]) * floor)
+        return leaning > self.lean and np.linalg.norm((ankles[side] - hips[side]) * floor) < leaning
 
     def _step_as_data(self, side: int, foot: np.ndarray, previous: np.ndarray | None,
                       stands: bool | None, by_stance: bool = True) -> np.ndarray:
