@@ -135,6 +135,19 @@ class MotionLayout:
         ico = motion[..., :self.icosahedra_width].reshape(lead + (self.num_joints, ICOSAHEDRON_POINTS, 3))
         return ico, motion[..., self.icosahedra_width:].reshape(lead + (self.shell_points, 3))
 
+    def group_points(self, frame, groups: Sequence[str]) -> np.ndarray:
+        """The indices of the points (``split``'s icosahedron vertices, then its shell points)
+        of ``JOINT_GROUPS``' ``groups``: their joints' icosahedra, and the shell points that lie
+        nearest to those joints in ``frame`` (one motion vector, ``shell_parts``)."""
+        joints = [self.joint(n) for group in groups for n in JOINT_GROUPS[group]
+                  if n in self.joint_names]
+        vertices = (np.asarray(joints, int)[:, None] * ICOSAHEDRON_POINTS
+                    + np.arange(ICOSAHEDRON_POINTS)).ravel()
+        icosahedra, shell = self.split(np.asarray(frame, np.float64))
+        parts = shell_parts(icosahedra, shell, self.joint_names)
+        shell_points = np.asarray([p for group in groups for p in parts.get(group, ())], int)
+        return np.concatenate([vertices, self.num_joints * ICOSAHEDRON_POINTS + shell_points])
+
     def joint_positions(self, motion, names: Sequence[str] | None = None):
         """(..., width) -> (..., J, 3) joint positions (icosahedron centroids); only ``names``
         (in that order) when given."""

@@ -124,6 +124,28 @@ def test_the_root_has_its_own_spring():
         SeamInertia(S, 0.6, 0.9)
 
 
+def test_still_hands_keep_their_decoded_points_and_the_rest_is_sprung_as_before():
+    """vae.seam_skips_hands: the hands' icosahedra and the shell points nearest them pass as the
+    decoder put them, every other point is sprung as without it; streamed in blocks as at once."""
+    frames = 40
+    jumpy = walking_body(frames) + block_seams(frames, 0.03)
+    hands = LAYOUT.group_points(jumpy[0], ("hands",))
+    finger = LAYOUT.joint("left_index1") * 12
+    assert finger in hands and LAYOUT.joint("left_wrist") * 12 not in hands
+    rest = np.setdiff1d(np.arange(LAYOUT.width // 3), hands)
+    sprung = SeamInertia(S, 0.8, mode="position")(jumpy).reshape(frames, -1, 3)
+    still = SeamInertia(S, 0.8, mode="position", layout=LAYOUT, still=("hands",))
+    out = still(jumpy).reshape(frames, -1, 3)
+    np.testing.assert_array_equal(out[:, hands], jumpy.reshape(frames, -1, 3)[:, hands])
+    np.testing.assert_allclose(out[:, rest], sprung[:, rest], atol=1e-12)
+    assert np.abs(out[:, rest] - jumpy.reshape(frames, -1, 3)[:, rest]).max() > 1e-3
+    still.reset()
+    blocks = np.concatenate([still(jumpy[i:i + 2 * S]) for i in range(0, frames, 2 * S)])
+    np.testing.assert_array_equal(blocks.reshape(frames, -1, 3), out)
+    with pytest.raises(ValueError, match="layout"):
+        SeamInertia(S, 0.8, still=("hands",))
+
+
 @settings(max_examples=25, deadline=None)
 @given(chunks=st.lists(st.integers(1, 4), min_size=1, max_size=10), seed=st.integers(0, 100))
 def test_any_chunking_in_blocks_gives_the_frames_of_one_call(chunks, seed):
@@ -207,3 +229,19 @@ def test_the_evaluation_vae_row_decodes_like_the_generators(inert_models):
             vae.config = dataclasses.replace(vae.config, boundary_inertia=0.9)
     assert np.abs(inert[S:] - raw[S:]).max() > 1e-6
     np.testing.assert_allclose(inert, SeamInertia(S, 0.9)(raw.astype(np.float64)), atol=1e-6)
+
+
+def test_the_chain_leaves_the_hands_still_when_the_model_says_so(inert_models):
+    """vae.seam_skips_hands reaches the stream's seam spring, and is a decoding setting."""
+    from sarah_models.config import DECODING_FIELDS
+    from sarah_models.sampling.decoding import stream_decoding
+
+    vae, _, normalizer = inert_models
+    assert "seam_skips_hands" in DECODING_FIELDS["vae"]
+    assert stream_decoding(vae, normalizer).filters[0].still == ()
+    vae.config = dataclasses.replace(vae.config, seam_skips_hands=True)
+    try:
+        spring = stream_decoding(vae, normalizer).filters[0]
+    finally:
+        vae.config = dataclasses.replace(vae.config, seam_skips_hands=False)
+    assert isinstance(spring, SeamInertia) and spring.still == ("hands",)

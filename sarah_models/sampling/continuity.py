@@ -26,6 +26,14 @@ block's own velocity kept (v0 = 0): the ground truth passes with 50, and the ben
 samples, through the whole decoding chain, score lower too. ``mode="velocity"`` is the
 sixteenth run's, which the models shipped so far decode with.
 
+``still`` leaves some body parts (``JOINT_GROUPS``' names: their joints' icosahedra and the
+shell points nearest them) as the decoder put them (``vae.seam_skips_hands``: the hands). The
+rigid skeleton places each hand as a piece on its wrist and each finger along its decoded
+direction, so a still hand goes where its sprung wrist goes and keeps its own motion; sprung
+point by point, the fingers' own seams and their real beats are smoothed together, and on the
+fixture benchmark's test windows the hands came further from the data while the arms and the
+trunk came nearer (docs/results.md, hundred-and-fifth run).
+
 It runs block by block on the past and the block in hand (a block's first velocity is read from
 its own first two frames, which the decoder emits together), so a stream decoded block by block
 and the same latents decoded at once get the same frames.
@@ -35,6 +43,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from sarah_data.skeleton import MotionLayout
+
 from ..config import SEAM_MODES
 
 
@@ -43,10 +53,12 @@ class SeamInertia:
 
     ``decay`` acts on the pose (each point relative to the root); ``root_decay`` on the root's
     translation, which every point shares (None: ``decay`` too). ``root_points`` are the
-    points whose mean is the root (the pelvis icosahedron)."""
+    points whose mean is the root (the pelvis icosahedron). ``still``: body parts the spring
+    leaves as decoded, in ``layout``."""
 
     def __init__(self, stride: int, decay: float, root_decay: float | None = None,
-                 root_points: slice | None = None, mode: str = "velocity") -> None:
+                 root_points: slice | None = None, mode: str = "velocity",
+                 layout: MotionLayout | None = None, still: tuple[str, ...] = ()) -> None:
         if mode not in SEAM_MODES:
             raise ValueError(f"seam inertia mode must be one of {SEAM_MODES}, got {mode!r}")
         self.mode = mode
@@ -58,6 +70,9 @@ class SeamInertia:
             raise ValueError(f"seam inertia needs blocks of at least 2 frames, got stride {stride}")
         if root_decay != decay and root_points is None:
             raise ValueError("seam inertia with its own root decay needs the root's points")
+        if still and layout is None:
+            raise ValueError("seam inertia that leaves body parts still needs the motion's layout")
+        self.layout, self.still = layout, tuple(still)
         self.stride, self.decay, self.root_decay = stride, decay, root_decay
         self._root = root_points if root_decay != decay else None
         self._pose_spring = self._spring(decay)
@@ -75,6 +90,7 @@ class SeamInertia:
 
     def reset(self) -> None:
         self._last: np.ndarray | None = None  # the last two output frames, (2, P, 3)
+        self._still: np.ndarray | None = None  # the points of ``still``, from the first frame
 
     def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None,
                  user: np.ndarray | None = None) -> np.ndarray:
@@ -86,6 +102,8 @@ class SeamInertia:
             raise ValueError(f"seam inertia takes whole blocks of {self.stride} frames, got "
                              f"{len(motion)} frames")
         points = np.asarray(motion, np.float64).reshape(len(motion), -1, 3)
+        if self.still and self._still is None and len(motion):
+            self._still = self.layout.group_points(motion[0], self.still)
         out = np.empty_like(points)
         for start in range(0, len(points), self.stride):
             block = points[start:start + self.stride]
@@ -98,7 +116,10 @@ class SeamInertia:
                     x0, v0 = last + v_last - block[0], v_last - v_first
                 else:
                     x0, v0 = last + 0.5 * (v_last + v_first) - block[0], np.zeros_like(v_last)
-                out[start:start + self.stride] = block + self._offsets(x0, v0)
+                offsets = self._offsets(x0, v0)
+                if self._still is not None:
+                    offsets[:, self._still] = 0.0
+                out[start:start + self.stride] = block + offsets
             self._last = out[start + self.stride - 2:start + self.stride].copy()
         return out.reshape(motion.shape).astype(motion.dtype)
 

@@ -122,7 +122,8 @@ def stream_decoding(vae, normalizer, bone_lengths=None) -> StreamDecoding:
     layout = MotionLayout.from_width(vae.motion_dim)
     channels = layout.joint_slice(ROOT)
     filters: list = [SeamInertia(vae.stride, cfg.boundary_inertia, cfg.root_inertia,
-                                 slice(channels.start // 3, channels.stop // 3), cfg.seam_mode)]
+                                 slice(channels.start // 3, channels.stop // 3), cfg.seam_mode,
+                                 layout, ("hands",) if cfg.seam_skips_hands else ())]
     if cfg.limb_lowpass:
         filters.append(LimbLowpass(layout, cfg.limb_lowpass))
     if cfg.root_hold:

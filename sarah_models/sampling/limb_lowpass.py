@@ -24,7 +24,7 @@ import numpy as np
 from scipy import signal
 
 from sarah_data.constants import FPS
-from sarah_data.skeleton import ICOSAHEDRON_POINTS, JOINT_GROUPS, ROOT, MotionLayout, shell_parts
+from sarah_data.skeleton import ROOT, MotionLayout
 
 LIMBS = ("arms", "hands")  # the JOINT_GROUPS filtered
 
@@ -43,22 +43,11 @@ class LimbLowpass:
     def __init__(self, layout: MotionLayout, cutoff: float, fps: float = FPS) -> None:
         self.layout = layout
         self.b, self.a = butterworth(cutoff, fps)
-        joints = [layout.joint(n) for group in LIMBS for n in JOINT_GROUPS[group]
-                  if n in layout.joint_names]
-        self.joint_points = (np.asarray(joints)[:, None] * ICOSAHEDRON_POINTS
-                             + np.arange(ICOSAHEDRON_POINTS)).ravel()
         self.reset()
 
     def reset(self) -> None:
         self.points: np.ndarray | None = None  # point indices filtered, set at the first frame
         self.state: np.ndarray | None = None  # (2, points * 3): the filter's two delays
-
-    def _start(self, frame: np.ndarray) -> None:
-        icosahedra, shell = self.layout.split(frame)
-        parts = shell_parts(icosahedra, shell, self.layout.joint_names)
-        shell_points = [p for group in LIMBS for p in parts.get(group, ())]
-        offset = self.layout.num_joints * ICOSAHEDRON_POINTS
-        self.points = np.concatenate([self.joint_points, offset + np.asarray(shell_points, int)])
 
     def __call__(self, motion: np.ndarray, stance: np.ndarray | None = None,
                  user: np.ndarray | None = None) -> np.ndarray:
@@ -66,7 +55,7 @@ class LimbLowpass:
         if not len(out):
             return out
         if self.points is None:
-            self._start(out[0])
+            self.points = self.layout.group_points(out[0], LIMBS)
         points = out.reshape(len(out), -1, 3)  # a view into ``out``
         pelvis = self.layout.joint_positions(out, [ROOT])[:, 0]
         x = (points[:, self.points] - pelvis[:, None]).reshape(len(out), -1)
