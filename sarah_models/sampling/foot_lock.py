@@ -113,20 +113,21 @@ GAP = VAEConfig.foot_gap  # m along the hips' line a held foot keeps from the ot
 LEAN = VAEConfig.foot_lean  # m a held ankle may stand from under its hip, by default
 RELEASE = 0.02  # m above its planted height: the decoder is lifting the foot to step
 RELEASE_FADE = 6  # frames over which a released foot's planted offset fades out
+ON_FLOOR = np.array([1.0, 0.0, 1.0])  # times a vector: its part along the floor (y up)
 
 
 def hips_line(left_hip: np.ndarray, right_hip: np.ndarray) -> np.ndarray:
     """(..., 3) hips -> (..., 3) the unit floor direction from the right hip to the left, along
     which a foot's gap to the other is measured (the left ankle's offset from the right: ``gap``,
     and ``scripts/decode_replay.py --feet``); zero where the hips stand one above the other."""
-    line = (left_hip - right_hip) * np.array([1.0, 0.0, 1.0])
+    line = (left_hip - right_hip) * ON_FLOOR
     length = np.linalg.norm(line, axis=-1, keepdims=True)
     return np.divide(line, length, out=np.zeros_like(line), where=length > 1e-6)
 
 
 def floor_velocity(foot: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
     """The decoded foot's move on the floor plane since the frame before, per frame (y = 0)."""
-    return (foot - (foot if previous is None else previous)) * np.array([1.0, 0.0, 1.0])
+    return (foot - (foot if previous is None else previous)) * ON_FLOOR
 
 
 class FootLock:
@@ -242,7 +243,7 @@ class FootLock:
         if planted is not None and self._swing[side] is None and foot[1] > planted[1] + RELEASE:
             self._planted[side] = None
             self._lifted[side] = (planted[1] + 0.5 * RELEASE,
-                                  (planted - foot) * np.array([1.0, 0.0, 1.0]), 0)
+                                  (planted - foot) * ON_FLOOR, 0)
             return foot + self._lifted[side][1]
         swing = self._swing[side]
         if swing is not None:
@@ -313,9 +314,8 @@ class FootLock:
         stands nearer under it, and the other foot is planted (one foot steps at a time)."""
         if not self.lean or ankles is None or hips is None or self._planted[1 - side] is None:
             return False
-        floor = np.array([1.0, 0.0, 1.0])
-        leaning = np.linalg.norm((ankles[side] + held - hips[side]) * floor)
-        return leaning > self.lean and np.linalg.norm((ankles[side] - hips[side]) * floor) < leaning
+        leaning = np.linalg.norm((ankles[side] + held - hips[side]) * ON_FLOOR)
+        return leaning > self.lean and np.linalg.norm((ankles[side] - hips[side]) * ON_FLOOR) < leaning
 
     def _step_as_data(self, side: int, foot: np.ndarray, previous: np.ndarray | None,
                       stands: bool | None, by_stance: bool = True) -> np.ndarray:
